@@ -1,0 +1,48 @@
+# bridgeOS Cloud: `make run` starts everything, `make test` tests everything.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: run test test-fast services images lint bench install clean
+
+## Create .venv and install the cloud, the agent and the test tools (torch first: the CPU build on disk).
+install: $(STAMP)
+$(STAMP): pyproject.toml agent/pyproject.toml
+	@echo "== venv: installing into $(VENV)"
+	@start=$$(date +%s); \
+	test -x $(PY) || $(PYTHON) -m venv $(VENV); \
+	$(PY) -m pip install -q --upgrade pip setuptools wheel; \
+	$(PY) -m pip install -q torch==2.13.0; \
+	$(PY) -m pip install -q -e ./agent -e ".[test]"; \
+	echo "== venv: ready in $$(( $$(date +%s) - start )) s"
+	@touch $@
+
+## Start daphne on 127.0.0.1:8000, a Celery worker (when Redis answers) and print the operator login.
+run: install
+	@bash scripts/run.sh
+
+## Install and start what the tests need (PostgreSQL, Redis, dockerd + Swarm, roscore, images), then run them all.
+test: install services
+	@bash scripts/test.sh
+
+## Run the tests without (re)checking services.
+test-fast: install
+	@bash scripts/test.sh
+
+services:
+	@bash scripts/services.sh
+
+images:
+	@bash docker/build-images.sh
+
+lint: install
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+## Run every benchmark and print its figures.
+bench: install
+	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b $(BENCH_ARGS) || exit 1; done
+
+clean:
+	rm -rf $(VENV) .data .pytest_cache .hypothesis

@@ -1,0 +1,25 @@
+"""URL routes: dashboard at /, admin at /admin/, the Robot API under /api/."""
+
+from __future__ import annotations
+
+from django.contrib import admin
+from django.contrib.auth import views as auth_views
+from django.urls import include, path
+from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
+
+from . import views
+
+dashboard_patterns = ([path("", views.index, name="index")], "dashboard")
+
+urlpatterns = [
+    path("", include(dashboard_patterns)),
+    path("accounts/login/", auth_views.LoginView.as_view(), name="login"),
+    path("accounts/logout/", auth_views.LogoutView.as_view(), name="logout"),
+    path("admin/", admin.site.urls),
+    path("api/health", views.health, name="health"),
+    path("api/schema/", SpectacularAPIView.as_view(), name="schema"),
+    path("api/docs/", SpectacularSwaggerView.as_view(url_name="schema"), name="docs"),
+]
+
+admin.site.site_header = "bridgeOS Cloud administration"
+admin.site.site_title = "bridgeOS Cloud"

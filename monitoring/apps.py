@@ -1,0 +1,12 @@
+"""App config of monitoring."""
+
+from __future__ import annotations
+
+from django.apps import AppConfig
+
+
+class MonitoringConfig(AppConfig):
+    """Register the monitoring app."""
+
+    name = "monitoring"
+    default_auto_field = "django.db.models.BigAutoField"

@@ -1,0 +1,73 @@
+"""Robots attached to the cloud, with their configuration and hashed token."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+from typing import Any
+
+from bridgeos_agent.skillconfig import SLUG_PATTERN
+from bridgeos_agent.robotconfig import RobotConfig, parse_robot_config
+from django.conf import settings
+from django.core.validators import RegexValidator
+from django.db import models
+from django.utils import timezone
+
+from bridgeos_cloud.validation import validated_config
+
+from .choices import RobotStatus
+
+id_validator = RegexValidator(
+    SLUG_PATTERN, "Use 1-64 lowercase letters, digits, '-' or '_', starting with a letter or digit."
+)
+TOKEN_PREFIX = "brt_"
+
+
+def default_robot_config() -> dict[str, Any]:
+    """Return the config a new robot starts with."""
+    return RobotConfig().model_dump(mode="json")
+
+
+def hash_token(token: str) -> str:
+    """Hash a robot token; tokens are 256-bit random, so a plain SHA-256 is enough."""
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+class Robot(models.Model):
+    """A robot whose Robot Controller connects to this cloud."""
+
+    id = models.CharField(primary_key=True, max_length=64, validators=[id_validator])
+    name = models.CharField(max_length=200, blank=True)
+    owner = models.ForeignKey(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="robots")
+    status = models.CharField(max_length=16, choices=RobotStatus.choices, default=RobotStatus.IDLE)
+    connected = models.BooleanField(default=False)
+    last_seen = models.DateTimeField(null=True, blank=True)
+    config = models.JSONField(default=default_robot_config, help_text="Resources, heuristic, threshold, offloading mode, subnets.")
+    token_hash = models.CharField(max_length=64, editable=False)
+    created_at = models.DateTimeField(default=timezone.now, editable=False)
+
+    class Meta:
+        ordering = ["id"]
+        indexes = [models.Index(fields=["owner", "id"])]
+
+    def __str__(self) -> str:
+        return self.name or self.id
+
+    def clean(self) -> None:
+        self.config = validated_config(parse_robot_config, self.config)
+
+    def save(self, *args: Any, **kwargs: Any) -> None:
+        # Configs are validated on every save, not only in forms, so no door can store a bad one.
+        self.config = validated_config(parse_robot_config, self.config)
+        super().save(*args, **kwargs)
+
+    def issue_token(self) -> str:
+        """Replace the robot's token and return the new one; only its hash is kept."""
+        token = TOKEN_PREFIX + secrets.token_urlsafe(32)
+        self.token_hash = hash_token(token)
+        return token
+
+    def check_token(self, token: str) -> bool:
+        """Tell whether a presented token is this robot's, in constant time."""
+        return bool(self.token_hash) and hmac.compare_digest(self.token_hash, hash_token(token))

@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# `make run`: migrate, make an operator account, start daphne (and a Celery worker if Redis answers).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=.venv/bin/python
+HOST="${BRIDGEOS_HOST:-127.0.0.1}"
+PORT="${BRIDGEOS_PORT:-8000}"
+
+# Redis is the embedded default's optional extra: use it when it answers, else stay in-process.
+if [ -z "${REDIS_URL:-}" ] && $PY - <<'PY' 2>/dev/null
+import socket; socket.create_connection(("127.0.0.1", 6379), timeout=0.5).close()
+PY
+then
+  export REDIS_URL="redis://127.0.0.1:6379/0"
+fi
+
+echo "== database: ${DATABASE_URL:-SQLite file in ${BRIDGEOS_DATA_DIR:-.data}}"
+$PY manage.py migrate --no-input -v 0
+login=$($PY manage.py ensure_operator)
+
+pids=()
+stop() {
+  trap - INT TERM EXIT
+  echo; echo "== stopping"
+  for pid in "${pids[@]}"; do kill "$pid" 2>/dev/null || true; done
+  wait 2>/dev/null || true
+}
+trap stop INT TERM EXIT
+
+if [ -n "${REDIS_URL:-}" ]; then
+  echo "== celery worker on $REDIS_URL"
+  .venv/bin/celery -A bridgeos_cloud worker --beat -l warning -c 2 &
+  pids+=($!)
+else
+  echo "== no Redis: in-memory channel layer, tasks run in-process"
+fi
+
+.venv/bin/daphne -b "$HOST" -p "$PORT" bridgeos_cloud.asgi:application &
+pids+=($!)
+
+for _ in $(seq 1 100); do
+  if $PY -c "import urllib.request; urllib.request.urlopen('http://$HOST:$PORT/api/health', timeout=1)" 2>/dev/null; then break; fi
+  sleep 0.1
+done
+cat <<MSG
+
+  bridgeOS Cloud is running.
+    Dashboard: http://$HOST:$PORT/
+    Admin:     http://$HOST:$PORT/admin/
+    API docs:  http://$HOST:$PORT/api/docs/
+    $login
+  Press Ctrl-C to stop.
+
+MSG
+wait -n "${pids[@]}"

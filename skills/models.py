@@ -1,0 +1,99 @@
+"""Skills deployed on robots, their components, and the catalog of Skill templates."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from bridgeos_agent.protocol import ComponentStatusName, SkillStatusName
+from bridgeos_agent.skillconfig import parse_skill_config
+from django.core.exceptions import ValidationError
+from django.db import models
+from django.utils import timezone
+
+from bridgeos_cloud.validation import validated_config
+from robots.models import Robot, id_validator
+
+from .choices import ACTIVE_LOCATION_CHOICES, COMPONENT_STATUS_CHOICES, LOCATION_CHOICES, SKILL_STATUS_CHOICES
+
+
+class Skill(models.Model):
+    """A Skill added to one robot, configured by a Skill config (thesis Table 4.1)."""
+
+    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="skills")
+    skill_id = models.CharField(max_length=64, validators=[id_validator])
+    name = models.CharField(max_length=200)
+    config = models.JSONField()
+    status = models.CharField(max_length=16, choices=SKILL_STATUS_CHOICES, default=SkillStatusName.STOPPED.value)
+    created_at = models.DateTimeField(default=timezone.now, editable=False)
+    updated_at = models.DateTimeField(auto_now=True)
+
+    class Meta:
+        ordering = ["robot_id", "skill_id"]
+        constraints = [models.UniqueConstraint(fields=["robot", "skill_id"], name="unique_skill_per_robot")]
+
+    def __str__(self) -> str:
+        return f"{self.robot_id}/{self.skill_id}"
+
+    def clean(self) -> None:
+        self.config = validated_config(parse_skill_config, self.config)
+
+    def save(self, *args: Any, **kwargs: Any) -> None:
+        self.config = validated_config(parse_skill_config, self.config)
+        super().save(*args, **kwargs)
+
+
+class Component(models.Model):
+    """One containerised component of a Skill, and where it runs now."""
+
+    skill = models.ForeignKey(Skill, on_delete=models.CASCADE, related_name="components")
+    component_id = models.CharField(max_length=64, validators=[id_validator])
+    location = models.CharField(max_length=8, choices=LOCATION_CHOICES, help_text="Where the config allows it to run.")
+    active_location = models.CharField(max_length=8, choices=ACTIVE_LOCATION_CHOICES, blank=True)
+    status = models.CharField(max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value)
+    container = models.JSONField(default=dict, blank=True, help_text="Container id, address, image, ports.")
+    resources = models.JSONField(default=dict, blank=True, help_text="cpu, gpu, ram, bandwidth, io.")
+    updated_at = models.DateTimeField(auto_now=True)
+
+    class Meta:
+        ordering = ["skill_id", "component_id"]
+        constraints = [
+            models.UniqueConstraint(fields=["skill", "component_id"], name="unique_component_per_skill"),
+            models.CheckConstraint(
+                condition=~models.Q(active_location="either"), name="active_location_is_a_side"
+            ),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.skill}/{self.component_id}"
+
+
+class SkillTemplate(models.Model):
+    """A Skill config in the catalog, ready to be added to any robot."""
+
+    name = models.CharField(max_length=200, unique=True)
+    description = models.TextField(blank=True)
+    config = models.JSONField()
+    tags = models.JSONField(default=list, blank=True)
+    created_at = models.DateTimeField(default=timezone.now, editable=False)
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return self.name
+
+    def clean(self) -> None:
+        self.config = validated_config(parse_skill_config, self.config)
+        self.tags = _validated_tags(self.tags)
+
+    def save(self, *args: Any, **kwargs: Any) -> None:
+        self.config = validated_config(parse_skill_config, self.config)
+        self.tags = _validated_tags(self.tags)
+        super().save(*args, **kwargs)
+
+
+def _validated_tags(tags: Any) -> list[str]:
+    """Return tags as a list of short strings, or raise a field error."""
+    if not isinstance(tags, list) or not all(isinstance(tag, str) and 0 < len(tag) <= 50 for tag in tags):
+        raise ValidationError({"tags": ["Tags must be a list of strings of 1-50 characters."]})
+    return tags
