@@ -1,0 +1,130 @@
+"""Fixtures that start the real parts: daphne on a socket, a Celery worker on Redis."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).parent
+
+
+def free_port() -> int:
+    """Return a TCP port nobody listens on right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def wait_for_port(port: int, process: subprocess.Popen, timeout: float = 30.0) -> None:
+    """Wait until something accepts on the port, failing early if the process died."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(f"process exited with {process.returncode} before listening on {port}")
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"nothing listened on port {port} within {timeout} s")
+
+
+def service_env(db_name: str) -> dict[str, str]:
+    """Return the environment a server process needs to share the test database."""
+    from django.conf import settings
+
+    db = settings.DATABASES["default"]
+    if db["ENGINE"] != "django.db.backends.postgresql":
+        pytest.fail("The suite runs against PostgreSQL: run it with `make test` (DATABASE_URL=postgres://...).")
+    url = f"postgres://{db['USER']}@{db['HOST'] or '127.0.0.1'}:{db['PORT'] or 5432}/{db_name}"
+    return {**os.environ, "DATABASE_URL": url, "PYTHONUNBUFFERED": "1"}
+
+
+@dataclass
+class Server:
+    """A daphne serving the project on a real socket."""
+
+    host: str
+    port: int
+    log: Path
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+
+@pytest.fixture(scope="session")
+def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator[Server]:  # noqa: ARG001
+    """Start daphne against the test database; tests that use it need committed data (transactional_db)."""
+    from django.conf import settings
+
+    port = free_port()
+    log = tmp_path_factory.mktemp("daphne") / "daphne.log"
+    env = service_env(settings.DATABASES["default"]["NAME"])
+    with log.open("wb") as out:
+        process = subprocess.Popen(
+            [str(BIN / "daphne"), "-b", "127.0.0.1", "-p", str(port), "bridgeos_cloud.asgi:application"],
+            cwd=ROOT,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+    try:
+        wait_for_port(port, process)
+        yield Server("127.0.0.1", port, log)
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+
+
+@pytest.fixture(scope="session")
+def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator[Path]:  # noqa: ARG001
+    """Start a real Celery worker on the test Redis database and wait until it answers a ping."""
+    import redis
+    from django.conf import settings
+
+    from bridgeos_cloud.celery import app
+
+    if not settings.REDIS_URL:
+        pytest.fail("The suite needs Redis: run it with `make test` (REDIS_URL=redis://...).")
+    # Tasks queued by an earlier, interrupted run must not reach this worker.
+    redis.Redis.from_url(settings.REDIS_URL).flushdb()
+    log = tmp_path_factory.mktemp("celery") / "worker.log"
+    env = service_env(settings.DATABASES["default"]["NAME"])
+    name = f"test-{os.getpid()}@localhost"
+    with log.open("wb") as out:
+        process = subprocess.Popen(
+            [str(BIN / "celery"), "-A", "bridgeos_cloud", "worker", "-P", "solo", "-l", "info", "-n", name],
+            cwd=ROOT,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while not app.control.ping(destination=[name], timeout=0.5):
+            if process.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"Celery worker did not start; its log:\n{log.read_text()[-3000:]}")
+        yield log
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            process.kill()
