@@ -1,0 +1,86 @@
+#!/usr/bin/env bash
+# Build the local bridgeOS images, skipping each one whose inputs have not changed.
+#
+#   docker/build-images.sh          # every image, in dependency order
+#   docker/build-images.sh ros      # one image (and, first, what it is built on)
+#
+# No registry is reachable, so everything starts from a debootstrapped Debian base.
+# Each image carries the label org.bridgeos.inputs = sha256 of what it is made from
+# (its files, plus its parent's image id); an image whose label matches is not rebuilt.
+# To add an image: write image_<name>() with build_image, and append <name> to IMAGES.
+set -euo pipefail
+
+DOCKER_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+IMAGES=(base ros)
+LABEL=org.bridgeos.inputs
+LOG_DIR=${BRIDGEOS_LOG_DIR:-/var/log}
+# The classic builder runs in the daemon itself: no buildx plugin needed on the host.
+export DOCKER_BUILDKIT=0
+
+now() { date +%s.%N; }
+elapsed() { awk -v s="$1" -v e="$(now)" 'BEGIN { printf "%.1fs", e - s }'; }
+
+inputs_hash() {  # extra-text, paths under docker/ ...
+    local extra=$1; shift
+    {
+        printf '%s\n' "$extra"
+        (cd "$DOCKER_DIR" && find "$@" -type f -print0 | LC_ALL=C sort -z | xargs -0 sha256sum)
+    } | sha256sum | cut -c1-64
+}
+
+image_label() { docker image inspect --format "{{index .Config.Labels \"$LABEL\"}}" "$1" 2>/dev/null || true; }
+image_id() { docker image inspect --format '{{.Id}}' "$1"; }
+
+declare -A DONE=()
+build_image() {  # tag, inputs hash, builder command...
+    local tag=$1 hash=$2; shift 2
+    local t; t=$(now)
+    if [[ $(image_label "$tag") == "$hash" ]]; then
+        echo "image $tag: up to date (inputs ${hash:0:12}) [$(elapsed "$t")]"
+        return
+    fi
+    echo "image $tag: building (inputs ${hash:0:12}) ..."
+    "$@" "$tag" "$hash"
+    echo "image $tag: built [$(elapsed "$t")]"
+}
+
+docker_build() {  # context dir under docker/, tag, hash
+    local log="$LOG_DIR/bridgeos-image-${2//[:\/]/-}.log"
+    if ! docker build --network host --label "$LABEL=$3" -t "$2" "$DOCKER_DIR/$1" >"$log" 2>&1; then
+        echo "image $2: docker build failed, last lines of $log:" >&2
+        tail -20 "$log" >&2
+        return 1
+    fi
+    grep '^Step ' "$log" | sed 's/^/    /' || true
+}
+
+image_base() {
+    build_image bridgeos/base:bookworm "$(inputs_hash "" base)" \
+        bash "$DOCKER_DIR/base/mkimage.sh"
+}
+
+image_ros() {
+    build_image bridgeos/ros:noetic "$(inputs_hash "$(image_id bridgeos/base:bookworm)" ros)" \
+        docker_build ros
+}
+
+PARENT_base=""
+PARENT_ros=base
+
+ensure() {  # image name: its parents first, each once
+    local name=$1 parent_var="PARENT_$1"
+    [[ -n ${DONE[$name]:-} ]] && return
+    [[ -n ${!parent_var} ]] && ensure "${!parent_var}"
+    "image_$name"
+    DONE[$name]=1
+}
+
+if ! docker info >/dev/null 2>&1; then
+    echo "build-images: docker is not reachable; run scripts/services.sh docker" >&2
+    exit 1
+fi
+if (($#)); then wanted=("$@"); else wanted=("${IMAGES[@]}"); fi
+for name in "${wanted[@]}"; do
+    [[ " ${IMAGES[*]} " == *" $name "* ]] || { echo "build-images: unknown image $name (known: ${IMAGES[*]})" >&2; exit 2; }
+    ensure "$name"
+done

@@ -1,0 +1,221 @@
+#!/usr/bin/env bash
+# Make sure the real services bridgeOS runs and tests against are up.
+#
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images
+#   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
+#
+# Idempotent: a part already up is left alone. Missing software is installed with apt
+# when run as root (one batched apt-get call); otherwise the script says what is missing
+# and how to get it, carries on with the other parts, and exits nonzero at the end.
+# It never stops a service: only starts those that are down.
+set -euo pipefail
+
+ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+ALL_PARTS=(postgres redis docker swarm ros images)
+ROS_PACKAGES=(ros-core python3-rospy python3-rostopic python3-std-msgs python3-sensor-msgs
+              python3-geometry-msgs python3-nav-msgs)
+DOCKERD_LOG=/var/log/bridgeos-dockerd.log
+ROSCORE_LOG=/var/log/bridgeos-roscore.log
+ROS_HOME_DIR=/var/lib/bridgeos/ros
+ROS_PORT=11311
+export DEBIAN_FRONTEND=noninteractive NEEDRESTART_MODE=l  # never prompt, never restart services
+export PATH="$PATH:/usr/sbin:/sbin"
+
+# ROS tools are Debian python scripts (#!/usr/bin/python3); keep pyenv shims, a venv
+# and its PYTHONPATH away from them.
+ros_env() {
+    env -u PYTHONPATH -u VIRTUAL_ENV PATH="/usr/bin:/bin:/usr/sbin:/sbin" \
+        ROS_MASTER_URI="http://127.0.0.1:${ROS_PORT}" ROS_HOME="$ROS_HOME_DIR" "$@"
+}
+
+is_root() { [[ $(id -u) -eq 0 ]]; }
+have() { command -v "$1" >/dev/null 2>&1; }
+port_open() { (exec 3<>"/dev/tcp/127.0.0.1/$1") 2>/dev/null; }
+proc_running() {  # exact process name; /proc rather than pgrep, procps may be absent
+    local comm
+    for comm in /proc/[0-9]*/comm; do
+        [[ $(cat "$comm" 2>/dev/null) == "$1" ]] && return 0
+    done
+    return 1
+}
+now() { date +%s.%N; }
+elapsed() { awk -v s="$1" -v e="$(now)" 'BEGIN { printf "%.1fs", e - s }'; }
+
+FAILED=()
+report() {  # part, start time, message
+    printf '%-9s %s [%s]\n' "$1:" "$3" "$(elapsed "$2")"
+}
+missing() {  # part, start time, message
+    report "$1" "$2" "MISSING - $3"
+    FAILED+=("$1")
+}
+
+wait_for() {  # seconds, command...
+    local deadline=$((SECONDS + $1)); shift
+    until "$@" >/dev/null 2>&1; do
+        ((SECONDS < deadline)) || return 1
+        sleep 0.5
+    done
+}
+
+# --- which parts -----------------------------------------------------------------
+if (($#)); then REQUESTED=("$@"); else REQUESTED=("${ALL_PARTS[@]}"); fi
+for part in "${REQUESTED[@]}"; do
+    [[ " ${ALL_PARTS[*]} " == *" $part "* ]] || { echo "unknown part: $part (known: ${ALL_PARTS[*]})" >&2; exit 2; }
+done
+wants() { [[ " ${REQUESTED[*]} " == *" $1 "* ]]; }
+if ! wants docker && { wants swarm || wants images; }; then REQUESTED=(docker "${REQUESTED[@]}"); fi
+
+# --- one batched apt-get for everything missing ------------------------------------
+rospy_ok() { ros_env /usr/bin/python3 -c 'import rospy, rostopic, std_msgs.msg' >/dev/null 2>&1; }
+APT_NEEDED=()
+INSTALLED=" "
+wants docker && ! have dockerd && APT_NEEDED+=(docker.io)
+wants images && ! have debootstrap && APT_NEEDED+=(debootstrap)
+wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
+if ((${#APT_NEEDED[@]})); then
+    t=$(now)
+    if is_root && have apt-get; then
+        apt_log=/var/log/bridgeos-apt.log
+        if apt-get update >"$apt_log" 2>&1 &&
+           apt-get install -y "${APT_NEEDED[@]}" >>"$apt_log" 2>&1; then
+            report apt "$t" "installed ${APT_NEEDED[*]} (log $apt_log)"
+            INSTALLED=" ${APT_NEEDED[*]} "
+        else
+            report apt "$t" "FAILED to install ${APT_NEEDED[*]}, see $apt_log:"
+            tail -5 "$apt_log" | sed 's/^/    /'
+        fi
+    else
+        report apt "$t" "cannot install (need root and apt-get): ${APT_NEEDED[*]}"
+    fi
+fi
+
+# --- parts -----------------------------------------------------------------------
+part_postgres() {
+    local t; t=$(now); local did="already running"
+    if ! port_open 5432; then
+        local versions; versions=$(ls /etc/postgresql 2>/dev/null | sort -V | tail -1 || true)
+        if [[ -z $versions ]]; then
+            missing postgres "$t" "nothing on 127.0.0.1:5432 and PostgreSQL is not installed: sudo apt-get install postgresql"; return
+        elif ! is_root; then
+            missing postgres "$t" "nothing on 127.0.0.1:5432: sudo pg_ctlcluster $versions main start"; return
+        fi
+        pg_ctlcluster --skip-systemctl-redirect "$versions" main start
+        wait_for 30 port_open 5432 || { missing postgres "$t" "started cluster $versions/main but 5432 never opened"; return; }
+        did="started cluster $versions/main"
+    fi
+    local pg=(psql -h 127.0.0.1 -U "${PGUSER:-postgres}" -d postgres -tAq)
+    if ! have psql; then
+        report postgres "$t" "$did (psql missing: cannot check database test)"; return
+    fi
+    if [[ $("${pg[@]}" -c "SELECT 1 FROM pg_database WHERE datname = 'test'" 2>/dev/null) != 1 ]]; then
+        "${pg[@]}" -c 'CREATE DATABASE test' >/dev/null || { missing postgres "$t" "$did, could not create database test"; return; }
+        did+=", created database test"
+    else
+        did+=", database test present"
+    fi
+    report postgres "$t" "$did"
+}
+
+part_redis() {
+    local t; t=$(now)
+    if port_open 6379; then report redis "$t" "already running"; return; fi
+    if ! have redis-server; then
+        missing redis "$t" "nothing on 127.0.0.1:6379 and redis-server not installed: sudo apt-get install redis-server"; return
+    fi
+    mkdir -p /var/lib/redis /var/log/redis 2>/dev/null || true
+    redis-server --daemonize yes --bind 127.0.0.1 -::1 --port 6379 --save "" --appendonly no \
+        --dir /var/lib/redis --logfile /var/log/redis/ci.log >/dev/null
+    if wait_for 15 port_open 6379; then
+        report redis "$t" "started (log /var/log/redis/ci.log)"
+    else
+        missing redis "$t" "started redis-server but 6379 never opened, see /var/log/redis/ci.log"
+    fi
+}
+
+docker_up() { docker info >/dev/null 2>&1; }
+
+part_docker() {
+    local t; t=$(now)
+    if docker_up; then report docker "$t" "dockerd already running"; return; fi
+    if ! have dockerd; then
+        missing docker "$t" "dockerd not installed: sudo apt-get install docker.io (or run this script as root)"; return
+    fi
+    local did
+    if proc_running dockerd; then
+        if [[ $(docker info 2>&1 || true) == *"permission denied"* ]]; then
+            missing docker "$t" "dockerd runs but $(id -un) cannot use its socket: sudo usermod -aG docker $(id -un) (then log in again), or run as root"; return
+        fi
+        did="dockerd was starting, now up"
+    elif ! is_root; then
+        missing docker "$t" "dockerd not running: sudo $0 docker (or start your docker service)"; return
+    else
+        # --bridge must stay default: containers on the docker0 bridge need it.
+        setsid nohup dockerd --storage-driver=overlay2 >>"$DOCKERD_LOG" 2>&1 </dev/null &
+        did="started dockerd (log $DOCKERD_LOG)"
+        [[ $INSTALLED == *" docker.io "* ]] && did="installed docker.io, $did"
+    fi
+    if wait_for 60 docker_up; then
+        report docker "$t" "$did"
+    else
+        missing docker "$t" "dockerd did not answer within 60 s, see $DOCKERD_LOG"
+    fi
+}
+
+part_swarm() {
+    local t; t=$(now)
+    if ! docker_up; then missing swarm "$t" "needs docker: scripts/services.sh docker"; return; fi
+    if [[ $(docker info --format '{{.Swarm.LocalNodeState}}' 2>/dev/null) == active ]]; then
+        report swarm "$t" "already active"; return
+    fi
+    if docker swarm init --advertise-addr 127.0.0.1 >/dev/null; then
+        report swarm "$t" "initialised single-node swarm (advertise 127.0.0.1)"
+    else
+        missing swarm "$t" "docker swarm init failed"
+    fi
+}
+
+rostopic_ok() { ros_env timeout 10 /usr/bin/python3 /usr/bin/rostopic list >/dev/null 2>&1; }
+
+part_ros() {
+    local t; t=$(now)
+    if [[ ! -x /usr/bin/roscore ]] || ! rospy_ok; then
+        missing ros "$t" "roscore/rospy not installed: sudo apt-get install ${ROS_PACKAGES[*]}"; return
+    fi
+    local did
+    if port_open "$ROS_PORT"; then
+        did="roscore already running on :$ROS_PORT"
+    else
+        mkdir -p "$ROS_HOME_DIR" 2>/dev/null || { missing ros "$t" "cannot create $ROS_HOME_DIR (run as root)"; return; }
+        ros_env setsid nohup /usr/bin/python3 /usr/bin/roscore -p "$ROS_PORT" >>"$ROSCORE_LOG" 2>&1 </dev/null &
+        did="started roscore -p $ROS_PORT (log $ROSCORE_LOG)"
+        [[ $INSTALLED == *" ros-core "* ]] && did="installed ROS packages, $did"
+    fi
+    if wait_for 30 rostopic_ok; then
+        report ros "$t" "$did"
+    else
+        missing ros "$t" "$did, but rostopic list fails; see $ROSCORE_LOG"
+    fi
+}
+
+part_images() {
+    local t; t=$(now)
+    if ! docker_up; then missing images "$t" "needs docker: scripts/services.sh docker"; return; fi
+    if ! have debootstrap; then missing images "$t" "debootstrap not installed: sudo apt-get install debootstrap"; return; fi
+    if bash "$ROOT_DIR/docker/build-images.sh"; then
+        report images "$t" "bridgeos/base:bookworm and bridgeos/ros:noetic ready"
+    else
+        missing images "$t" "docker/build-images.sh failed (see its output above)"
+    fi
+}
+
+for part in "${ALL_PARTS[@]}"; do
+    wants "$part" || continue
+    "part_$part"
+done
+
+if ((${#FAILED[@]})); then
+    echo "services: missing ${FAILED[*]}" >&2
+    exit 1
+fi
+echo "services: all up (${REQUESTED[*]})"
