@@ -11,8 +11,8 @@ os.environ.setdefault("DJANGO_SETTINGS_MODULE", "bridgeos_cloud.settings")
 django_asgi_app = get_asgi_application()
 
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
-from bridgeos_cloud.routing import BrowserOriginValidator, websocket_urlpatterns  # noqa: E402
 
+from bridgeos_cloud.routing import BrowserOriginValidator, websocket_urlpatterns  # noqa: E402
 
 application = ProtocolTypeRouter(
     {

@@ -5,10 +5,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from bridgeos_agent.errors import field_errors
 from django.core.exceptions import ValidationError
 from pydantic import BaseModel
 from pydantic import ValidationError as PydanticValidationError
+
+from bridgeos_agent.errors import field_errors
 
 
 def validated_config(parse: Callable[[Any], BaseModel], data: Any, field: str = "config") -> dict[str, Any]:

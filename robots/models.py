@@ -7,13 +7,13 @@ import hmac
 import secrets
 from typing import Any
 
-from bridgeos_agent.skillconfig import SLUG_PATTERN
-from bridgeos_agent.robotconfig import RobotConfig, parse_robot_config
 from django.conf import settings
 from django.core.validators import RegexValidator
 from django.db import models
 from django.utils import timezone
 
+from bridgeos_agent.robotconfig import RobotConfig, parse_robot_config
+from bridgeos_agent.skillconfig import SLUG_PATTERN
 from bridgeos_cloud.validation import validated_config
 
 from .choices import RobotStatus
@@ -43,7 +43,9 @@ class Robot(models.Model):
     status = models.CharField(max_length=16, choices=RobotStatus.choices, default=RobotStatus.IDLE)
     connected = models.BooleanField(default=False)
     last_seen = models.DateTimeField(null=True, blank=True)
-    config = models.JSONField(default=default_robot_config, help_text="Resources, heuristic, threshold, offloading mode, subnets.")
+    config = models.JSONField(
+        default=default_robot_config, help_text="Resources, heuristic, threshold, offloading mode, subnets."
+    )
     token_hash = models.CharField(max_length=64, editable=False)
     created_at = models.DateTimeField(default=timezone.now, editable=False)
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from bridgeos_agent.protocol import ComponentStatusName, SkillStatusName
-from bridgeos_agent.skillconfig import parse_skill_config
 from django.core.exceptions import ValidationError
 from django.db import models
 from django.utils import timezone
 
+from bridgeos_agent.protocol import ComponentStatusName, SkillStatusName
+from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_cloud.validation import validated_config
 from robots.models import Robot, id_validator
 
@@ -49,7 +49,9 @@ class Component(models.Model):
     component_id = models.CharField(max_length=64, validators=[id_validator])
     location = models.CharField(max_length=8, choices=LOCATION_CHOICES, help_text="Where the config allows it to run.")
     active_location = models.CharField(max_length=8, choices=ACTIVE_LOCATION_CHOICES, blank=True)
-    status = models.CharField(max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value)
+    status = models.CharField(
+        max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value
+    )
     container = models.JSONField(default=dict, blank=True, help_text="Container id, address, image, ports.")
     resources = models.JSONField(default=dict, blank=True, help_text="cpu, gpu, ram, bandwidth, io.")
     updated_at = models.DateTimeField(auto_now=True)
@@ -58,9 +60,7 @@ class Component(models.Model):
         ordering = ["skill_id", "component_id"]
         constraints = [
             models.UniqueConstraint(fields=["skill", "component_id"], name="unique_component_per_skill"),
-            models.CheckConstraint(
-                condition=~models.Q(active_location="either"), name="active_location_is_a_side"
-            ),
+            models.CheckConstraint(condition=~models.Q(active_location="either"), name="active_location_is_a_side"),
         ]
 
     def __str__(self) -> str:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from bridgeos_agent.skillconfig import parse_skill_config
 from django.core.exceptions import ValidationError
 from django.db import transaction
 
+from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_cloud.validation import validated_config
 from monitoring.services import record_event
 from robots.models import Robot

@@ -67,7 +67,7 @@ class Server:
 
 
 @pytest.fixture(scope="session")
-def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator[Server]:  # noqa: ARG001
+def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator[Server]:
     """Start daphne against the test database; tests that use it need committed data (transactional_db)."""
     from django.conf import settings
 
@@ -94,7 +94,7 @@ def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Itera
 
 
 @pytest.fixture(scope="session")
-def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator[Path]:  # noqa: ARG001
+def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator[Path]:
     """Start a real Celery worker on the test Redis database and wait until it answers a ping."""
     import redis
     from django.conf import settings

@@ -83,4 +83,3 @@ def test_static_files_are_served(daphne_server):
     response = httpx.get(daphne_server.url + "/static/css/bridgeos.css")
     assert response.status_code == 200
     assert "text/css" in response.headers["content-type"]
-

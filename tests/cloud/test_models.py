@@ -6,12 +6,12 @@ import copy
 import io
 
 import pytest
-from bridgeos_agent.skillconfig import load_sample_skill_config
 from django.contrib.auth import get_user_model
 from django.core.exceptions import ValidationError
 from django.core.management import CommandError, call_command
 from django.db import connection
 
+from bridgeos_agent.skillconfig import load_sample_skill_config
 from robots.models import Robot
 from robots.services import create_robot, rotate_token
 from skills.models import Component, Skill, SkillTemplate

@@ -29,6 +29,8 @@ from pydantic import (
     ValidationError,
 )
 
+from bridgeos_agent.skillconfig import SLUG_PATTERN
+
 __all__ = [
     "COMMANDS",
     "DIRECTIONS",
@@ -195,11 +197,10 @@ class ComponentStatusName(enum.StrEnum):
 # --------------------------------------------------------------------------- field types
 
 _ID_PATTERN = r"^[A-Za-z0-9_\-:.]{1,64}$"
-_SLUG_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
 _ID_RE = re.compile(_ID_PATTERN)
 
 MessageId = Annotated[str, StringConstraints(pattern=_ID_PATTERN)]
-Slug = Annotated[str, StringConstraints(pattern=_SLUG_PATTERN)]
+Slug = Annotated[str, StringConstraints(pattern=SLUG_PATTERN)]
 # Printable ASCII without spaces: covers DRF hex keys and token_urlsafe alike.
 Token = Annotated[str, StringConstraints(pattern=r"^[!-~]{1,256}$")]
 UserName = Annotated[str, StringConstraints(min_length=1, max_length=150)]

@@ -1,0 +1,221 @@
+"""Command-line entry point of the bridgeOS robot agent."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, TextIO
+from urllib.parse import urlsplit
+
+import pydantic
+
+from bridgeos_agent import __version__
+from bridgeos_agent.errors import field_errors
+from bridgeos_agent.robotconfig import parse_robot_config, robot_config_json_schema
+from bridgeos_agent.skillconfig import parse_skill_config, skill_config_json_schema
+
+__all__ = ["build_parser", "main"]
+
+EXIT_OK = 0
+EXIT_INVALID = 1
+EXIT_USAGE = 2
+EXIT_NOT_AVAILABLE = 2
+
+MAX_ID_LENGTH = 128
+
+
+def _master_url(value: str) -> str:
+    """Accept a ws:// or wss:// URL with a host and, if given, a valid port."""
+    value = value.strip()
+    try:
+        parts = urlsplit(value)
+        port = parts.port
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"invalid master URL {value!r}: {exc}") from None
+    if parts.scheme not in ("ws", "wss"):
+        raise argparse.ArgumentTypeError(f"invalid master URL {value!r}: expected ws://HOST:PORT or wss://HOST:PORT")
+    if not parts.hostname:
+        raise argparse.ArgumentTypeError(f"invalid master URL {value!r}: missing host")
+    if port == 0:
+        raise argparse.ArgumentTypeError(f"invalid master URL {value!r}: port 0")
+    if parts.query or parts.fragment:
+        raise argparse.ArgumentTypeError(f"invalid master URL {value!r}: no query or fragment allowed")
+    return value
+
+
+def _identifier(what: str) -> Any:
+    """Build an argparse type accepting a non-empty printable id without whitespace."""
+
+    def check(value: str) -> str:
+        if not value:
+            raise argparse.ArgumentTypeError(f"{what} must not be empty")
+        if len(value) > MAX_ID_LENGTH:
+            raise argparse.ArgumentTypeError(f"{what} is longer than {MAX_ID_LENGTH} characters")
+        if any(ch.isspace() or not ch.isprintable() for ch in value):
+            raise argparse.ArgumentTypeError(f"{what} must not contain whitespace")
+        return value
+
+    return check
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the argument parser for every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="bridgeos-agent",
+        description="bridgeOS robot agent: attach this robot to a bridgeOS cloud.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    commands.add_parser("version", help="print the agent's version")
+
+    schema = commands.add_parser("schema", help="print the JSON Schema of a configuration")
+    schema.add_argument("kind", choices=("skill", "robot"), help="which configuration")
+
+    validate = commands.add_parser("validate", help="validate a configuration file")
+    validate.add_argument("file", type=Path, help="JSON configuration file")
+    validate.add_argument(
+        "--kind",
+        choices=("skill", "robot"),
+        default="skill",
+        help="configuration kind (default: skill)",
+    )
+
+    run = commands.add_parser(
+        "run",
+        help="run the Robot Controller",
+        description="Connect this robot to a bridgeOS cloud and run its Skills.",
+    )
+    run.add_argument(
+        "--master",
+        type=_master_url,
+        default=os.environ.get("BRIDGEOS_MASTER"),
+        metavar="ws://HOST:PORT",
+        help="cloud WebSocket URL (env BRIDGEOS_MASTER)",
+    )
+    run.add_argument(
+        "--robot",
+        type=_identifier("robot id"),
+        default=os.environ.get("BRIDGEOS_ROBOT"),
+        metavar="ID",
+        help="robot id (env BRIDGEOS_ROBOT)",
+    )
+    run.add_argument(
+        "--token",
+        type=_identifier("token"),
+        default=os.environ.get("BRIDGEOS_TOKEN"),
+        metavar="TOKEN",
+        help="robot token (env BRIDGEOS_TOKEN)",
+    )
+    run.add_argument(
+        "--runtime",
+        choices=("docker", "process"),
+        default="process",
+        help="how components are started (default: process)",
+    )
+    run.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="where the agent keeps its state (default: ~/.local/share/bridgeos-agent)",
+    )
+    run.add_argument(
+        "--simulate",
+        action="store_true",
+        help="run as a simulated robot with synthetic resources",
+    )
+    run.set_defaults(run_parser=run)
+    return parser
+
+
+def _print_errors(errors: dict[str, list[str]], out: TextIO) -> None:
+    """Print one line per field error."""
+    for path, messages in errors.items():
+        for message in messages:
+            print(f"  {path}: {message}", file=out)
+
+
+def _validate(path: Path, kind: str) -> int:
+    """Validate one configuration file and report its field-level errors."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        print(f"bridgeos-agent validate: cannot read {path}: {exc.strerror}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        if kind == "skill":
+            skill = parse_skill_config(data)
+            summary = f"skill {skill.skill_id!r} with {len(skill.components)} component(s)"
+        else:
+            parse_robot_config(data)
+            summary = "robot configuration"
+    except pydantic.ValidationError as exc:
+        errors = field_errors(exc)
+        count = sum(len(messages) for messages in errors.values())
+        print(f"{path}: invalid {kind} configuration ({count} error(s)):", file=sys.stderr)
+        _print_errors(errors, sys.stderr)
+        return EXIT_INVALID
+    print(f"{path}: valid {summary}")
+    return EXIT_OK
+
+
+def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """Check the run options, then say that the controller is not in this release."""
+    # argparse also applies each option's type to a string default, so values taken
+    # from the environment are already checked; only absence is left to report.
+    missing = [
+        f"--{name} (or {env})"
+        for name, env in (
+            ("master", "BRIDGEOS_MASTER"),
+            ("robot", "BRIDGEOS_ROBOT"),
+            ("token", "BRIDGEOS_TOKEN"),
+        )
+        if not getattr(args, name)
+    ]
+    if missing:
+        parser.error("missing " + ", ".join(missing))
+    if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
+        parser.error(f"--data-dir {args.data_dir} exists and is not a directory")
+    print(
+        f"bridgeos-agent {__version__}: options are valid (master {args.master}, "
+        f"robot {args.robot}, runtime {args.runtime}"
+        f"{', simulated' if args.simulate else ''}), but the Robot Controller arrives "
+        "in a later release of bridgeos-agent; nothing was started.",
+        file=sys.stderr,
+    )
+    return EXIT_NOT_AVAILABLE
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the bridgeos-agent command line and return its exit code."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command == "version":
+            print(__version__)
+            return EXIT_OK
+        if args.command == "schema":
+            schema = skill_config_json_schema() if args.kind == "skill" else robot_config_json_schema()
+            print(json.dumps(schema, indent=2, sort_keys=False))
+            return EXIT_OK
+        if args.command == "validate":
+            return _validate(args.file, args.kind)
+        if args.command == "run":
+            return _run(args.run_parser, args)
+    except SystemExit as exc:
+        # argparse exits for --help and usage errors; return its code so main stays callable.
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    except BrokenPipeError:
+        # The reader (e.g. `| head`) went away; stop quietly instead of a traceback at exit.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_INVALID
+    parser.print_help(sys.stderr)
+    return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

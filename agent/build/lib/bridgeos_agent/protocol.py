@@ -1,0 +1,1037 @@
+"""Define every robot⇄cloud⇄client WebSocket message once: envelope, events, payloads, codec.
+
+Sans-IO: nothing here touches a socket, an event loop or a clock. Times come in as
+``now`` arguments (seconds, any monotonic or wall origin the caller picks), so the
+cloud's Channels consumers and the agent's transport share this module and its tests.
+"""
+
+from __future__ import annotations
+
+import enum
+import heapq
+import itertools
+import os
+import random as _random
+import re
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    IPvAnyAddress,
+    Strict,
+    StringConstraints,
+    ValidationError,
+)
+
+from bridgeos_agent.skillconfig import SLUG_PATTERN
+
+__all__ = [
+    "COMMANDS",
+    "DIRECTIONS",
+    "EVENTS",
+    "MAX_FRAME_BYTES",
+    "MAX_METRICS_PER_FRAME",
+    "PAYLOADS",
+    "REPLIES",
+    "REQUIRES_ACK",
+    "Ack",
+    "AuthenticationClient",
+    "AuthenticationFailure",
+    "AuthenticationRobot",
+    "AuthenticationSuccess",
+    "ComponentInformation",
+    "ComponentLocation",
+    "ComponentMigrate",
+    "ComponentStart",
+    "ComponentStatus",
+    "ComponentStatusGet",
+    "ComponentStatusName",
+    "ComponentStop",
+    "ConnectionEstablished",
+    "ConnectionLost",
+    "ContainerInfo",
+    "Correlator",
+    "Dedup",
+    "Direction",
+    "Envelope",
+    "ErrorMessage",
+    "Event",
+    "IdGenerator",
+    "Location",
+    "MetricPoint",
+    "Metrics",
+    "MetricsGet",
+    "Offloading",
+    "OffloadingGet",
+    "OffloadingMode",
+    "Payload",
+    "Pending",
+    "ProtocolError",
+    "Reliable",
+    "RobotConfig",
+    "RobotConfigGet",
+    "RobotConfigUpdate",
+    "RobotStart",
+    "RobotStop",
+    "Shutdown",
+    "SkillConfig",
+    "SkillConfigGet",
+    "SkillConnect",
+    "SkillStart",
+    "SkillStatus",
+    "SkillStatusGet",
+    "SkillStatusName",
+    "SkillStop",
+    "ack_frame",
+    "decode",
+    "encode",
+    "error_frame",
+    "is_allowed",
+    "make",
+    "new_id",
+    "parse_payload",
+]
+
+MAX_FRAME_BYTES = 1_048_576
+MAX_METRICS_PER_FRAME = 10_000
+
+
+# --------------------------------------------------------------------------- events
+
+
+class Event(enum.StrEnum):
+    """Name every WebSocket event (thesis Table 3.3, plus ``ack``)."""
+
+    AUTHENTICATION_CLIENT = "authentication_client"
+    AUTHENTICATION_ROBOT = "authentication_robot"
+    AUTHENTICATION_SUCCESS = "authentication_success"
+    AUTHENTICATION_FAILURE = "authentication_failure"
+    CONNECTION_ESTABLISHED = "connection_established"
+    CONNECTION_LOST = "connection_lost"
+    ERROR_MESSAGE = "error_message"
+    SHUTDOWN = "shutdown"
+    ROBOT_START = "robot_start"
+    ROBOT_STOP = "robot_stop"
+    ROBOT_CONFIG = "robot_config"
+    ROBOT_CONFIG_GET = "robot_config_get"
+    ROBOT_CONFIG_UPDATE = "robot_config_update"
+    OFFLOADING = "offloading"
+    OFFLOADING_GET = "offloading_get"
+    SKILL_START = "skill_start"
+    SKILL_STOP = "skill_stop"
+    SKILL_STATUS = "skill_status"
+    SKILL_STATUS_GET = "skill_status_get"
+    # The thesis's table spells it "skill_connnect"; that is a typo and is rejected.
+    SKILL_CONNECT = "skill_connect"
+    SKILL_CONFIG = "skill_config"
+    SKILL_CONFIG_GET = "skill_config_get"
+    COMPONENT_START = "component_start"
+    COMPONENT_STOP = "component_stop"
+    COMPONENT_INFORMATION = "component_information"
+    COMPONENT_STATUS = "component_status"
+    COMPONENT_STATUS_GET = "component_status_get"
+    COMPONENT_LOCATION = "component_location"
+    COMPONENT_MIGRATE = "component_migrate"
+    METRICS = "metrics"
+    METRICS_GET = "metrics_get"
+    ACK = "ack"
+
+
+EVENTS: frozenset[str] = frozenset(e.value for e in Event)
+
+
+class Direction(enum.StrEnum):
+    """Name the four legs a frame can travel."""
+
+    ROBOT_TO_CLOUD = "robot_to_cloud"
+    CLOUD_TO_ROBOT = "cloud_to_robot"
+    CLIENT_TO_CLOUD = "client_to_cloud"
+    CLOUD_TO_CLIENT = "cloud_to_client"
+
+
+class Location(enum.StrEnum):
+    """Name where a component runs; ``either`` is only meaningful in configs."""
+
+    ROBOT = "robot"
+    CLOUD = "cloud"
+    EITHER = "either"
+
+
+class OffloadingMode(enum.StrEnum):
+    """Name how a robot decides component locations."""
+
+    AUTO = "auto"
+    MANUAL = "manual"
+    ROBOT = "robot"
+    CLOUD = "cloud"
+
+
+class SkillStatusName(enum.StrEnum):
+    """Name the lifecycle states of a Skill."""
+
+    STOPPED = "stopped"
+    STARTING = "starting"
+    RUNNING = "running"
+    STOPPING = "stopping"
+    FAILED = "failed"
+
+
+class ComponentStatusName(enum.StrEnum):
+    """Name the lifecycle states of a component."""
+
+    PENDING = "pending"
+    STARTING = "starting"
+    RUNNING = "running"
+    MIGRATING = "migrating"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+    FAILED = "failed"
+
+
+# --------------------------------------------------------------------------- field types
+
+_ID_PATTERN = r"^[A-Za-z0-9_\-:.]{1,64}$"
+_ID_RE = re.compile(_ID_PATTERN)
+
+MessageId = Annotated[str, StringConstraints(pattern=_ID_PATTERN)]
+Slug = Annotated[str, StringConstraints(pattern=SLUG_PATTERN)]
+# Printable ASCII without spaces: covers DRF hex keys and token_urlsafe alike.
+Token = Annotated[str, StringConstraints(pattern=r"^[!-~]{1,256}$")]
+UserName = Annotated[str, StringConstraints(min_length=1, max_length=150)]
+SessionId = Annotated[str, StringConstraints(min_length=1, max_length=128)]
+Reason = Annotated[str, StringConstraints(min_length=1, max_length=1000)]
+Message = Annotated[str, StringConstraints(min_length=1, max_length=2000)]
+FieldPath = Annotated[str, StringConstraints(min_length=1, max_length=256)]
+ErrorCode = Annotated[str, StringConstraints(pattern=r"^[a-z][a-z0-9_]{0,63}$")]
+Url = Annotated[str, StringConstraints(pattern=r"^https?://[!-~]{1,2040}$")]
+MetricName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_.:-]{0,127}$")]
+LabelKey = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$")]
+LabelValue = Annotated[str, StringConstraints(max_length=256)]
+ShortText = Annotated[str, StringConstraints(min_length=1, max_length=256)]
+# Strict so "1.5" or true never sneak in as numbers.
+FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Timestamp = Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
+Port = Annotated[int, Strict(), Field(ge=1, le=65535)]
+JsonObject = Annotated[dict[str, Any], Field(max_length=1024)]
+
+
+def _robot_or_cloud(location: Location) -> Location:
+    if location is Location.EITHER:
+        raise ValueError("'either' is only allowed in configs; use 'robot' or 'cloud'")
+    return location
+
+
+Target = Annotated[Location, AfterValidator(_robot_or_cloud)]
+
+
+# --------------------------------------------------------------------------- payloads
+
+
+class Payload(BaseModel):
+    """Base of every event payload: closed, immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RobotScoped(Payload):
+    """Base of payloads about one robot.
+
+    ``robot`` names the robot on client links (a client socket is not bound to one);
+    on a robot's own link it may be omitted, and the cloud trusts the socket instead.
+    """
+
+    robot: Slug | None = None
+
+
+class AuthenticationClient(Payload):
+    """Authenticate a dashboard or app; no token means the session cookie is used."""
+
+    token: Token | None = None
+
+
+class AuthenticationRobot(Payload):
+    """Authenticate a robot with its id and token."""
+
+    robot: Slug
+    token: Token
+
+
+class AuthenticationSuccess(Payload):
+    """Confirm authentication of a robot or a user."""
+
+    robot: Slug | None = None
+    user: UserName | None = None
+    session: SessionId | None = None
+
+
+class AuthenticationFailure(Payload):
+    """Refuse authentication, saying why."""
+
+    reason: Reason
+
+
+class ConnectionEstablished(Payload):
+    """Signal that a robot's link to the cloud is (re)established."""
+
+    robot: Slug
+    reason: Reason | None = None
+
+
+class ConnectionLost(Payload):
+    """Signal that a robot's link to the cloud is severed."""
+
+    robot: Slug
+    reason: Reason | None = None
+
+
+class ErrorMessage(Payload):
+    """Report a processing failure or malformed input, naming the field."""
+
+    message: Message
+    field: FieldPath | None = None
+    code: ErrorCode | None = None
+
+
+class Shutdown(RobotScoped):
+    """Order or announce a robot's permanent shutdown."""
+
+    reason: Reason | None = None
+
+
+class RobotStart(RobotScoped):
+    """Order a robot to resume operating."""
+
+
+class RobotStop(RobotScoped):
+    """Order a robot to stop operating and stay idle."""
+
+
+class RobotConfig(RobotScoped):
+    """Carry a robot's configuration (validated by ``bridgeos_agent.robotconfig``)."""
+
+    config: JsonObject
+
+
+class RobotConfigGet(RobotScoped):
+    """Request a robot's configuration."""
+
+
+class RobotConfigUpdate(RobotScoped):
+    """Forward a minor runtime change to a robot's configuration."""
+
+    changes: Annotated[dict[str, Any], Field(min_length=1, max_length=256)]
+
+
+class Offloading(RobotScoped):
+    """Set or report a robot's offloading mode."""
+
+    mode: OffloadingMode
+
+
+class OffloadingGet(RobotScoped):
+    """Request a robot's offloading mode."""
+
+
+class SkillStart(RobotScoped):
+    """Order a Skill to launch, optionally with its config."""
+
+    skill: Slug
+    config: JsonObject | None = None
+
+
+class SkillStop(RobotScoped):
+    """Order a Skill to shut down."""
+
+    skill: Slug
+
+
+class SkillStatus(RobotScoped):
+    """Report a Skill's lifecycle state."""
+
+    skill: Slug
+    status: SkillStatusName
+    message: Message | None = None
+
+
+class SkillStatusGet(RobotScoped):
+    """Request a Skill's lifecycle state."""
+
+    skill: Slug
+
+
+class SkillConnect(RobotScoped):
+    """Connect a Skill Manager with the Robot Controller."""
+
+    skill: Slug
+    manager_url: Url | None = None
+
+
+class SkillConfig(RobotScoped):
+    """Carry a Skill's configuration (validated by ``bridgeos_agent.skillconfig``)."""
+
+    skill: Slug
+    config: JsonObject
+
+
+class SkillConfigGet(RobotScoped):
+    """Request a Skill's configuration."""
+
+    skill: Slug
+
+
+class ComponentStart(RobotScoped):
+    """Order a component to launch at a location."""
+
+    skill: Slug
+    component: Slug
+    location: Target
+
+
+class ComponentStop(RobotScoped):
+    """Order a component to shut down, at one location or wherever it runs."""
+
+    skill: Slug
+    component: Slug
+    location: Target | None = None
+
+
+class ContainerInfo(Payload):
+    """Describe the container or process running a component."""
+
+    id: ShortText | None = None
+    name: ShortText | None = None
+    image: ShortText | None = None
+    ip: IPvAnyAddress | None = None
+    host: ShortText | None = None
+    ports: Annotated[list[Port], Field(max_length=64)] | None = None
+    pid: Annotated[int, Strict(), Field(ge=1)] | None = None
+    runtime: ShortText | None = None
+    namespace: ShortText | None = None
+
+
+class ComponentInformation(RobotScoped):
+    """Forward the latest container details of a component."""
+
+    skill: Slug
+    component: Slug
+    location: Target
+    container: ContainerInfo
+
+
+class ComponentStatus(RobotScoped):
+    """Report a component's lifecycle state."""
+
+    skill: Slug
+    component: Slug
+    status: ComponentStatusName
+    location: Target | None = None
+    message: Message | None = None
+
+
+class ComponentStatusGet(RobotScoped):
+    """Request a component's lifecycle state."""
+
+    skill: Slug
+    component: Slug
+
+
+class ComponentLocation(RobotScoped):
+    """Report where a component is active."""
+
+    skill: Slug
+    component: Slug
+    location: Target
+
+
+class ComponentMigrate(RobotScoped):
+    """Order a component to move; no location means the other side."""
+
+    skill: Slug
+    component: Slug
+    location: Target | None = None
+
+
+class MetricPoint(Payload):
+    """Carry one measured value."""
+
+    name: MetricName
+    value: FiniteFloat
+    ts: Timestamp
+    skill: Slug | None = None
+    component: Slug | None = None
+    labels: Annotated[dict[LabelKey, LabelValue], Field(max_length=16)] | None = None
+
+
+class Metrics(RobotScoped):
+    """Forward a batch of metric points."""
+
+    metrics: Annotated[list[MetricPoint], Field(max_length=MAX_METRICS_PER_FRAME)]
+
+
+class MetricsGet(RobotScoped):
+    """Request the latest values of some metrics."""
+
+    names: Annotated[list[MetricName], Field(min_length=1, max_length=1000)] | None = None
+    skill: Slug | None = None
+    component: Slug | None = None
+    since: Timestamp | None = None
+    limit: Annotated[int, Strict(), Field(ge=1, le=MAX_METRICS_PER_FRAME)] | None = None
+
+
+class Ack(Payload):
+    """Acknowledge the frame named by the envelope's ``reply_to``."""
+
+
+PAYLOADS: Mapping[str, type[Payload]] = {
+    Event.AUTHENTICATION_CLIENT: AuthenticationClient,
+    Event.AUTHENTICATION_ROBOT: AuthenticationRobot,
+    Event.AUTHENTICATION_SUCCESS: AuthenticationSuccess,
+    Event.AUTHENTICATION_FAILURE: AuthenticationFailure,
+    Event.CONNECTION_ESTABLISHED: ConnectionEstablished,
+    Event.CONNECTION_LOST: ConnectionLost,
+    Event.ERROR_MESSAGE: ErrorMessage,
+    Event.SHUTDOWN: Shutdown,
+    Event.ROBOT_START: RobotStart,
+    Event.ROBOT_STOP: RobotStop,
+    Event.ROBOT_CONFIG: RobotConfig,
+    Event.ROBOT_CONFIG_GET: RobotConfigGet,
+    Event.ROBOT_CONFIG_UPDATE: RobotConfigUpdate,
+    Event.OFFLOADING: Offloading,
+    Event.OFFLOADING_GET: OffloadingGet,
+    Event.SKILL_START: SkillStart,
+    Event.SKILL_STOP: SkillStop,
+    Event.SKILL_STATUS: SkillStatus,
+    Event.SKILL_STATUS_GET: SkillStatusGet,
+    Event.SKILL_CONNECT: SkillConnect,
+    Event.SKILL_CONFIG: SkillConfig,
+    Event.SKILL_CONFIG_GET: SkillConfigGet,
+    Event.COMPONENT_START: ComponentStart,
+    Event.COMPONENT_STOP: ComponentStop,
+    Event.COMPONENT_INFORMATION: ComponentInformation,
+    Event.COMPONENT_STATUS: ComponentStatus,
+    Event.COMPONENT_STATUS_GET: ComponentStatusGet,
+    Event.COMPONENT_LOCATION: ComponentLocation,
+    Event.COMPONENT_MIGRATE: ComponentMigrate,
+    Event.METRICS: Metrics,
+    Event.METRICS_GET: MetricsGet,
+    Event.ACK: Ack,
+}
+
+
+# --------------------------------------------------------------------------- classification
+
+_R2C, _C2R = Direction.ROBOT_TO_CLOUD, Direction.CLOUD_TO_ROBOT
+_K2C, _C2K = Direction.CLIENT_TO_CLOUD, Direction.CLOUD_TO_CLIENT
+_ALL = frozenset(Direction)
+
+# Clients reach robots only through the cloud, which relays commands (client→cloud→robot)
+# and mirrors what robots report to dashboards (robot→cloud→client).
+DIRECTIONS: Mapping[str, frozenset[Direction]] = {
+    Event.AUTHENTICATION_CLIENT: frozenset({_K2C}),
+    Event.AUTHENTICATION_ROBOT: frozenset({_R2C}),
+    Event.AUTHENTICATION_SUCCESS: frozenset({_C2R, _C2K}),
+    Event.AUTHENTICATION_FAILURE: frozenset({_C2R, _C2K}),
+    Event.CONNECTION_ESTABLISHED: frozenset({_C2R, _C2K}),
+    Event.CONNECTION_LOST: frozenset({_C2K}),
+    Event.ERROR_MESSAGE: _ALL,
+    Event.SHUTDOWN: _ALL,
+    Event.ROBOT_START: frozenset({_K2C, _C2R, _C2K}),
+    Event.ROBOT_STOP: frozenset({_K2C, _C2R, _C2K}),
+    Event.ROBOT_CONFIG: frozenset({_C2R, _C2K}),
+    Event.ROBOT_CONFIG_GET: frozenset({_R2C, _K2C}),
+    Event.ROBOT_CONFIG_UPDATE: frozenset({_K2C, _C2R, _C2K}),
+    Event.OFFLOADING: _ALL,
+    Event.OFFLOADING_GET: frozenset({_K2C, _C2R}),
+    Event.SKILL_START: frozenset({_K2C, _C2R, _C2K}),
+    Event.SKILL_STOP: frozenset({_K2C, _C2R, _C2K}),
+    Event.SKILL_STATUS: frozenset({_R2C, _C2K}),
+    Event.SKILL_STATUS_GET: frozenset({_K2C, _C2R}),
+    Event.SKILL_CONNECT: frozenset({_R2C, _C2K}),
+    Event.SKILL_CONFIG: frozenset({_R2C, _C2R, _C2K}),
+    Event.SKILL_CONFIG_GET: frozenset({_R2C, _K2C, _C2R}),
+    # A robot's controller forwards cloud-side launches to the cloud (thesis §3.2.2).
+    Event.COMPONENT_START: _ALL,
+    Event.COMPONENT_STOP: _ALL,
+    Event.COMPONENT_INFORMATION: frozenset({_R2C, _C2R, _C2K}),
+    Event.COMPONENT_STATUS: frozenset({_R2C, _C2R, _C2K}),
+    Event.COMPONENT_STATUS_GET: frozenset({_R2C, _K2C, _C2R}),
+    Event.COMPONENT_LOCATION: frozenset({_R2C, _C2K}),
+    Event.COMPONENT_MIGRATE: frozenset({_K2C, _C2R, _C2K}),
+    Event.METRICS: frozenset({_R2C, _C2K}),
+    Event.METRICS_GET: frozenset({_K2C, _C2R}),
+    Event.ACK: _ALL,
+}
+
+# Events that change state: the receiver acks them, the sender retransmits until it does,
+# and the receiver applies each id once.
+REQUIRES_ACK: frozenset[Event] = frozenset(
+    {
+        Event.CONNECTION_ESTABLISHED,
+        Event.CONNECTION_LOST,
+        Event.SHUTDOWN,
+        Event.ROBOT_START,
+        Event.ROBOT_STOP,
+        Event.ROBOT_CONFIG,
+        Event.ROBOT_CONFIG_UPDATE,
+        Event.OFFLOADING,
+        Event.SKILL_START,
+        Event.SKILL_STOP,
+        Event.SKILL_STATUS,
+        Event.SKILL_CONNECT,
+        Event.SKILL_CONFIG,
+        Event.COMPONENT_START,
+        Event.COMPONENT_STOP,
+        Event.COMPONENT_INFORMATION,
+        Event.COMPONENT_STATUS,
+        Event.COMPONENT_LOCATION,
+        Event.COMPONENT_MIGRATE,
+        Event.METRICS,
+    }
+)
+
+# Orders whose outcome the sender awaits: ``ack`` once accepted, ``error_message`` if refused.
+COMMANDS: frozenset[Event] = frozenset(
+    {
+        Event.SHUTDOWN,
+        Event.ROBOT_START,
+        Event.ROBOT_STOP,
+        Event.ROBOT_CONFIG_UPDATE,
+        Event.OFFLOADING,
+        Event.SKILL_START,
+        Event.SKILL_STOP,
+        Event.COMPONENT_START,
+        Event.COMPONENT_STOP,
+        Event.COMPONENT_MIGRATE,
+    }
+)
+
+_COMMAND_REPLIES = frozenset({Event.ACK, Event.ERROR_MESSAGE})
+_AUTH_REPLIES = frozenset({Event.AUTHENTICATION_SUCCESS, Event.AUTHENTICATION_FAILURE})
+
+
+def _answered_by(event: Event) -> frozenset[Event]:
+    return frozenset({event, Event.ERROR_MESSAGE})
+
+
+# Requests and the events that may answer them (carrying ``reply_to`` = the request id).
+REPLIES: Mapping[str, frozenset[Event]] = {
+    Event.AUTHENTICATION_CLIENT: _AUTH_REPLIES,
+    Event.AUTHENTICATION_ROBOT: _AUTH_REPLIES,
+    Event.ROBOT_CONFIG_GET: _answered_by(Event.ROBOT_CONFIG),
+    Event.OFFLOADING_GET: _answered_by(Event.OFFLOADING),
+    Event.SKILL_STATUS_GET: _answered_by(Event.SKILL_STATUS),
+    Event.SKILL_CONFIG_GET: _answered_by(Event.SKILL_CONFIG),
+    Event.COMPONENT_STATUS_GET: _answered_by(Event.COMPONENT_STATUS),
+    Event.METRICS_GET: _answered_by(Event.METRICS),
+    **{command: _COMMAND_REPLIES for command in COMMANDS},
+}
+
+
+def is_allowed(event: Event | str, direction: Direction | str) -> bool:
+    """Tell whether ``event`` may travel in ``direction``."""
+    try:
+        return Direction(direction) in DIRECTIONS[Event(event)]
+    except ValueError:
+        return False
+
+
+# --------------------------------------------------------------------------- errors
+
+
+class ProtocolError(ValueError):
+    """Reject a frame, naming the offending field and a machine-readable code."""
+
+    def __init__(self, message: str, *, field: str | None = None, code: str = "invalid_frame"):
+        super().__init__(f"{field}: {message}" if field else message)
+        self.message = message
+        self.field = field
+        self.code = code
+
+    def to_payload(self) -> ErrorMessage:
+        """Describe this error as an ``error_message`` payload."""
+        return ErrorMessage(
+            message=str(self)[:2000] or self.code,
+            field=self.field[:256] if self.field else None,
+            code=self.code,
+        )
+
+
+def _field_path(prefix: str | None, loc: tuple[int | str, ...]) -> str | None:
+    parts = [prefix] if prefix else []
+    parts.extend(str(part) for part in loc)
+    return ".".join(parts) or None
+
+
+def _from_validation_error(exc: ValidationError, *, prefix: str | None, code: str) -> ProtocolError:
+    errors = exc.errors(include_url=False, include_context=False, include_input=False)
+    first = errors[0]
+    if first["type"] == "json_invalid":
+        return ProtocolError(first["msg"], code="invalid_json")
+    if first["type"] in {"model_type", "dict_type"} and not first["loc"]:
+        return ProtocolError("frame must be a JSON object", code="not_object")
+    if first["type"] == "string_unicode" and not first["loc"]:
+        return ProtocolError("frame is not valid UTF-8 text", code="invalid_json")
+    message = first["msg"]
+    if len(errors) > 1:
+        message += f" (and {len(errors) - 1} more error{'s' if len(errors) > 2 else ''})"
+    return ProtocolError(message, field=_field_path(prefix, first["loc"]), code=code)
+
+
+# --------------------------------------------------------------------------- envelope
+
+
+class Envelope(BaseModel):
+    """Wrap every frame: which event, its id, what it answers, its payload, when sent."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # Kept as a plain string here so an unknown event gets its own clear error in decode().
+    event: Annotated[str, StringConstraints(min_length=1, max_length=64)]
+    id: MessageId
+    reply_to: MessageId | None = None
+    data: dict[str, Any] = Field(default_factory=dict)
+    # Optional on input because outside clients may omit it; 0 then means "unknown".
+    ts: Timestamp = 0.0
+
+    # A plain slot, not a PrivateAttr: pydantic's private-attribute setup would cost more
+    # per decoded frame than validating the envelope itself.
+    __slots__ = ("_validated",)
+
+    @property
+    def kind(self) -> Event:
+        """Return the event as an ``Event`` member."""
+        return Event(self.event)
+
+
+# --------------------------------------------------------------------------- ids
+
+
+class IdGenerator:
+    """Generate short unique frame ids: a random per-process prefix and a counter."""
+
+    def __init__(self, prefix: str | None = None):
+        self._prefix = prefix if prefix is not None else os.urandom(6).hex()
+        self._counter = itertools.count(1)
+
+    def __call__(self) -> str:
+        """Return the next id."""
+        return f"{self._prefix}-{next(self._counter):x}"
+
+    def reseed(self) -> None:
+        """Pick a fresh random prefix, e.g. in a forked child."""
+        self._prefix = os.urandom(6).hex()
+        self._counter = itertools.count(1)
+
+
+new_id = IdGenerator()
+# A forked worker would otherwise repeat its parent's ids, and the receiver drop them as dups.
+os.register_at_fork(after_in_child=new_id.reseed)
+
+
+# --------------------------------------------------------------------------- codec
+
+
+def encode(envelope: Envelope) -> str:
+    """Serialise an envelope to compact JSON text."""
+    return envelope.model_dump_json()
+
+
+def decode(
+    text: str | bytes | bytearray,
+    *,
+    max_bytes: int = MAX_FRAME_BYTES,
+    direction: Direction | None = None,
+) -> Envelope:
+    """Parse and validate a frame and its payload, raising only ``ProtocolError``."""
+    if not isinstance(text, (str, bytes, bytearray)):
+        raise ProtocolError(f"frame must be text or bytes, not {type(text).__name__}", code="invalid_type")
+    size = len(text)
+    # A UTF-8 char takes at most 4 bytes, so str needs an exact count only near the limit.
+    if isinstance(text, str) and size * 4 > max_bytes:
+        size = len(text.encode("utf-8", "surrogatepass"))
+    if size > max_bytes:
+        raise ProtocolError(f"frame of {size} bytes exceeds the limit of {max_bytes} bytes", code="too_large")
+    try:
+        envelope = Envelope.model_validate_json(text)
+    except ValidationError as exc:
+        raise _from_validation_error(exc, prefix=None, code="invalid_envelope") from None
+    except (ValueError, TypeError, RecursionError) as exc:
+        raise ProtocolError(f"unreadable frame: {exc}"[:500], code="invalid_json") from None
+    _check(envelope, direction)
+    object.__setattr__(envelope, "_validated", _validate_payload(envelope.event, envelope.data))
+    return envelope
+
+
+def _check(envelope: Envelope, direction: Direction | None) -> None:
+    if envelope.event not in EVENTS:
+        raise ProtocolError(f"unknown event {envelope.event[:64]!r}", field="event", code="unknown_event")
+    if envelope.event == Event.ACK and envelope.reply_to is None:
+        raise ProtocolError("an ack must name the acknowledged id", field="reply_to", code="invalid_envelope")
+    if direction is not None and direction not in DIRECTIONS[envelope.event]:
+        raise ProtocolError(
+            f"event {envelope.event!r} is not allowed {Direction(direction).value.replace('_', ' ')}",
+            field="event",
+            code="forbidden_event",
+        )
+
+
+def _validate_payload(event: str, data: Any) -> Payload:
+    try:
+        return PAYLOADS[event].model_validate(data)
+    except ValidationError as exc:
+        raise _from_validation_error(exc, prefix="data", code="invalid_payload") from None
+    except (ValueError, TypeError, RecursionError) as exc:
+        raise ProtocolError(f"unreadable payload: {exc}"[:500], field="data", code="invalid_payload") from None
+
+
+def parse_payload(envelope: Envelope) -> Payload:
+    """Return the envelope's payload as its event's model, validating it once."""
+    payload: Payload | None = getattr(envelope, "_validated", None)
+    if payload is None:
+        _check(envelope, None)
+        payload = _validate_payload(envelope.event, envelope.data)
+        object.__setattr__(envelope, "_validated", payload)
+    return payload
+
+
+def make(
+    event: Event | str,
+    data: Payload | Mapping[str, Any] | None = None,
+    *,
+    reply_to: str | None = None,
+    id: str | None = None,
+    now: float,
+) -> Envelope:
+    """Build a validated envelope for ``event``; raise ``ProtocolError`` on bad input."""
+    if event not in EVENTS:
+        raise ProtocolError(f"unknown event {str(event)[:64]!r}", field="event", code="unknown_event")
+    model = PAYLOADS[Event(event)]
+    payload = data if isinstance(data, model) else _validate_payload(event, dict(data or {}))
+    try:
+        envelope = Envelope(
+            event=Event(event).value,
+            id=id if id is not None else new_id(),
+            reply_to=reply_to,
+            data=payload.model_dump(mode="json", exclude_none=True),
+            ts=float(now),
+        )
+    except ValidationError as exc:
+        raise _from_validation_error(exc, prefix=None, code="invalid_envelope") from None
+    _check(envelope, None)
+    object.__setattr__(envelope, "_validated", payload)
+    return envelope
+
+
+def ack_frame(envelope_id: str, *, now: float, id: str | None = None) -> Envelope:
+    """Build the ``ack`` for the frame with ``envelope_id``."""
+    return make(Event.ACK, reply_to=envelope_id, id=id, now=now)
+
+
+def error_frame(exc: BaseException, reply_to: str | None = None, *, now: float, id: str | None = None) -> Envelope:
+    """Build an ``error_message`` describing ``exc``, answering ``reply_to``."""
+    if isinstance(exc, ValidationError):
+        exc = _from_validation_error(exc, prefix="data", code="invalid_payload")
+    if isinstance(exc, ProtocolError):
+        payload = exc.to_payload()
+    else:
+        payload = ErrorMessage(message=(str(exc) or type(exc).__name__)[:2000], code="internal_error")
+    # The frame being refused may carry a malformed id; answer anyway rather than fail twice.
+    if reply_to is not None and not _ID_RE.fullmatch(reply_to):
+        reply_to = None
+    return make(Event.ERROR_MESSAGE, payload, reply_to=reply_to, id=id, now=now)
+
+
+# --------------------------------------------------------------------------- reliability
+
+
+@dataclass(slots=True)
+class Pending:
+    """Track one unacknowledged frame."""
+
+    envelope: Envelope
+    seq: int
+    attempts: int
+    first_sent: float
+    next_at: float
+
+
+class Reliable:
+    """Retransmit state-changing frames with capped exponential backoff until acked.
+
+    It never gives up: the robot may be offline for hours and its reports must still
+    arrive. ``attempts`` is exposed so callers can surface a stuck peer.
+    """
+
+    def __init__(
+        self,
+        *,
+        initial: float = 1.0,
+        factor: float = 2.0,
+        cap: float = 30.0,
+        jitter: float = 0.1,
+        random: Callable[[], float] = _random.random,
+    ):
+        self.initial = initial
+        self.factor = factor
+        self.cap = cap
+        self.jitter = jitter
+        self._random = random
+        self._pending: dict[str, Pending] = {}
+        self._heap: list[tuple[float, int, str]] = []
+        self._seq = itertools.count()
+
+    def _delay(self, attempts: int) -> float:
+        base = min(self.cap, self.initial * self.factor ** min(attempts - 1, 64))
+        # Jitter spreads a fleet's retries after a cloud restart; centred on 0.5 so a fake
+        # random of 0.5 gives the exact schedule.
+        spread = 1.0 + self.jitter * (2.0 * self._random() - 1.0)
+        return min(self.cap, base * spread)
+
+    def send(self, envelope: Envelope, now: float) -> bool:
+        """Register a sent frame; return whether it awaits an ack."""
+        if envelope.event not in REQUIRES_ACK:
+            return False
+        if envelope.id not in self._pending:
+            entry = Pending(envelope, next(self._seq), 1, now, now + self._delay(1))
+            self._pending[envelope.id] = entry
+            heapq.heappush(self._heap, (entry.next_at, entry.seq, envelope.id))
+        return True
+
+    def on_ack(self, reply_to: str | None) -> bool:
+        """Forget the acknowledged frame; return whether it was pending."""
+        return reply_to is not None and self._pending.pop(reply_to, None) is not None
+
+    def due(self, now: float) -> list[Envelope]:
+        """Return frames to retransmit now, in send order, and schedule their next try."""
+        fired: list[Pending] = []
+        heap = self._heap
+        while heap and heap[0][0] <= now:
+            next_at, seq, frame_id = heapq.heappop(heap)
+            entry = self._pending.get(frame_id)
+            if entry is None or entry.seq != seq or entry.next_at != next_at:
+                continue
+            fired.append(entry)
+        fired.sort(key=lambda entry: entry.seq)
+        for entry in fired:
+            entry.attempts += 1
+            entry.next_at = now + self._delay(entry.attempts)
+            heapq.heappush(heap, (entry.next_at, entry.seq, entry.envelope.id))
+        return [entry.envelope for entry in fired]
+
+    def resend_all(self, now: float) -> list[Envelope]:
+        """Make every pending frame due now, e.g. after a reconnect, and return them."""
+        for entry in self._pending.values():
+            entry.next_at = now
+        self._heap = [(now, entry.seq, frame_id) for frame_id, entry in self._pending.items()]
+        return self.due(now)
+
+    def next_due(self) -> float | None:
+        """Return when the earliest retransmission falls due, if any."""
+        while self._heap:
+            next_at, seq, frame_id = self._heap[0]
+            entry = self._pending.get(frame_id)
+            if entry is not None and entry.seq == seq and entry.next_at == next_at:
+                return next_at
+            heapq.heappop(self._heap)
+        return None
+
+    def pending(self) -> list[Envelope]:
+        """Return unacknowledged frames in send order."""
+        return [entry.envelope for entry in self._pending.values()]
+
+    def attempts(self, frame_id: str) -> int:
+        """Return how many times a pending frame has been sent (0 if not pending)."""
+        entry = self._pending.get(frame_id)
+        return entry.attempts if entry else 0
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+    def __contains__(self, frame_id: object) -> bool:
+        return frame_id in self._pending
+
+
+class Dedup:
+    """Remember the last ``capacity`` frame ids so a retransmitted frame is applied once."""
+
+    def __init__(self, capacity: int = 10_000, ids: Iterable[str] = ()):
+        if capacity < 1:
+            raise ValueError("capacity must be at least 1")
+        self.capacity = capacity
+        self._ids: OrderedDict[str, None] = OrderedDict()
+        self.load(ids)
+
+    def seen(self, frame_id: str) -> bool:
+        """Mark ``frame_id``; return True if it was already marked (a duplicate)."""
+        ids = self._ids
+        if frame_id in ids:
+            ids.move_to_end(frame_id)
+            return True
+        ids[frame_id] = None
+        if len(ids) > self.capacity:
+            ids.popitem(last=False)
+        return False
+
+    def forget(self, frame_id: str) -> None:
+        """Unmark ``frame_id`` so a retransmission is applied after a failed attempt."""
+        self._ids.pop(frame_id, None)
+
+    def export(self) -> list[str]:
+        """Return the remembered ids, oldest first, for persisting."""
+        return list(self._ids)
+
+    def load(self, ids: Iterable[str]) -> None:
+        """Mark persisted ids (oldest first) as seen."""
+        for frame_id in ids:
+            self.seen(frame_id)
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def __contains__(self, frame_id: object) -> bool:
+        return frame_id in self._ids
+
+
+class Correlator:
+    """Match replies to outstanding requests by ``reply_to`` and expire the unanswered."""
+
+    def __init__(self) -> None:
+        self._deadlines: dict[str, float] = {}
+        self._heap: list[tuple[float, str]] = []
+
+    def expect(self, request_id: str, now: float, timeout: float) -> None:
+        """Await a reply to ``request_id`` until ``now + timeout``."""
+        deadline = now + timeout
+        self._deadlines[request_id] = deadline
+        heapq.heappush(self._heap, (deadline, request_id))
+
+    def resolve(self, reply: Envelope) -> bool:
+        """Close the request ``reply`` answers; return whether one was outstanding."""
+        return reply.reply_to is not None and self._deadlines.pop(reply.reply_to, None) is not None
+
+    def expired(self, now: float) -> list[str]:
+        """Drop and return requests whose deadline passed, oldest deadline first."""
+        gone: list[str] = []
+        heap = self._heap
+        while heap and heap[0][0] <= now:
+            deadline, request_id = heapq.heappop(heap)
+            if self._deadlines.get(request_id) == deadline:
+                del self._deadlines[request_id]
+                gone.append(request_id)
+        return gone
+
+    def pending(self) -> list[str]:
+        """Return outstanding request ids in the order they were expected."""
+        return list(self._deadlines)
+
+    def __len__(self) -> int:
+        return len(self._deadlines)
+
+    def __contains__(self, request_id: object) -> bool:
+        return request_id in self._deadlines
