@@ -56,13 +56,13 @@ class Robot(models.Model):
     def __str__(self) -> str:
         return self.name or self.id
 
-    def clean(self) -> None:
-        self.config = validated_config(parse_robot_config, self.config)
-
     def save(self, *args: Any, **kwargs: Any) -> None:
         # Configs are validated on every save, not only in forms, so no door can store a bad one.
-        self.config = validated_config(parse_robot_config, self.config)
+        self.clean()
         super().save(*args, **kwargs)
+
+    def clean(self) -> None:
+        self.config = validated_config(parse_robot_config, self.config)
 
     def issue_token(self) -> str:
         """Replace the robot's token and return the new one; only its hash is kept."""

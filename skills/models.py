@@ -34,12 +34,12 @@ class Skill(models.Model):
     def __str__(self) -> str:
         return f"{self.robot_id}/{self.skill_id}"
 
+    def save(self, *args: Any, **kwargs: Any) -> None:
+        self.clean()
+        super().save(*args, **kwargs)
+
     def clean(self) -> None:
         self.config = validated_config(parse_skill_config, self.config)
-
-    def save(self, *args: Any, **kwargs: Any) -> None:
-        self.config = validated_config(parse_skill_config, self.config)
-        super().save(*args, **kwargs)
 
 
 class Component(models.Model):
@@ -82,14 +82,13 @@ class SkillTemplate(models.Model):
     def __str__(self) -> str:
         return self.name
 
+    def save(self, *args: Any, **kwargs: Any) -> None:
+        self.clean()
+        super().save(*args, **kwargs)
+
     def clean(self) -> None:
         self.config = validated_config(parse_skill_config, self.config)
         self.tags = _validated_tags(self.tags)
-
-    def save(self, *args: Any, **kwargs: Any) -> None:
-        self.config = validated_config(parse_skill_config, self.config)
-        self.tags = _validated_tags(self.tags)
-        super().save(*args, **kwargs)
 
 
 def _validated_tags(tags: Any) -> list[str]:
