@@ -1,0 +1,469 @@
+"""The hot path of metric ingest: a per-process batched writer that acks only committed rows.
+
+Consumers hand every `metrics` frame to `get_writer().add()` and ack the robot once the
+returned future resolves, so a frame is acknowledged only after its rows are committed and
+nothing is lost if the process dies. Rows are buffered and written in batches: with COPY on
+PostgreSQL (tens of thousands of rows per second), with `bulk_create` elsewhere.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+import weakref
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any, Protocol
+
+import psycopg
+from django.conf import settings
+from django.db import IntegrityError, InterfaceError, OperationalError, connections, transaction
+
+from .models import Metric
+
+if TYPE_CHECKING:
+    from bridgeos_agent.protocol import MetricPoint
+
+logger = logging.getLogger(__name__)
+
+COLUMNS = "robot_id, skill, component, name, value, labels, ts"
+# Keys of Django's OPTIONS that are not libpq connection parameters.
+_DJANGO_ONLY_OPTIONS = {"pool", "server_side_binding", "isolation_level", "assume_role", "cursor_factory"}
+_CACHE_LIMIT = 4096
+# Errors after which a fresh connection may succeed; anything else is refused data.
+_CONNECTION_ERRORS = (psycopg.OperationalError, psycopg.InterfaceError, OperationalError, InterfaceError, OSError)
+
+
+class WriterOverloaded(Exception):
+    """The writer holds too many uncommitted rows; the robot should resend later."""
+
+
+# --------------------------------------------------------------------------- COPY text format
+
+# Points arrive in time order, so the formatted second repeats for many rows in a row.
+_second_prefixes: dict[int, str] = {}
+# Most points carry no labels or the same few label sets; json.dumps costs more than the rest of a row.
+_labels_texts: dict[tuple[tuple[str, str], ...], str] = {}
+
+
+def _copy_escape(value: str) -> str:
+    """Escape a value for COPY's text format."""
+    return value.replace("\\", "\\\\").replace("\t", "\\t").replace("\n", "\\n").replace("\r", "\\r")
+
+
+def format_ts(ts: float) -> str:
+    """Format epoch seconds as timestamptz text, rounded like datetime.fromtimestamp."""
+    # The same split and half-even rounding as CPython's datetime, so both paths store the same instant.
+    second = int(ts)
+    micros = round((ts - second) * 1e6)
+    if micros >= 1_000_000:
+        micros -= 1_000_000
+        second += 1
+    elif micros < 0:
+        micros += 1_000_000
+        second -= 1
+    prefix = _second_prefixes.get(second)
+    if prefix is None:
+        if len(_second_prefixes) >= _CACHE_LIMIT:
+            _second_prefixes.clear()
+        prefix = _second_prefixes[second] = datetime.fromtimestamp(second, UTC).strftime("%Y-%m-%d %H:%M:%S.")
+    return f"{prefix}{micros:06d}+00"
+
+
+def format_labels(labels: dict[str, str]) -> str:
+    """Return labels as JSON escaped for COPY's text format."""
+    key = tuple(labels.items())
+    text = _labels_texts.get(key)
+    if text is None:
+        text = json.dumps(labels, ensure_ascii=False, separators=(",", ":"))
+        if "\\u0000" in text:
+            # jsonb refuses NUL characters, and one bad label must not fail a whole batch.
+            clean = {k.replace("\x00", ""): v.replace("\x00", "") for k, v in labels.items()}
+            text = json.dumps(clean, ensure_ascii=False, separators=(",", ":"))
+        # JSON already escapes control characters, so backslashes are all COPY needs doubled.
+        text = text.replace("\\", "\\\\")
+        if len(_labels_texts) >= _CACHE_LIMIT:
+            _labels_texts.clear()
+        _labels_texts[key] = text
+    return text
+
+
+def format_copy_rows(robot_id: str, points: Iterable[MetricPoint]) -> str:
+    """Return the points of one robot as lines of COPY text format."""
+    robot = _copy_escape(robot_id)
+    lines = []
+    append = lines.append
+    for point in points:
+        head = f"{point.skill or ''}\t{point.component or ''}\t{point.name}"
+        # The protocol's slug and name patterns exclude these, so escaping is almost never needed.
+        if "\\" in head or "\n" in head or "\r" in head or head.count("\t") != 2:
+            head = "\t".join(_copy_escape(part) for part in (point.skill or "", point.component or "", point.name))
+        labels = format_labels(point.labels) if point.labels else "{}"
+        append(f"{robot}\t{head}\t{float(point.value)!r}\t{labels}\t{format_ts(point.ts)}\n")
+    return "".join(lines)
+
+
+# --------------------------------------------------------------------------- sinks
+
+
+class _Entry:
+    """The points of one `add()` call, prepared for the sink, and who waits for them."""
+
+    __slots__ = ("future", "payload", "robot_id", "rows")
+
+    def __init__(self, robot_id: str, payload: Any, rows: int, future: asyncio.Future[None]) -> None:
+        self.robot_id = robot_id
+        self.payload = payload
+        self.rows = rows
+        self.future = future
+
+
+class _Sink(Protocol):
+    def prepare(self, robot_id: str, points: Sequence[MetricPoint]) -> Any: ...
+
+    async def write(self, entries: list[_Entry]) -> None: ...
+
+    async def write_each(self, entries: list[_Entry]) -> list[BaseException | None]: ...
+
+    async def existing_robots(self, robot_ids: set[str]) -> set[str]: ...
+
+    def is_integrity_error(self, exc: BaseException) -> bool: ...
+
+    async def reset(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+def conninfo_from_settings(alias: str = "default") -> str:
+    """Build a libpq conninfo string from Django's settings for a database."""
+    db = settings.DATABASES[alias]
+    params: dict[str, Any] = {
+        key: value for key, value in (db.get("OPTIONS") or {}).items() if key not in _DJANGO_ONLY_OPTIONS
+    }
+    params.update(
+        dbname=db.get("NAME") or None,
+        user=db.get("USER") or None,
+        password=db.get("PASSWORD") or None,
+        host=db.get("HOST") or None,
+        port=str(db["PORT"]) if db.get("PORT") else None,
+    )
+    params.setdefault("connect_timeout", 10)
+    params.setdefault("application_name", "bridgeos-metric-writer")
+    return psycopg.conninfo.make_conninfo(**{k: v for k, v in params.items() if v is not None})
+
+
+class _PostgresSink:
+    """Write batches with COPY over one psycopg connection of its own."""
+
+    def __init__(self, alias: str) -> None:
+        self.conninfo = conninfo_from_settings(alias)
+        self.copy_sql = f"COPY {Metric._meta.db_table} ({COLUMNS}) FROM STDIN"
+        self.robot_table = Metric._meta.get_field("robot").related_model._meta.db_table
+        self.conn: psycopg.AsyncConnection[Any] | None = None
+
+    async def _connection(self) -> psycopg.AsyncConnection[Any]:
+        if self.conn is None or self.conn.closed:
+            self.conn = await psycopg.AsyncConnection.connect(self.conninfo, autocommit=False)
+        return self.conn
+
+    def prepare(self, robot_id: str, points: Sequence[MetricPoint]) -> str:
+        return format_copy_rows(robot_id, points)
+
+    async def write(self, entries: list[_Entry]) -> None:
+        conn = await self._connection()
+        async with conn.transaction(), conn.cursor() as cursor, cursor.copy(self.copy_sql) as copy:
+            await copy.write("".join([entry.payload for entry in entries]))
+
+    async def write_each(self, entries: list[_Entry]) -> list[BaseException | None]:
+        conn = await self._connection()
+        errors: list[BaseException | None] = []
+        async with conn.transaction(), conn.cursor() as cursor:
+            for entry in entries:
+                try:
+                    # A savepoint per entry, so one bad frame does not take the others with it.
+                    async with conn.transaction(), cursor.copy(self.copy_sql) as copy:
+                        await copy.write(entry.payload)
+                except (psycopg.DataError, psycopg.IntegrityError, psycopg.ProgrammingError, UnicodeError) as exc:
+                    errors.append(exc)
+                else:
+                    errors.append(None)
+        return errors
+
+    async def existing_robots(self, robot_ids: set[str]) -> set[str]:
+        conn = await self._connection()
+        async with conn.transaction():
+            cursor = await conn.execute(f"SELECT id FROM {self.robot_table} WHERE id = ANY(%s)", [list(robot_ids)])
+            return {row[0] for row in await cursor.fetchall()}
+
+    def is_integrity_error(self, exc: BaseException) -> bool:
+        return isinstance(exc, psycopg.errors.ForeignKeyViolation)
+
+    async def reset(self) -> None:
+        if self.conn is not None:
+            await self.conn.close()
+        self.conn = None
+
+    async def close(self) -> None:
+        await self.reset()
+
+
+class _OrmSink:
+    """Write batches with bulk_create in a thread of its own, for SQLite and other vendors."""
+
+    def __init__(self, alias: str) -> None:
+        self.alias = alias
+        # One thread means one Django connection, and SQLite sees a single writer.
+        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="metric-writer")
+
+    async def _run(self, func: Any, *args: Any) -> Any:
+        return await asyncio.get_running_loop().run_in_executor(self.executor, func, *args)
+
+    def prepare(self, robot_id: str, points: Sequence[MetricPoint]) -> tuple[MetricPoint, ...]:
+        # Model instances are built in the thread: they are expensive and would stall the loop.
+        return tuple(points)
+
+    def _metrics(self, entry: _Entry) -> list[Metric]:
+        return [
+            Metric(
+                robot_id=entry.robot_id,
+                skill=point.skill or "",
+                component=point.component or "",
+                name=point.name,
+                value=point.value,
+                labels=point.labels or {},
+                ts=datetime.fromtimestamp(point.ts, UTC),
+            )
+            for point in entry.payload
+        ]
+
+    def _write(self, entries: list[_Entry]) -> None:
+        with transaction.atomic(using=self.alias):
+            rows = [metric for entry in entries for metric in self._metrics(entry)]
+            Metric.objects.using(self.alias).bulk_create(rows, batch_size=1000)
+
+    def _write_each(self, entries: list[_Entry]) -> list[BaseException | None]:
+        errors: list[BaseException | None] = []
+        for entry in entries:
+            try:
+                self._write([entry])
+            except Exception as exc:
+                errors.append(exc)
+            else:
+                errors.append(None)
+        return errors
+
+    def _existing_robots(self, robot_ids: set[str]) -> set[str]:
+        robots = Metric._meta.get_field("robot").related_model._default_manager.using(self.alias)
+        return set(robots.filter(pk__in=robot_ids).values_list("pk", flat=True))
+
+    async def write(self, entries: list[_Entry]) -> None:
+        await self._run(self._write, entries)
+
+    async def write_each(self, entries: list[_Entry]) -> list[BaseException | None]:
+        return await self._run(self._write_each, entries)
+
+    async def existing_robots(self, robot_ids: set[str]) -> set[str]:
+        return await self._run(self._existing_robots, robot_ids)
+
+    def is_integrity_error(self, exc: BaseException) -> bool:
+        return isinstance(exc, IntegrityError)
+
+    def _close_connection(self) -> None:
+        # Looked up inside the thread: Django keeps one connection per thread.
+        connections[self.alias].close()
+
+    async def reset(self) -> None:
+        await self._run(self._close_connection)
+
+    async def close(self) -> None:
+        await self.reset()
+        self.executor.shutdown(wait=False)
+
+
+# --------------------------------------------------------------------------- the writer
+
+
+class MetricWriter:
+    """Buffer metric points and write them in batches, resolving each caller once committed."""
+
+    def __init__(
+        self,
+        *,
+        flush_rows: int = 5000,
+        flush_interval: float = 0.25,
+        max_pending_rows: int = 500_000,
+        using: str = "default",
+    ) -> None:
+        self.flush_rows = flush_rows
+        self.flush_interval = flush_interval
+        self.max_pending_rows = max_pending_rows
+        self.using = using
+        # Observability: read them from a status view or a debugger.
+        self.rows_written = 0
+        self.rows_dropped = 0
+        self.batches = 0
+        self.last_flush_seconds = 0.0
+        self.pending_rows = 0  # added, neither committed nor failed yet
+        self._buffer: list[_Entry] = []
+        self._buffered_rows = 0
+        self._sink: _Sink | None = None
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self._closing = False
+
+    def add(self, robot_id: str, points: Sequence[MetricPoint]) -> asyncio.Future[None]:
+        """Queue the points of one robot; the future resolves once they are committed."""
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        if not points:
+            future.set_result(None)
+            return future
+        if self._closing:
+            raise RuntimeError("the metric writer is closed")
+        if self.pending_rows >= self.max_pending_rows:
+            future.set_exception(WriterOverloaded(f"{self.pending_rows} metric rows wait for the database"))
+            return future
+        self.start()
+        try:
+            payload = self._sink.prepare(robot_id, points)  # type: ignore[union-attr]
+        except (ValueError, TypeError, OverflowError, AttributeError) as exc:
+            # A point that cannot be formatted fails only its own frame, never a whole batch.
+            future.set_exception(exc)
+            return future
+        rows = len(points)
+        self._buffer.append(_Entry(robot_id, payload, rows, future))
+        self._buffered_rows += rows
+        self.pending_rows += rows
+        if self._buffered_rows >= self.flush_rows:
+            self._wake.set()
+        return future
+
+    @property
+    def closed(self) -> bool:
+        """Tell whether close() was called."""
+        return self._closing
+
+    def start(self) -> None:
+        """Start the background flusher on the running loop, if not yet started."""
+        if self._task is not None:
+            return
+        if self._sink is None:
+            vendor = connections[self.using].vendor
+            self._sink = _PostgresSink(self.using) if vendor == "postgresql" else _OrmSink(self.using)
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="metric-writer")
+
+    async def close(self) -> None:
+        """Flush every buffered point, then stop the flusher and drop the connection."""
+        self._closing = True
+        self._wake.set()
+        if self._task is not None:
+            await self._task
+            self._task = None
+        if self._sink is not None:
+            await self._sink.close()
+            self._sink = None
+
+    async def flush(self) -> None:
+        """Write every point buffered so far and return once it is committed or failed."""
+        futures = [entry.future for entry in self._buffer]
+        if futures:
+            self._wake.set()
+            await asyncio.gather(*futures, return_exceptions=True)
+
+    async def _run(self) -> None:
+        while True:
+            if not self._wake.is_set() and not self._closing:
+                try:
+                    async with asyncio.timeout(self.flush_interval):
+                        await self._wake.wait()
+                except TimeoutError:
+                    pass
+            self._wake.clear()
+            if self._buffer:
+                await self._flush()
+            elif self._closing:
+                return
+
+    async def _flush(self) -> None:
+        entries, self._buffer = self._buffer, []
+        rows, self._buffered_rows = self._buffered_rows, 0
+        started = time.perf_counter()
+        try:
+            written, failed = await self._write(entries)
+        except asyncio.CancelledError:
+            self._fail(entries, ConnectionAbortedError("the metric writer was cancelled"))
+            raise
+        except Exception as exc:
+            logger.warning("Writing %d metric rows failed: %r", rows, exc)
+            self._fail(entries, exc)
+        else:
+            self.batches += 1
+            self.rows_written += sum(entry.rows for entry in written)
+            for entry, error in failed.items():
+                if not entry.future.done():
+                    entry.future.set_exception(error)
+            # Dropped rows of deleted robots resolve too: there is nobody left to resend them to.
+            for entry in entries:
+                if not entry.future.done():
+                    entry.future.set_result(None)
+        finally:
+            self.pending_rows -= rows
+            self.last_flush_seconds = time.perf_counter() - started
+
+    def _fail(self, entries: list[_Entry], exc: BaseException) -> None:
+        for entry in entries:
+            if not entry.future.done():
+                entry.future.set_exception(exc)
+
+    async def _write(self, entries: list[_Entry]) -> tuple[list[_Entry], dict[_Entry, BaseException]]:
+        """Write a batch and return what was written and which frames failed, retrying once."""
+        sink = self._sink
+        assert sink is not None
+        retried = False
+        while True:
+            try:
+                await sink.write(entries)
+                return entries, {}
+            except Exception as exc:
+                if sink.is_integrity_error(exc):
+                    kept = await self._without_deleted_robots(entries, sink)
+                    if len(kept) < len(entries):
+                        entries = kept
+                        continue
+                if retried:
+                    raise
+                retried = True
+                logger.warning("Writing %d metric frames failed, retrying once: %r", len(entries), exc)
+                if not isinstance(exc, _CONNECTION_ERRORS):
+                    break
+                await sink.reset()
+        # The data itself was refused: write frame by frame, so one bad frame fails alone.
+        errors = await sink.write_each(entries)
+        failed = {entry: error for entry, error in zip(entries, errors, strict=True) if error is not None}
+        return [entry for entry in entries if entry not in failed], failed
+
+    async def _without_deleted_robots(self, entries: list[_Entry], sink: _Sink) -> list[_Entry]:
+        """Return the entries of robots that still exist, logging the dropped ones once."""
+        robot_ids = {entry.robot_id for entry in entries}
+        missing = robot_ids - await sink.existing_robots(robot_ids)
+        if missing:
+            dropped = sum(entry.rows for entry in entries if entry.robot_id in missing)
+            self.rows_dropped += dropped
+            names = ", ".join(sorted(missing)[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
+            logger.warning("Dropped %d metric rows of deleted robots: %s", dropped, names)
+        return [entry for entry in entries if entry.robot_id not in missing]
+
+
+_writers: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, MetricWriter] = weakref.WeakKeyDictionary()
+
+
+def get_writer() -> MetricWriter:
+    """Return this event loop's metric writer, started on first use."""
+    loop = asyncio.get_running_loop()
+    writer = _writers.get(loop)
+    if writer is None or writer.closed:
+        writer = _writers[loop] = MetricWriter()
+        writer.start()
+    return writer

@@ -1,0 +1,119 @@
+"""The live feed to dashboards: coalesced metric values and low-rate state events.
+
+A `group_send` per frame caps a consumer at under 1,000 frames/s and overflows subscribers,
+so metrics are coalesced per process to the latest value per series and sent to the
+`live` group as one message every `interval`. Subscribers filter by the robots they may see.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import logging
+import weakref
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from asgiref.sync import async_to_sync
+from channels.layers import BaseChannelLayer, get_channel_layer
+from django.db import transaction
+
+if TYPE_CHECKING:
+    from bridgeos_agent.protocol import MetricPoint
+
+logger = logging.getLogger(__name__)
+
+LIVE_GROUP = "live"
+
+# (skill, component, name) of one series of one robot.
+SeriesKey = tuple[str | None, str | None, str]
+
+
+class LiveFeed:
+    """Keep the latest value of every series and push the changes to the live group periodically."""
+
+    def __init__(self, *, interval: float = 0.5, layer: BaseChannelLayer | None = None) -> None:
+        self.interval = interval
+        self.layer = layer
+        self.messages_sent = 0
+        self._latest: dict[str, dict[SeriesKey, MetricPoint]] = {}
+        self._task: asyncio.Task[None] | None = None
+
+    def add_metrics(self, robot_id: str, points: Sequence[MetricPoint]) -> None:
+        """Remember the newest value of each series among the points."""
+        series = self._latest.get(robot_id)
+        if series is None:
+            series = self._latest[robot_id] = {}
+        for point in points:
+            key = (point.skill, point.component, point.name)
+            known = series.get(key)
+            # A robot resending its outbox after a reconnect must not replace newer values.
+            if known is None or point.ts >= known.ts:
+                series[key] = point
+        self.start()
+
+    def start(self) -> None:
+        """Start the periodic sender on the running loop, if not yet started."""
+        if self._task is None:
+            self._task = asyncio.get_running_loop().create_task(self._run(), name="live-feed")
+
+    async def close(self) -> None:
+        """Stop the periodic sender after sending what is still pending."""
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+            self._task = None
+        await self.send()
+
+    async def send(self) -> None:
+        """Send the values gathered since the last send as one message, if any."""
+        if not self._latest:
+            return
+        latest, self._latest = self._latest, {}
+        robots = {
+            robot_id: [[p.name, p.value, p.ts, p.skill, p.component] for p in series.values()]
+            for robot_id, series in latest.items()
+        }
+        layer = self.layer or get_channel_layer()
+        if layer is None:
+            return
+        await layer.group_send(LIVE_GROUP, {"type": "live.metrics", "robots": robots})
+        self.messages_sent += 1
+
+    async def _run(self) -> None:
+        while True:
+            await asyncio.sleep(self.interval)
+            try:
+                await self.send()
+            except Exception:
+                # Live values are expendable: the next round carries fresher ones.
+                logger.exception("Sending live metrics failed")
+
+
+_feeds: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, LiveFeed] = weakref.WeakKeyDictionary()
+
+
+def get_live_feed() -> LiveFeed:
+    """Return this event loop's live feed, started on first use."""
+    loop = asyncio.get_running_loop()
+    feed = _feeds.get(loop)
+    if feed is None:
+        feed = _feeds[loop] = LiveFeed()
+        feed.start()
+    return feed
+
+
+async def publish(robot_id: str, frame: dict[str, Any]) -> None:
+    """Send a state event of a robot to the live group."""
+    layer = get_channel_layer()
+    if layer is not None:
+        await layer.group_send(LIVE_GROUP, {"type": "live.event", "robot": robot_id, "frame": frame})
+
+
+def publish_on_commit(robot_id: str, frame: dict[str, Any], *, using: str | None = None) -> None:
+    """Publish a state event once the current transaction commits, never if it rolls back."""
+    # robust: the change is committed already, so a broadcast failure must not fail the caller.
+    transaction.on_commit(functools.partial(async_to_sync(publish), robot_id, frame), using=using, robust=True)

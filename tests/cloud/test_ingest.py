@@ -1,0 +1,328 @@
+"""The batched metric writer, the coalescing live feed and metric pruning, on real PostgreSQL and Redis."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import logging
+from collections.abc import AsyncIterator, Callable
+from datetime import UTC, datetime, timedelta
+
+import psycopg
+import pytest
+from asgiref.sync import sync_to_async
+from channels.layers import get_channel_layer
+from django.contrib.auth import get_user_model
+from django.core.management import call_command
+from django.db import connections, transaction
+from django.utils import timezone
+
+from bridgeos_agent.protocol import MetricPoint
+from monitoring.ingest import MetricWriter, conninfo_from_settings, format_ts, get_writer
+from monitoring.live import LIVE_GROUP, LiveFeed, publish_on_commit
+from monitoring.models import Metric
+from robots.models import Robot
+from robots.services import create_robot
+
+pytestmark = pytest.mark.django_db(transaction=True)
+
+# Its own Redis database: another suite may be using the default one right now.
+TEST_REDIS_URL = "redis://127.0.0.1:6379/13"
+T0 = 1_760_000_000.0
+
+
+@pytest.fixture(autouse=True)
+async def close_thread_connections() -> AsyncIterator[None]:
+    yield
+    # sync_to_async's thread keeps its own connection, which would block dropping the test database.
+    await sync_to_async(connections.close_all)()
+
+
+@pytest.fixture
+def robots() -> list[str]:
+    owner = get_user_model().objects.create_user("owner")
+    return [create_robot(robot_id, owner)[0].id for robot_id in ("r1", "r2", "r3")]
+
+
+@pytest.fixture
+async def make_writer() -> AsyncIterator[Callable[..., MetricWriter]]:
+    writers: list[MetricWriter] = []
+
+    def make(**options: float) -> MetricWriter:
+        writer = MetricWriter(**options)
+        writers.append(writer)
+        return writer
+
+    yield make
+    for writer in writers:
+        await writer.close()
+
+
+@pytest.fixture
+def redis_layer(settings) -> None:
+    settings.CHANNEL_LAYERS = {
+        "default": {"BACKEND": "channels_redis.core.RedisChannelLayer", "CONFIG": {"hosts": [TEST_REDIS_URL]}}
+    }
+
+
+def point(name: str, value: float, ts: float, **fields: object) -> MetricPoint:
+    return MetricPoint(name=name, value=value, ts=ts, **fields)
+
+
+@sync_to_async
+def stored() -> list[tuple]:
+    return list(
+        Metric.objects.order_by("robot_id", "ts", "name").values_list(
+            "robot_id", "skill", "component", "name", "value", "labels", "ts"
+        )
+    )
+
+
+def expected(robot_id: str, points: list[MetricPoint]) -> list[tuple]:
+    return [
+        (robot_id, p.skill or "", p.component or "", p.name, p.value, p.labels or {}, datetime.fromtimestamp(p.ts, UTC))
+        for p in points
+    ]
+
+
+async def test_points_of_several_robots_are_stored_exactly(robots, make_writer):
+    writer = make_writer()
+    sent = {
+        robot_id: [
+            point("cpu", 12.5 + i, T0 + i + 0.123456, skill="nav", component="planner", labels={"core": str(i)}),
+            point("mem", 1e-300, T0 + i + 0.9999996),  # rounds up into the next second
+            point("temp", -3.25, T0 + i + 0.0000005),  # half a microsecond: rounds half to even
+        ]
+        for i, robot_id in enumerate(robots)
+    }
+
+    await asyncio.gather(*(writer.add(robot_id, points) for robot_id, points in sent.items()))
+
+    rows = await stored()
+    assert rows == sorted(
+        (row for robot_id, points in sent.items() for row in expected(robot_id, points)),
+        key=lambda row: (row[0], row[6], row[3]),
+    )
+    assert all(row[6].utcoffset() == timedelta(0) for row in rows)
+    assert writer.rows_written == 9 and writer.pending_rows == 0
+
+
+@pytest.mark.parametrize("ts", [0.0, 0.0000005, 0.0000015, 1.9999995, T0 + 0.1234565, 4_102_444_799.9999996])
+def test_timestamps_are_formatted_as_datetime_rounds_them(ts):
+    assert format_ts(ts) == datetime.fromtimestamp(ts, UTC).strftime("%Y-%m-%d %H:%M:%S.%f+00")
+
+
+async def test_future_resolves_only_once_rows_are_committed(robots, make_writer):
+    writer = make_writer(flush_interval=60)
+    seen_by_another_connection: list[int] = []
+
+    def count_committed(_future: asyncio.Future[None]) -> None:
+        # A connection of its own sees only committed rows.
+        with psycopg.connect(conninfo_from_settings()) as conn:
+            seen_by_another_connection.append(conn.execute("SELECT count(*) FROM monitoring_metric").fetchone()[0])
+
+    future = writer.add("r1", [point("cpu", 1.0, T0), point("cpu", 2.0, T0 + 1)])
+    future.add_done_callback(count_committed)
+    await asyncio.sleep(0.3)
+    assert not future.done()
+    assert await stored() == []
+
+    await writer.flush()
+
+    assert future.done() and future.exception() is None
+    assert seen_by_another_connection == [2]
+
+
+async def test_a_full_buffer_flushes_before_the_interval(robots, make_writer):
+    writer = make_writer(flush_rows=100, flush_interval=60)
+    first = writer.add("r1", [point("cpu", float(i), T0 + i) for i in range(60)])
+    await asyncio.sleep(0.3)
+    assert not first.done()
+
+    second = writer.add("r2", [point("cpu", float(i), T0 + i) for i in range(50)])
+
+    await asyncio.wait_for(asyncio.gather(first, second), timeout=5)
+    assert writer.batches == 1 and writer.rows_written == 110
+
+
+async def test_the_interval_flushes_a_small_buffer(robots, make_writer):
+    writer = make_writer(flush_rows=1_000_000, flush_interval=0.1)
+
+    await asyncio.wait_for(writer.add("r1", [point("cpu", 1.0, T0)]), timeout=2)
+
+    assert writer.batches == 1
+    assert len(await stored()) == 1
+
+
+async def test_labels_with_special_characters_round_trip(robots, make_writer):
+    writer = make_writer()
+    labels = {
+        "tab": "a\tb",
+        "newline": "a\nb\r\nc",
+        "backslash": "C:\\path\\N",
+        "quote": "say \"hi\" 'there'",
+        "unicode": "Zürich ☃ 😀 \u2028",
+        "json": '{"nested": [1, 2]}',
+        "copy.null": "\\N",
+        "empty": "",
+    }
+
+    await writer.add("r1", [point("cpu", 1.0, T0, labels=labels), point("cpu", 2.0, T0 + 1, labels=labels)])
+
+    assert [row[5] for row in await stored()] == [labels, labels]
+
+
+async def test_nul_characters_are_stripped_from_labels(robots, make_writer):
+    writer = make_writer()
+
+    await writer.add("r1", [point("cpu", 1.0, T0, labels={"host": "a\x00b"})])
+
+    assert [row[5] for row in await stored()] == [{"host": "ab"}]
+
+
+async def test_rows_of_a_deleted_robot_are_dropped_without_losing_others(robots, make_writer, caplog):
+    writer = make_writer(flush_interval=60)
+    kept = writer.add("r1", [point("cpu", float(i), T0 + i) for i in range(5)])
+    dropped = writer.add("r2", [point("cpu", float(i), T0 + i) for i in range(5)])
+    also_kept = writer.add("r3", [point("mem", 7.0, T0)])
+    await sync_to_async(Robot.objects.filter(id="r2").delete)()
+
+    with caplog.at_level(logging.WARNING, logger="monitoring.ingest"):
+        await writer.flush()
+
+    await asyncio.gather(kept, dropped, also_kept)
+    assert {row[0] for row in await stored()} == {"r1", "r3"}
+    assert len(await stored()) == 6
+    assert writer.rows_written == 6 and writer.rows_dropped == 5
+    assert [r.getMessage() for r in caplog.records] == ["Dropped 5 metric rows of deleted robots: r2"]
+
+
+async def test_a_frame_the_database_refuses_fails_alone(robots, make_writer):
+    writer = make_writer(flush_interval=60)
+    good = writer.add("r1", [point("cpu", 1.0, T0)])
+    # Built without validation: a name longer than the column allows.
+    bad = writer.add("r2", [MetricPoint.model_construct(name="x" * 200, value=1.0, ts=T0)])
+    also_good = writer.add("r3", [point("cpu", 3.0, T0)])
+
+    await writer.flush()
+
+    assert good.exception() is None and also_good.exception() is None
+    assert isinstance(bad.exception(), psycopg.DataError)
+    assert [row[0] for row in await stored()] == ["r1", "r3"]
+
+
+async def test_a_point_that_cannot_be_formatted_fails_its_frame_at_once(robots, make_writer):
+    writer = make_writer()
+
+    future = writer.add("r1", [point("cpu", 1.0, 1e14)])  # far beyond year 9999
+
+    assert isinstance(future.exception(), ValueError | OverflowError)
+    assert writer.pending_rows == 0
+
+
+async def test_close_flushes_what_is_buffered(robots):
+    writer = MetricWriter(flush_interval=60)
+    future = writer.add("r1", [point("cpu", 1.0, T0)])
+
+    await writer.close()
+
+    assert future.done() and future.exception() is None
+    assert len(await stored()) == 1
+
+
+async def test_writer_reconnects_after_losing_its_connection(robots, make_writer, caplog):
+    writer = make_writer()
+    await writer.add("r1", [point("cpu", 1.0, T0)])
+    admin_conninfo = psycopg.conninfo.make_conninfo(conninfo_from_settings(), application_name="test-admin")
+    with psycopg.connect(admin_conninfo, autocommit=True) as admin:
+        admin.execute(
+            "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE application_name = %s",
+            ["bridgeos-metric-writer"],
+        )
+
+    await asyncio.wait_for(writer.add("r1", [point("cpu", 2.0, T0 + 1)]), timeout=5)
+
+    assert [row[4] for row in await stored()] == [1.0, 2.0]
+    assert "retrying once" in caplog.text
+
+
+async def test_get_writer_returns_one_writer_per_loop(robots):
+    writer = get_writer()
+    try:
+        assert get_writer() is writer
+        await writer.add("r1", [point("cpu", 1.0, T0)])
+    finally:
+        await writer.close()
+
+
+async def test_live_feed_coalesces_many_adds_into_one_message_of_latest_values(redis_layer):
+    layer = get_channel_layer()
+    channel = await layer.new_channel()
+    await layer.group_add(LIVE_GROUP, channel)
+    feed = LiveFeed(interval=0.3)
+    try:
+        for i in range(100):
+            feed.add_metrics("r1", [point("cpu", float(i), T0 + i), point("mem", 2.0 * i, T0 + i, skill="nav")])
+            feed.add_metrics("r2", [point("cpu", -float(i), T0 + i, skill="nav", component="planner")])
+        # A resent older point must not replace the newer value.
+        feed.add_metrics("r1", [point("cpu", -1.0, T0)])
+
+        message = await asyncio.wait_for(layer.receive(channel), timeout=3)
+
+        assert message == {
+            "type": "live.metrics",
+            "robots": {
+                "r1": [["cpu", 99.0, T0 + 99, None, None], ["mem", 198.0, T0 + 99, "nav", None]],
+                "r2": [["cpu", -99.0, T0 + 99, "nav", "planner"]],
+            },
+        }
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(layer.receive(channel), timeout=0.8)
+        assert feed.messages_sent == 1
+    finally:
+        await feed.close()
+        await layer.group_discard(LIVE_GROUP, channel)
+        await layer.close_pools()
+
+
+class Rollback(Exception):
+    pass
+
+
+def change_robot(frame: dict, *, fail: bool) -> None:
+    with transaction.atomic():
+        publish_on_commit("r1", frame)
+        if fail:
+            raise Rollback
+
+
+async def test_publish_on_commit_sends_nothing_when_the_transaction_rolls_back(redis_layer):
+    layer = get_channel_layer()
+    channel = await layer.new_channel()
+    await layer.group_add(LIVE_GROUP, channel)
+    try:
+        with pytest.raises(Rollback):
+            await sync_to_async(change_robot)({"status": "rolled back"}, fail=True)
+        await sync_to_async(change_robot)({"status": "committed"}, fail=False)
+
+        message = await asyncio.wait_for(layer.receive(channel), timeout=3)
+
+        assert message == {"type": "live.event", "robot": "r1", "frame": {"status": "committed"}}
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(layer.receive(channel), timeout=0.5)
+    finally:
+        await layer.group_discard(LIVE_GROUP, channel)
+        await layer.close_pools()
+
+
+def test_prune_metrics_command_deletes_old_points(robots):
+    now = timezone.now()
+    Metric.objects.bulk_create(
+        [Metric(robot_id="r1", name="cpu", value=i, ts=now - timedelta(days=i)) for i in range(10)]
+    )
+    out = io.StringIO()
+
+    call_command("prune_metrics", "--older-than", "4.5", stdout=out)
+
+    assert out.getvalue().strip() == "Deleted 5 metric points."
+    assert sorted(Metric.objects.values_list("value", flat=True)) == [0, 1, 2, 3, 4]
