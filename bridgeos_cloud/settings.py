@@ -123,7 +123,15 @@ if REDIS_URL:
             "BACKEND": "channels_redis.core.RedisChannelLayer",
             "CONFIG": {
                 # redis-py's default pool (100 sockets) fails under a large fleet.
-                "hosts": [{"address": REDIS_URL, "max_connections": env_int("REDIS_MAX_CONNECTIONS", 1000)}],
+                "hosts": [
+                    {
+                        "address": REDIS_URL,
+                        "max_connections": env_int("REDIS_MAX_CONNECTIONS", 1000),
+                        # redis-py 8 reads with a 5 s timeout by default, exactly the layer's blocking
+                        # pop of 5 s, so idle receives would fail; give the read room above it.
+                        "socket_timeout": 30,
+                    }
+                ],
                 # The default capacity (100) overflows and drops messages for busy subscribers.
                 "capacity": env_int("CHANNEL_LAYER_CAPACITY", 5000),
                 "expiry": 30,
@@ -174,6 +182,13 @@ SPECTACULAR_SETTINGS = {
 # bridgeOS knobs.
 BRIDGEOS = {
     "METRIC_RETENTION_DAYS": env_float("BRIDGEOS_METRIC_RETENTION_DAYS", 30.0),
+    # Per WebSocket connection: frames per second on average, and the burst allowed above it.
+    "ROBOT_FRAMES_PER_S": env_float("BRIDGEOS_ROBOT_FRAMES_PER_S", 200.0),
+    "ROBOT_FRAME_BURST": env_float("BRIDGEOS_ROBOT_FRAME_BURST", 1000.0),
+    "CLIENT_FRAMES_PER_S": env_float("BRIDGEOS_CLIENT_FRAMES_PER_S", 50.0),
+    "CLIENT_FRAME_BURST": env_float("BRIDGEOS_CLIENT_FRAME_BURST", 200.0),
+    # How long a client's command waits for the robot's reply.
+    "COMMAND_WAIT_S": env_float("BRIDGEOS_COMMAND_WAIT_S", 5.0),
 }
 
 LOGGING = {

@@ -13,7 +13,8 @@ from .choices import Level, Source
 class Metric(models.Model):
     """One measured point of a robot, or of one of its skills or components."""
 
-    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="metrics")
+    # No index of its own: the (robot, name, ts) index serves lookups by robot, and each index slows ingest.
+    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="metrics", db_index=False)
     # Slugs rather than foreign keys: ingest writes them straight from frames, with no lookups.
     skill = models.CharField(max_length=64, blank=True, default="")
     component = models.CharField(max_length=64, blank=True, default="")

@@ -2,4 +2,10 @@
 
 from __future__ import annotations
 
-websocket_urlpatterns: list = []
+from channels.auth import AuthMiddlewareStack
+from django.urls import path
+
+from .consumers import ClientConsumer
+
+# The session middleware lets a logged-in dashboard authenticate without a token.
+websocket_urlpatterns = [path("ws/client/", AuthMiddlewareStack(ClientConsumer.as_asgi()))]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from django.conf import settings
@@ -55,3 +55,43 @@ def prune_metrics(older_than: timedelta | None = None, *, now: datetime | None =
             else:
                 Metric.objects.filter(id__in=ids).delete()
         deleted += len(ids)
+
+
+def latest_metrics(
+    robot_id: str,
+    *,
+    names: list[str] | None = None,
+    skill: str | None = None,
+    component: str | None = None,
+    since: float | None = None,
+    limit: int = 100,
+) -> list[dict[str, Any]]:
+    """Return metric points of a robot: the latest of each series, or all since a time."""
+    points = Metric.objects.filter(robot_id=robot_id)
+    if names:
+        points = points.filter(name__in=names)
+    if skill is not None:
+        points = points.filter(skill=skill)
+    if component is not None:
+        points = points.filter(component=component)
+    if since is not None:
+        points = points.filter(ts__gte=datetime.fromtimestamp(since, tz=UTC)).order_by("-ts")
+    elif connection.vendor == "postgresql":
+        points = points.order_by("name", "skill", "component", "-ts").distinct("name", "skill", "component")
+    else:
+        latest: dict[tuple[str, str, str], Metric] = {}
+        for point in points.order_by("-ts")[: limit * 50]:
+            latest.setdefault((point.name, point.skill, point.component), point)
+        points = list(latest.values())
+    return [_point(metric) for metric in points[:limit]]
+
+
+def _point(metric: Metric) -> dict[str, Any]:
+    point: dict[str, Any] = {"name": metric.name, "value": metric.value, "ts": metric.ts.timestamp()}
+    if metric.skill:
+        point["skill"] = metric.skill
+    if metric.component:
+        point["component"] = metric.component
+    if metric.labels:
+        point["labels"] = metric.labels
+    return point

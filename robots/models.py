@@ -43,6 +43,8 @@ class Robot(models.Model):
     status = models.CharField(max_length=16, choices=RobotStatus.choices, default=RobotStatus.IDLE)
     connected = models.BooleanField(default=False)
     last_seen = models.DateTimeField(null=True, blank=True)
+    # The consumer holding the live connection; commands go there, and only it may mark the robot offline.
+    channel = models.CharField(max_length=200, blank=True, editable=False)
     config = models.JSONField(
         default=default_robot_config, help_text="Resources, heuristic, threshold, offloading mode, subnets."
     )

@@ -2,4 +2,8 @@
 
 from __future__ import annotations
 
-websocket_urlpatterns: list = []
+from django.urls import path
+
+from .consumers import RobotConsumer
+
+websocket_urlpatterns = [path("ws/robot/", RobotConsumer.as_asgi())]

@@ -2,14 +2,27 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
+import time
 from typing import Any
 
+from asgiref.sync import sync_to_async
+from channels.layers import get_channel_layer
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
+from django.db.models import QuerySet
+from django.utils import timezone
+from rest_framework.authtoken.models import Token
 
+from bridgeos_agent import protocol
+from bridgeos_agent.protocol import Envelope, Event
+from monitoring.choices import Level
+from monitoring.live import publish_on_commit
 from monitoring.services import record_event
 
-from .models import Robot
+from .choices import RobotStatus
+from .models import Robot, hash_token
 
 
 def create_robot(
@@ -34,3 +47,176 @@ def rotate_token(robot: Robot) -> str:
         robot.save(update_fields=["token_hash"])
         record_event(f"Token of robot {robot.id} rotated", robot_id=robot.id, kind="robot_token_rotated")
     return token
+
+
+# --------------------------------------------------------------------------- connections
+
+
+class RobotOffline(Exception):
+    """The robot is not connected, so a command cannot reach it."""
+
+
+class CommandTimeout(Exception):
+    """The robot did not answer a command in time."""
+
+
+def authenticate_robot(robot_id: str, token: str) -> Robot | None:
+    """Return the robot whose id and token match, else None."""
+    robot = Robot.objects.filter(id=robot_id).first()
+    if robot is None:
+        # Hash anyway so a wrong id costs the same time as a wrong token.
+        hash_token(token)
+        return None
+    return robot if robot.check_token(token) else None
+
+
+def mark_connected(robot_id: str, channel: str) -> dict[str, Any]:
+    """Record that a robot connected on a channel and return the config to send it."""
+    now = timezone.now()
+    with transaction.atomic():
+        robot = Robot.objects.select_for_update().get(id=robot_id)
+        replaced = robot.channel if robot.connected and robot.channel != channel else ""
+        Robot.objects.filter(id=robot_id).update(
+            connected=True, channel=channel, last_seen=now, status=RobotStatus.RUNNING
+        )
+        record_event(f"Robot {robot_id} connected", robot_id=robot_id, kind=Event.CONNECTION_ESTABLISHED)
+        publish_on_commit(robot_id, connection_frame(Event.CONNECTION_ESTABLISHED, robot_id))
+    return {"config": robot.config, "replaced_channel": replaced}
+
+
+def mark_disconnected(robot_id: str, channel: str, reason: str) -> bool:
+    """Record that a robot's connection closed, unless a newer connection replaced it."""
+    with transaction.atomic():
+        changed = Robot.objects.filter(id=robot_id, channel=channel).update(
+            connected=False, channel="", last_seen=timezone.now()
+        )
+        if changed:
+            record_event(
+                f"Robot {robot_id} disconnected: {reason}",
+                robot_id=robot_id,
+                level=Level.WARNING,
+                kind=Event.CONNECTION_LOST,
+                data={"reason": reason},
+            )
+            publish_on_commit(robot_id, connection_frame(Event.CONNECTION_LOST, robot_id, reason))
+    return bool(changed)
+
+
+def connection_frame(event: Event, robot_id: str, reason: str | None = None) -> dict[str, Any]:
+    """Build the frame that tells clients a robot connected or dropped."""
+    data = {"robot": robot_id} if reason is None else {"robot": robot_id, "reason": reason[:500]}
+    return client_frame(event, data)
+
+
+def robot_channel(robot_id: str) -> str | None:
+    """Return the channel of a connected robot's consumer, or None if it is offline."""
+    row = Robot.objects.filter(id=robot_id, connected=True).values_list("channel", flat=True).first()
+    return row or None
+
+
+def report_shutdown(robot_id: str, reason: str | None) -> None:
+    """Record that a robot announced its permanent shutdown."""
+    with transaction.atomic():
+        Robot.objects.filter(id=robot_id).update(status=RobotStatus.SHUTDOWN)
+        record_event(f"Robot {robot_id} shut down", robot_id=robot_id, kind=Event.SHUTDOWN, data={"reason": reason})
+
+
+def report_offloading(robot_id: str, mode: str) -> None:
+    """Record the offloading mode a robot reports using."""
+    with transaction.atomic():
+        robot = Robot.objects.select_for_update().get(id=robot_id)
+        if robot.config.get("offloading") != mode:
+            robot.config = {**robot.config, "offloading": mode}
+            robot.save(update_fields=["config"])
+        publish_on_commit(robot_id, client_frame(Event.OFFLOADING, {"robot": robot_id, "mode": mode}))
+
+
+def update_robot_config(robot_id: str, changes: dict[str, Any]) -> dict[str, Any]:
+    """Apply a partial config change, validated as a whole, and return the new config."""
+    with transaction.atomic():
+        robot = Robot.objects.select_for_update().get(id=robot_id)
+        robot.config = _merged(robot.config, changes)
+        robot.save(update_fields=["config"])
+        record_event(
+            f"Config of robot {robot_id} updated", robot_id=robot_id, kind=Event.ROBOT_CONFIG_UPDATE, data=changes
+        )
+    return robot.config
+
+
+def _merged(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """Merge changes into a config, recursing into nested objects."""
+    merged = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _merged(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def client_frame(event: Event, data: dict[str, Any]) -> dict[str, Any]:
+    """Build a frame for clients as a JSON-ready dict."""
+    return json.loads(protocol.encode(protocol.make(event, data, now=time.time())))
+
+
+async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any], *, wait: float = 5.0) -> Envelope:
+    """Send a command to a robot through its consumer and return the robot's reply.
+
+    Raises ProtocolError for a malformed command, RobotOffline when the robot is not
+    connected and CommandTimeout when no reply came within ``wait`` seconds.
+    """
+    envelope = protocol.make(event, data, now=time.time())
+    channel = await sync_to_async(robot_channel)(robot_id)
+    if channel is None:
+        raise RobotOffline(robot_id)
+    layer = get_channel_layer()
+    reply_channel = await layer.new_channel("relay.")
+    await layer.send(
+        channel,
+        {
+            "type": "robot.command",
+            "id": envelope.id,
+            "frame": protocol.encode(envelope),
+            "reply_channel": reply_channel,
+        },
+    )
+    try:
+        async with asyncio.timeout(wait):
+            message = await layer.receive(reply_channel)
+    except TimeoutError:
+        raise CommandTimeout(f"robot {robot_id} did not answer {event} within {wait:g} s") from None
+    if message.get("offline"):
+        raise RobotOffline(robot_id)
+    return protocol.decode(message["frame"])
+
+
+# --------------------------------------------------------------------------- who sees what
+
+
+def visible_robots(user: AbstractBaseUser) -> QuerySet[Robot]:
+    """Return the robots a user may see: their own, or all for staff."""
+    robots = Robot.objects.all()
+    return robots if user.is_staff else robots.filter(owner=user)
+
+
+def visible_robot_ids(user: AbstractBaseUser) -> set[str] | None:
+    """Return the ids of the robots a user may see, or None when they may see all."""
+    return None if user.is_staff else set(visible_robots(user).values_list("id", flat=True))
+
+
+def can_see(user: AbstractBaseUser, robot_id: str) -> bool:
+    """Tell whether a user may see and command a robot."""
+    return visible_robots(user).filter(id=robot_id).exists()
+
+
+def authenticate_api_token(key: str) -> AbstractBaseUser | None:
+    """Return the active user an API token belongs to, else None."""
+    token = Token.objects.select_related("user").filter(key=key).first()
+    if token is None or not token.user.is_active:
+        return None
+    return token.user
+
+
+def robot_config(robot_id: str) -> dict[str, Any]:
+    """Return a robot's stored config."""
+    return Robot.objects.values_list("config", flat=True).get(id=robot_id)

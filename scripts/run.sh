@@ -35,7 +35,7 @@ else
   echo "== no Redis: in-memory channel layer, tasks run in-process"
 fi
 
-.venv/bin/daphne -b "$HOST" -p "$PORT" bridgeos_cloud.asgi:application &
+scripts/daphne -b "$HOST" -p "$PORT" &
 pids+=($!)
 
 for _ in $(seq 1 100); do

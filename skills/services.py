@@ -1,4 +1,4 @@
-"""Domain actions on skills: adding a Skill config to a robot."""
+"""Domain actions on skills: adding Skill configs to robots and applying what robots report."""
 
 from __future__ import annotations
 
@@ -6,11 +6,17 @@ from typing import Any
 
 from django.core.exceptions import ValidationError
 from django.db import transaction
+from django.utils import timezone
 
+from bridgeos_agent.protocol import ComponentStatusName, Event, Location, SkillStatusName
 from bridgeos_agent.skillconfig import parse_skill_config
+from bridgeos_cloud.errors import NotFound
 from bridgeos_cloud.validation import validated_config
+from monitoring.choices import Level, Source
+from monitoring.live import publish_on_commit
 from monitoring.services import record_event
 from robots.models import Robot
+from robots.services import client_frame
 
 from .models import Component, Skill, SkillTemplate
 
@@ -39,3 +45,155 @@ def add_skill(robot: Robot, config: dict[str, Any]) -> Skill:
 def add_skill_from_template(robot: Robot, template: SkillTemplate) -> Skill:
     """Add the Skill of a catalog template to a robot."""
     return add_skill(robot, template.config)
+
+
+# --------------------------------------------------------------------------- robot reports
+
+
+def _skill(robot_id: str, skill_id: str, *, lock: bool = False) -> Skill:
+    skills = Skill.objects.select_for_update() if lock else Skill.objects
+    try:
+        return skills.get(robot_id=robot_id, skill_id=skill_id)
+    except Skill.DoesNotExist:
+        raise NotFound(f"robot {robot_id} has no skill {skill_id!r}", field="data.skill") from None
+
+
+def _component(robot_id: str, skill_id: str, component_id: str) -> Component:
+    try:
+        return Component.objects.select_for_update().get(
+            skill__robot_id=robot_id, skill__skill_id=skill_id, component_id=component_id
+        )
+    except Component.DoesNotExist:
+        _skill(robot_id, skill_id)
+        raise NotFound(f"skill {skill_id!r} has no component {component_id!r}", field="data.component") from None
+
+
+def _announce(robot_id: str, event: Event, data: dict[str, Any]) -> None:
+    publish_on_commit(robot_id, client_frame(event, {"robot": robot_id, **data}))
+
+
+def report_skill_status(robot_id: str, skill_id: str, status: str, message: str | None = None) -> None:
+    """Record the status a robot reports for one of its skills."""
+    with transaction.atomic():
+        skill = _skill(robot_id, skill_id, lock=True)
+        Skill.objects.filter(pk=skill.pk).update(status=status, updated_at=timezone.now())
+        record_event(
+            f"Skill {skill_id} is {status}" + (f": {message}" if message else ""),
+            robot_id=robot_id,
+            level=Level.ERROR if status == SkillStatusName.FAILED else Level.INFO,
+            source=Source.ROBOT,
+            kind=Event.SKILL_STATUS,
+            skill=skill_id,
+        )
+        _announce(robot_id, Event.SKILL_STATUS, {"skill": skill_id, "status": status})
+
+
+def report_component_status(
+    robot_id: str, skill_id: str, component_id: str, status: str, location: str | None, message: str | None = None
+) -> None:
+    """Record the status a robot reports for a component."""
+    with transaction.atomic():
+        component = _component(robot_id, skill_id, component_id)
+        component.status = status
+        if location:
+            component.active_location = location
+        component.save(update_fields=["status", "active_location", "updated_at"])
+        record_event(
+            f"Component {component_id} is {status}" + (f" on the {location}" if location else ""),
+            robot_id=robot_id,
+            level=Level.ERROR if status == ComponentStatusName.FAILED else Level.INFO,
+            source=Source.ROBOT,
+            kind=Event.COMPONENT_STATUS,
+            skill=skill_id,
+            component=component_id,
+            data={"message": message} if message else None,
+        )
+        data = {"skill": skill_id, "component": component_id, "status": status}
+        _announce(robot_id, Event.COMPONENT_STATUS, {**data, "location": location} if location else data)
+
+
+def report_component_location(robot_id: str, skill_id: str, component_id: str, location: str) -> None:
+    """Record where a component now runs."""
+    with transaction.atomic():
+        component = _component(robot_id, skill_id, component_id)
+        if component.location not in (location, Location.EITHER):
+            raise NotFound(
+                f"component {component_id!r} may only run on the {component.location}", field="data.location"
+            )
+        if component.active_location != location:
+            component.active_location = location
+            component.save(update_fields=["active_location", "updated_at"])
+            record_event(
+                f"Component {component_id} now runs on the {location}",
+                robot_id=robot_id,
+                source=Source.ROBOT,
+                kind=Event.COMPONENT_LOCATION,
+                skill=skill_id,
+                component=component_id,
+            )
+        _announce(
+            robot_id, Event.COMPONENT_LOCATION, {"skill": skill_id, "component": component_id, "location": location}
+        )
+
+
+def report_component_information(
+    robot_id: str, skill_id: str, component_id: str, location: str, container: dict[str, Any]
+) -> None:
+    """Record what a robot reports about a component's container."""
+    with transaction.atomic():
+        component = _component(robot_id, skill_id, component_id)
+        component.container = {**component.container, location: container}
+        component.save(update_fields=["container", "updated_at"])
+        _announce(
+            robot_id,
+            Event.COMPONENT_INFORMATION,
+            {"skill": skill_id, "component": component_id, "location": location, "container": container},
+        )
+
+
+def report_skill_connect(robot_id: str, skill_id: str, manager_url: str | None) -> None:
+    """Record that a Skill Manager connected to its Robot Controller."""
+    with transaction.atomic():
+        _skill(robot_id, skill_id)
+        record_event(
+            f"Manager of skill {skill_id} connected",
+            robot_id=robot_id,
+            source=Source.MANAGER,
+            kind=Event.SKILL_CONNECT,
+            skill=skill_id,
+            data={"manager_url": manager_url} if manager_url else None,
+        )
+        data = {"skill": skill_id, "manager_url": manager_url} if manager_url else {"skill": skill_id}
+        _announce(robot_id, Event.SKILL_CONNECT, data)
+
+
+def report_skill_config(robot_id: str, skill_id: str, config: dict[str, Any]) -> Skill:
+    """Store the Skill config a robot holds locally, adding the skill if the cloud lacks it."""
+    if config.get("skill_id", skill_id) != skill_id:
+        raise ValidationError({"config": [f"skill_id: must be {skill_id!r}, the skill it is sent for"]})
+    normalised = validated_config(parse_skill_config, {**config, "skill_id": skill_id})
+    with transaction.atomic():
+        skill = Skill.objects.select_for_update().filter(robot_id=robot_id, skill_id=skill_id).first()
+        if skill is None:
+            return add_skill(Robot.objects.get(id=robot_id), normalised)
+        skill.config, skill.name = normalised, normalised["skill"]
+        skill.save(update_fields=["config", "name", "updated_at"])
+        known = set(skill.components.values_list("component_id", flat=True))
+        Component.objects.bulk_create(
+            Component(skill=skill, component_id=cid, location=c["location"], resources=c.get("resources", {}))
+            for cid, c in normalised["components"].items()
+            if cid not in known
+        )
+        _announce(robot_id, Event.SKILL_CONFIG, {"skill": skill_id, "config": normalised})
+    return skill
+
+
+def skill_state(robot_id: str, skill_id: str) -> Skill:
+    """Return a robot's skill, or raise NotFound."""
+    return _skill(robot_id, skill_id)
+
+
+def component_state(robot_id: str, skill_id: str, component_id: str) -> Component:
+    """Return a skill's component, or raise NotFound."""
+    with transaction.atomic():
+        return _component(robot_id, skill_id, component_id)

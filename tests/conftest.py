@@ -76,9 +76,9 @@ def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Itera
     env = service_env(settings.DATABASES["default"]["NAME"])
     with log.open("wb") as out:
         process = subprocess.Popen(
-            [str(BIN / "daphne"), "-b", "127.0.0.1", "-p", str(port), "bridgeos_cloud.asgi:application"],
+            [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(port)],
             cwd=ROOT,
-            env=env,
+            env={**env, "VIRTUAL_ENV": str(BIN.parent)},
             stdout=out,
             stderr=subprocess.STDOUT,
         )
@@ -91,6 +91,19 @@ def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Itera
             process.wait(timeout=10)
         except subprocess.TimeoutExpired:
             process.kill()
+        with django_db_blocker.unblock():
+            close_other_sessions()
+
+
+def close_other_sessions() -> None:
+    """End other sessions on the test database so it can be dropped at the end of the run."""
+    from django.db import connection
+
+    with connection.cursor() as cursor:
+        cursor.execute(
+            "SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
+            " WHERE datname = current_database() AND pid <> pg_backend_pid()"
+        )
 
 
 @pytest.fixture(scope="session")
@@ -128,3 +141,5 @@ def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) 
             process.wait(timeout=15)
         except subprocess.TimeoutExpired:
             process.kill()
+        with django_db_blocker.unblock():
+            close_other_sessions()

@@ -1,0 +1,288 @@
+"""The door dashboards and apps connect to: /ws/client/, a live feed plus commands."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from typing import Any
+
+from autobahn.exception import Disconnected
+from channels.db import database_sync_to_async
+from channels.generic.websocket import AsyncWebsocketConsumer
+from django.conf import settings
+from django.core.exceptions import ValidationError
+
+from bridgeos_agent import protocol
+from bridgeos_agent.protocol import Direction, Envelope, Event, ProtocolError
+from bridgeos_cloud.errors import NotFound
+from bridgeos_cloud.ratelimit import TokenBucket
+from robots import services as robots
+from robots.consumers import _peek_id, _validation_message
+from skills import services as skills
+
+from . import services
+from .live import LIVE_GROUP
+
+log = logging.getLogger(__name__)
+
+AUTH_TIMEOUT = 10.0
+MAX_COMMANDS_IN_FLIGHT = 16
+VISIBLE_REFRESH_S = 5.0
+RELAYED = frozenset(
+    {
+        Event.ROBOT_START,
+        Event.ROBOT_STOP,
+        Event.SHUTDOWN,
+        Event.SKILL_START,
+        Event.SKILL_STOP,
+        Event.COMPONENT_START,
+        Event.COMPONENT_STOP,
+        Event.COMPONENT_MIGRATE,
+    }
+)
+# Config changes are stored first, so an offline robot receives them when it reconnects.
+STORED_THEN_RELAYED = frozenset({Event.ROBOT_CONFIG_UPDATE, Event.OFFLOADING})
+IGNORED = frozenset({Event.ACK, Event.ERROR_MESSAGE})
+
+
+class ClientConsumer(AsyncWebsocketConsumer):
+    """One dashboard or app: authenticate, stream its robots live, carry its commands."""
+
+    async def connect(self) -> None:
+        self.user = None
+        self.closing = False
+        self.visible: set[str] | None = set()
+        self.visible_loaded_at = 0.0
+        self.tasks: set[asyncio.Task] = set()
+        options = settings.BRIDGEOS
+        self.bucket = TokenBucket(options["CLIENT_FRAMES_PER_S"], options["CLIENT_FRAME_BURST"], time.monotonic())
+        await self.accept()
+        self.auth_timer = asyncio.get_running_loop().call_later(AUTH_TIMEOUT, self._spawn_refuse)
+
+    def _spawn_refuse(self) -> None:
+        self._spawn(self.refuse("authentication timed out"))
+
+    def _spawn(self, coroutine: Any) -> asyncio.Task:
+        task = asyncio.ensure_future(coroutine)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return task
+
+    async def send_envelope(self, envelope: Envelope) -> None:
+        if not self.closing:
+            try:
+                await self.send(text_data=protocol.encode(envelope))
+            except Disconnected:
+                # The peer went away between our check and the write; disconnect() follows.
+                self.closing = True
+
+    async def answer(self, request: Envelope, event: Event, data: dict[str, Any]) -> None:
+        await self.send_envelope(protocol.make(event, data, reply_to=request.id, now=time.time()))
+
+    async def fail(self, message: str, *, reply_to: str | None, field: str | None = None, code: str) -> None:
+        payload = {"message": message[:2000], "code": code}
+        if field:
+            payload["field"] = field
+        await self.send_envelope(protocol.make(Event.ERROR_MESSAGE, payload, reply_to=reply_to, now=time.time()))
+
+    # ---------------------------------------------------------------- authentication
+
+    async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
+        raw = text_data if text_data is not None else bytes_data
+        if self.closing:
+            return
+        if self.user is None:
+            await self.authenticate(raw)
+            return
+        if not self.bucket.allow(time.monotonic()):
+            await self.fail("rate limit exceeded, slow down", reply_to=_peek_id(raw), code="rate_limited")
+            return
+        try:
+            envelope = protocol.decode(raw, direction=Direction.CLIENT_TO_CLOUD)
+        except ProtocolError as exc:
+            await self.fail(exc.message, reply_to=_peek_id(raw), field=exc.field, code=exc.code)
+            return
+        if envelope.event in IGNORED:
+            return
+        if len(self.tasks) >= MAX_COMMANDS_IN_FLIGHT:
+            await self.fail("too many requests in flight", reply_to=envelope.id, code="rate_limited")
+            return
+        self._spawn(self.handle(envelope))
+
+    async def authenticate(self, raw: str | bytes | None) -> None:
+        """Accept the first frame only if it is a valid authentication_client."""
+        self.auth_timer.cancel()
+        try:
+            envelope = protocol.decode(raw, direction=Direction.CLIENT_TO_CLOUD)
+        except ProtocolError as exc:
+            await self.refuse(f"first frame must be authentication_client ({exc})", reply_to=_peek_id(raw))
+            return
+        if envelope.event != Event.AUTHENTICATION_CLIENT:
+            await self.refuse("first frame must be authentication_client", reply_to=envelope.id)
+            return
+        token = protocol.parse_payload(envelope).token
+        if token is not None:
+            user = await database_sync_to_async(robots.authenticate_api_token)(token)
+        else:
+            session_user = self.scope.get("user")
+            user = session_user if session_user is not None and session_user.is_authenticated else None
+        if user is None:
+            await self.refuse("invalid token or no logged-in session", reply_to=envelope.id)
+            return
+        self.user = user
+        await self.refresh_visible(force=True)
+        await self.channel_layer.group_add(LIVE_GROUP, self.channel_name)
+        await self.answer(envelope, Event.AUTHENTICATION_SUCCESS, {"user": user.get_username()[:150]})
+
+    async def refuse(self, reason: str, reply_to: str | None = None) -> None:
+        if self.closing:
+            return
+        frame = protocol.make(
+            Event.AUTHENTICATION_FAILURE, {"reason": reason[:500]}, reply_to=reply_to, now=time.time()
+        )
+        await self.send_envelope(frame)
+        self.closing = True
+        await self.close(4001)
+
+    async def disconnect(self, code: int) -> None:
+        self.closing = True
+        self.auth_timer.cancel()
+        for task in self.tasks:
+            task.cancel()
+        if self.user is not None:
+            await self.channel_layer.group_discard(LIVE_GROUP, self.channel_name)
+
+    # ---------------------------------------------------------------- who may see what
+
+    async def refresh_visible(self, *, force: bool = False) -> None:
+        """Reload the robots this user may see, at most every few seconds."""
+        now = time.monotonic()
+        if force or now - self.visible_loaded_at > VISIBLE_REFRESH_S:
+            self.visible_loaded_at = now
+            self.visible = await database_sync_to_async(robots.visible_robot_ids)(self.user)
+
+    async def sees(self, robot_id: str) -> bool:
+        """Tell whether the user may see a robot, catching robots added since connecting."""
+        if self.visible is None or robot_id in self.visible:
+            return True
+        await self.refresh_visible()
+        return self.visible is None or robot_id in self.visible
+
+    # ---------------------------------------------------------------- the live feed
+
+    async def live_metrics(self, message: dict[str, Any]) -> None:
+        """Send the latest metric values of the robots this user may see, one frame per robot."""
+        now = time.time()
+        for robot_id, rows in message["robots"].items():
+            if not await self.sees(robot_id):
+                continue
+            points = []
+            for name, value, ts, skill, component in rows:
+                point = {"name": name, "value": value, "ts": ts}
+                if skill:
+                    point["skill"] = skill
+                if component:
+                    point["component"] = component
+                points.append(point)
+            # Built by hand: these frames come from already validated points, at fleet scale.
+            frame = {
+                "event": "metrics",
+                "id": protocol.new_id(),
+                "reply_to": None,
+                "data": {"robot": robot_id, "metrics": points},
+                "ts": now,
+            }
+            if not self.closing:
+                await self.send(text_data=json.dumps(frame, separators=(",", ":")))
+
+    async def live_event(self, message: dict[str, Any]) -> None:
+        """Pass on a state change of a robot this user may see."""
+        if await self.sees(message["robot"]) and not self.closing:
+            await self.send(text_data=json.dumps(message["frame"], separators=(",", ":")))
+
+    # ---------------------------------------------------------------- commands
+
+    async def handle(self, envelope: Envelope) -> None:
+        """Authorise one request, then answer it from the database or relay it to the robot."""
+        payload = protocol.parse_payload(envelope)
+        robot_id = getattr(payload, "robot", None)
+        if robot_id is None:
+            await self.fail(
+                "name the robot this request is for", reply_to=envelope.id, field="data.robot", code="invalid_payload"
+            )
+            return
+        try:
+            if not await database_sync_to_async(robots.can_see)(self.user, robot_id):
+                raise NotFound(f"no robot {robot_id!r}", field="data.robot")
+            if envelope.event in STORED_THEN_RELAYED:
+                await database_sync_to_async(store_config_change)(envelope.event, robot_id, payload)
+                await self.relay(envelope, robot_id, stored=True)
+            elif envelope.event in RELAYED:
+                await self.relay(envelope, robot_id)
+            else:
+                event, data = await database_sync_to_async(answer_from_database)(envelope.event, robot_id, payload)
+                await self.answer(envelope, event, data)
+        except NotFound as exc:
+            await self.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
+        except ValidationError as exc:
+            message, field = _validation_message(exc)
+            await self.fail(message, reply_to=envelope.id, field=field, code="invalid_payload")
+        except Exception:
+            log.exception("client request %s failed", envelope.event)
+            await self.fail("internal error", reply_to=envelope.id, code="internal_error")
+
+    async def relay(self, envelope: Envelope, robot_id: str, *, stored: bool = False) -> None:
+        """Send a command to the robot and pass its reply back under the client's id."""
+        data = {key: value for key, value in envelope.data.items() if key != "robot"}
+        try:
+            reply = await robots.relay_command(robot_id, envelope.event, data, wait=settings.BRIDGEOS["COMMAND_WAIT_S"])
+        except robots.RobotOffline:
+            if stored:
+                await self.send_envelope(protocol.ack_frame(envelope.id, now=time.time()))
+                return
+            await self.fail(
+                f"robot {robot_id} is offline", reply_to=envelope.id, field="data.robot", code="robot_offline"
+            )
+            return
+        except robots.CommandTimeout as exc:
+            await self.fail(str(exc), reply_to=envelope.id, code="timeout")
+            return
+        answer = reply.model_copy(update={"reply_to": envelope.id, "data": {**reply.data, "robot": robot_id}})
+        if answer.event == Event.ACK:
+            # An ack carries no data; the robot id travels in the client's own request.
+            answer = reply.model_copy(update={"reply_to": envelope.id})
+        await self.send(text_data=protocol.encode(answer))
+
+
+def store_config_change(event: str, robot_id: str, p: Any) -> None:
+    """Store a client's change of a robot's config before it is relayed."""
+    changes = dict(p.changes) if event == Event.ROBOT_CONFIG_UPDATE else {"offloading": p.mode}
+    robots.update_robot_config(robot_id, changes)
+
+
+def answer_from_database(event: str, robot_id: str, p: Any) -> tuple[Event, dict[str, Any]]:
+    """Answer a client's request from the cloud's own records; return the reply event and data."""
+    if event == Event.ROBOT_CONFIG_GET:
+        return Event.ROBOT_CONFIG, {"robot": robot_id, "config": robots.robot_config(robot_id)}
+    if event == Event.OFFLOADING_GET:
+        return Event.OFFLOADING, {"robot": robot_id, "mode": robots.robot_config(robot_id)["offloading"]}
+    if event == Event.SKILL_STATUS_GET:
+        skill = skills.skill_state(robot_id, p.skill)
+        return Event.SKILL_STATUS, {"robot": robot_id, "skill": skill.skill_id, "status": skill.status}
+    if event == Event.SKILL_CONFIG_GET:
+        skill = skills.skill_state(robot_id, p.skill)
+        return Event.SKILL_CONFIG, {"robot": robot_id, "skill": skill.skill_id, "config": skill.config}
+    if event == Event.COMPONENT_STATUS_GET:
+        component = skills.component_state(robot_id, p.skill, p.component)
+        data = {"robot": robot_id, "skill": p.skill, "component": p.component, "status": component.status}
+        if component.active_location:
+            data["location"] = component.active_location
+        return Event.COMPONENT_STATUS, data
+    if event == Event.METRICS_GET:
+        points = services.latest_metrics(
+            robot_id, names=p.names, skill=p.skill, component=p.component, since=p.since, limit=p.limit or 100
+        )
+        return Event.METRICS, {"robot": robot_id, "metrics": points}
+    raise NotFound(f"event {event!r} is not a request clients can make", field="event")

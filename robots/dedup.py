@@ -1,0 +1,83 @@
+"""The window of frame ids already applied per robot, kept where a new consumer finds it."""
+
+from __future__ import annotations
+
+import asyncio
+from collections import defaultdict
+
+from django.conf import settings
+
+WINDOW = 10_000
+FLUSH_INTERVAL = 1.0
+KEY = "bridgeos:applied:{}"
+KEEP_SECONDS = 7 * 24 * 3600
+
+
+class AppliedIds:
+    """Remember applied frame ids per robot, in Redis when configured, else in this process.
+
+    Ids are saved in one pipeline for all robots every second, rather than a round trip per
+    frame; a consumer that starts after a crash loses at most that last second of ids.
+    """
+
+    def __init__(self, redis_url: str | None) -> None:
+        self._redis = None
+        if redis_url:
+            import redis.asyncio as aioredis
+
+            self._redis = aioredis.Redis.from_url(redis_url)
+        self._local: dict[str, list[str]] = defaultdict(list)
+        self._unsaved: dict[str, list[str]] = defaultdict(list)
+        self._flusher: asyncio.TimerHandle | None = None
+        self._tasks: set[asyncio.Task] = set()
+
+    async def load(self, robot_id: str) -> list[str]:
+        """Return the robot's applied ids, oldest first."""
+        await self.flush()
+        if self._redis is None:
+            return list(self._local[robot_id])
+        newest_first = await self._redis.lrange(KEY.format(robot_id), 0, WINDOW - 1)
+        return [raw.decode() for raw in reversed(newest_first)]
+
+    def add(self, robot_id: str, frame_id: str) -> None:
+        """Note that a frame was applied; it is saved within a second."""
+        self._unsaved[robot_id].append(frame_id)
+        if self._flusher is None:
+            self._flusher = asyncio.get_running_loop().call_later(FLUSH_INTERVAL, self._flush_soon)
+
+    def _flush_soon(self) -> None:
+        self._flusher = None
+        task = asyncio.get_running_loop().create_task(self.flush())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def flush(self) -> None:
+        """Save every unsaved id now."""
+        unsaved, self._unsaved = self._unsaved, defaultdict(list)
+        if not unsaved:
+            return
+        if self._redis is None:
+            for robot_id, ids in unsaved.items():
+                kept = self._local[robot_id]
+                kept.extend(ids)
+                del kept[:-WINDOW]
+            return
+        async with self._redis.pipeline(transaction=False) as pipe:
+            for robot_id, ids in unsaved.items():
+                key = KEY.format(robot_id)
+                pipe.lpush(key, *ids)
+                pipe.ltrim(key, 0, WINDOW - 1)
+                pipe.expire(key, KEEP_SECONDS)
+            await pipe.execute()
+
+
+_stores: dict[asyncio.AbstractEventLoop, AppliedIds] = {}
+
+
+def applied_ids() -> AppliedIds:
+    """Return this event loop's store of applied ids."""
+    loop = asyncio.get_running_loop()
+    store = _stores.get(loop)
+    if store is None:
+        store = _stores[loop] = AppliedIds(settings.REDIS_URL)
+    return store

@@ -1,0 +1,45 @@
+"""Helpers for WebSocket tests: robots and clients over real sockets against daphne."""
+
+from __future__ import annotations
+
+from asgiref.sync import sync_to_async
+from django.contrib.auth import get_user_model
+from rest_framework.authtoken.models import Token
+
+from bridgeos_agent.link import Link
+from bridgeos_agent.protocol import Event
+from bridgeos_agent.skillconfig import load_sample_skill_config
+from robots.services import create_robot
+from skills.services import add_skill
+
+
+@sync_to_async
+def make_owner(username: str, *, staff: bool = False):
+    """Create a user with an API token; return (user, token key)."""
+    user = get_user_model().objects.create_user(username, password=f"{username}-pass-123", is_staff=staff)
+    return user, Token.objects.create(user=user).key
+
+
+@sync_to_async
+def make_robot(robot_id: str, owner, *, with_skill: bool = True) -> str:
+    """Create a robot (with the sample people-detection skill) and return its token."""
+    robot, token = create_robot(robot_id, owner)
+    if with_skill:
+        add_skill(robot, load_sample_skill_config().model_dump(mode="json"))
+    return token
+
+
+async def robot_link(server, robot_id: str, token: str) -> Link:
+    """Connect a robot and consume the frames the cloud sends on connect."""
+    link = Link(server.ws_url + "/ws/robot/")
+    await link.connect(Event.AUTHENTICATION_ROBOT, {"robot": robot_id, "token": token})
+    await link.next(Event.CONNECTION_ESTABLISHED)
+    await link.next(Event.ROBOT_CONFIG)
+    return link
+
+
+async def client_link(server, token: str) -> Link:
+    """Connect a dashboard or app client with an API token."""
+    link = Link(server.ws_url + "/ws/client/")
+    await link.connect(Event.AUTHENTICATION_CLIENT, {"token": token})
+    return link
