@@ -15,7 +15,7 @@ from django.conf import settings
 from django.core.exceptions import ValidationError
 
 from bridgeos_agent import protocol
-from bridgeos_agent.protocol import Direction, Envelope, Event, ProtocolError
+from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, ProtocolError
 from bridgeos_cloud.errors import NotFound
 from bridgeos_cloud.ratelimit import TokenBucket
 from robots import services as robots
@@ -29,7 +29,8 @@ log = logging.getLogger(__name__)
 
 AUTH_TIMEOUT = 10.0
 MAX_COMMANDS_IN_FLIGHT = 16
-VISIBLE_REFRESH_S = 5.0
+# A robot the user does not know yet triggers at most one reload of their robots per this interval.
+VISIBLE_REFRESH_S = 1.0
 RELAYED = frozenset(
     {
         Event.ROBOT_START,
@@ -56,6 +57,7 @@ class ClientConsumer(AsyncWebsocketConsumer):
         self.visible: set[str] | None = set()
         self.visible_loaded_at = 0.0
         self.tasks: set[asyncio.Task] = set()
+        self.dedup = Dedup(capacity=1000)
         options = settings.BRIDGEOS
         self.bucket = TokenBucket(options["CLIENT_FRAMES_PER_S"], options["CLIENT_FRAME_BURST"], time.monotonic())
         await self.accept()
@@ -105,6 +107,9 @@ class ClientConsumer(AsyncWebsocketConsumer):
             await self.fail(exc.message, reply_to=_peek_id(raw), field=exc.field, code=exc.code)
             return
         if envelope.event in IGNORED:
+            return
+        # Over one socket nothing is lost, so a resent command is a retransmission: run it once.
+        if envelope.event in protocol.REQUIRES_ACK and self.dedup.seen(envelope.id):
             return
         if len(self.tasks) >= MAX_COMMANDS_IN_FLIGHT:
             await self.fail("too many requests in flight", reply_to=envelope.id, code="rate_limited")
@@ -163,11 +168,11 @@ class ClientConsumer(AsyncWebsocketConsumer):
             self.visible_loaded_at = now
             self.visible = await database_sync_to_async(robots.visible_robot_ids)(self.user)
 
-    async def sees(self, robot_id: str) -> bool:
+    async def sees(self, robot_id: str, *, recheck: bool = False) -> bool:
         """Tell whether the user may see a robot, catching robots added since connecting."""
         if self.visible is None or robot_id in self.visible:
             return True
-        await self.refresh_visible()
+        await self.refresh_visible(force=recheck)
         return self.visible is None or robot_id in self.visible
 
     # ---------------------------------------------------------------- the live feed
@@ -199,7 +204,9 @@ class ClientConsumer(AsyncWebsocketConsumer):
 
     async def live_event(self, message: dict[str, Any]) -> None:
         """Pass on a state change of a robot this user may see."""
-        if await self.sees(message["robot"]) and not self.closing:
+        # A robot connecting may be one added since this client connected: always recheck then.
+        recheck = message["frame"].get("event") == Event.CONNECTION_ESTABLISHED
+        if await self.sees(message["robot"], recheck=recheck) and not self.closing:
             await self.send(text_data=json.dumps(message["frame"], separators=(",", ":")))
 
     # ---------------------------------------------------------------- commands
@@ -249,10 +256,11 @@ class ClientConsumer(AsyncWebsocketConsumer):
         except robots.CommandTimeout as exc:
             await self.fail(str(exc), reply_to=envelope.id, code="timeout")
             return
-        answer = reply.model_copy(update={"reply_to": envelope.id, "data": {**reply.data, "robot": robot_id}})
-        if answer.event == Event.ACK:
-            # An ack carries no data; the robot id travels in the client's own request.
-            answer = reply.model_copy(update={"reply_to": envelope.id})
+        data = reply.data
+        if issubclass(protocol.PAYLOADS[reply.event], protocol.RobotScoped):
+            # Client links are not bound to one robot, so say which robot answered.
+            data = {**data, "robot": robot_id}
+        answer = reply.model_copy(update={"reply_to": envelope.id, "data": data})
         await self.send(text_data=protocol.encode(answer))
 
 

@@ -170,7 +170,9 @@ async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any],
     if channel is None:
         raise RobotOffline(robot_id)
     layer = get_channel_layer()
-    reply_channel = await layer.new_channel("relay.")
+    # The default prefix matters: channels-redis reads all of a process's channels of one prefix
+    # in one loop, and a second prefix would wait behind that loop's blocking read.
+    reply_channel = await layer.new_channel()
     await layer.send(
         channel,
         {

@@ -37,6 +37,7 @@ class Link:
         self._reader: asyncio.Task | None = None
         self._resender: asyncio.Task | None = None
         self.closed = asyncio.Event()
+        self.refused: list[protocol.ProtocolError] = []
         self.close_code: int | None = None
 
     async def connect(
@@ -95,7 +96,12 @@ class Link:
     async def _read(self) -> None:
         try:
             async for raw in self.ws:
-                envelope = protocol.decode(raw)
+                try:
+                    envelope = protocol.decode(raw)
+                except protocol.ProtocolError as exc:
+                    # One bad frame from the peer must not stop the link; keep it for inspection.
+                    self.refused.append(exc)
+                    continue
                 if envelope.event == Event.ACK and self.reliable.on_ack(envelope.reply_to):
                     self.acked[envelope.reply_to].set()
                 waiter = self.waiters.get(envelope.reply_to) if envelope.reply_to else None
