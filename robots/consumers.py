@@ -45,7 +45,7 @@ def _peek_id(raw: str | bytes | None) -> str | None:
     except (ValueError, TypeError, RecursionError):
         return None
     frame_id = frame.get("id") if isinstance(frame, dict) else None
-    return frame_id if isinstance(frame_id, str) else None
+    return frame_id if protocol.is_valid_id(frame_id) else None
 
 
 def _validation_message(exc: ValidationError) -> tuple[str, str | None]:

@@ -78,7 +78,8 @@ def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Itera
         process = subprocess.Popen(
             [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(port)],
             cwd=ROOT,
-            env={**env, "VIRTUAL_ENV": str(BIN.parent)},
+            # A higher frame rate than production's default lets fuzzing send thousands of frames.
+            env={**env, "VIRTUAL_ENV": str(BIN.parent), "BRIDGEOS_ROBOT_FRAMES_PER_S": "2000"},
             stdout=out,
             stderr=subprocess.STDOUT,
         )

@@ -10,10 +10,10 @@ import httpx
 import pytest
 import websockets
 from asgiref.sync import sync_to_async
+
 from bridgeos_agent import protocol
 from bridgeos_agent.link import AuthenticationError, Link
 from bridgeos_agent.protocol import Event
-
 from robots.models import Robot
 from robots.services import RobotOffline, relay_command
 
@@ -130,7 +130,9 @@ async def test_a_command_round_trips_client_cloud_robot_cloud_client(daphne_serv
 
     robot.auto_ack = False
     pending = asyncio.ensure_future(
-        client.request(Event.COMPONENT_MIGRATE, {"robot": "alice-bot", "skill": "people-detection", "component": "sampler"})
+        client.request(
+            Event.COMPONENT_MIGRATE, {"robot": "alice-bot", "skill": "people-detection", "component": "sampler"}
+        )
     )
     command = await robot.next(Event.COMPONENT_MIGRATE)
     await robot.send(
@@ -155,7 +157,9 @@ async def test_a_command_to_an_offline_robot_fails_at_once(daphne_server):
 async def test_client_requests_are_answered_from_the_cloud_records(daphne_server):
     alice, token = await make_owner("alice")
     robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
-    sent = await robot.send(Event.METRICS, {"metrics": [{"name": "cpu", "value": v, "ts": 1000.0 + v} for v in range(5)]})
+    sent = await robot.send(
+        Event.METRICS, {"metrics": [{"name": "cpu", "value": v, "ts": 1000.0 + v} for v in range(5)]}
+    )
     await robot.wait_acked(sent)
     client = await client_link(daphne_server, token)
 
@@ -177,7 +181,11 @@ async def test_client_requests_are_answered_from_the_cloud_records(daphne_server
     history = await client.request(Event.METRICS_GET, {"robot": "alice-bot", "since": 1002.0})
     assert [p["value"] for p in history.data["metrics"]] == [4.0, 3.0, 2.0]
     missing = await client.request(Event.SKILL_STATUS_GET, {"robot": "alice-bot", "skill": "nope"})
-    assert missing.data == {"message": "robot alice-bot has no skill 'nope'", "code": "not_found", "field": "data.skill"}
+    assert missing.data == {
+        "message": "robot alice-bot has no skill 'nope'",
+        "code": "not_found",
+        "field": "data.skill",
+    }
     unnamed = await client.request(Event.ROBOT_CONFIG_GET, {})
     assert unnamed.data["field"] == "data.robot"
     await robot.close()
@@ -216,9 +224,19 @@ async def test_relay_command_reaches_the_robot_and_returns_its_answer(daphne_ser
     robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
     requests = [
         (Event.OFFLOADING_GET, {}, Event.OFFLOADING, {"mode": "auto"}),
-        (Event.SKILL_STATUS_GET, {"skill": "people-detection"}, Event.SKILL_STATUS, {"skill": "people-detection", "status": "running"}),
+        (
+            Event.SKILL_STATUS_GET,
+            {"skill": "people-detection"},
+            Event.SKILL_STATUS,
+            {"skill": "people-detection", "status": "running"},
+        ),
         (Event.METRICS_GET, {"names": ["cpu"]}, Event.METRICS, {"metrics": [{"name": "cpu", "value": 0.3, "ts": 5.0}]}),
-        (Event.SKILL_CONFIG_GET, {"skill": "people-detection"}, Event.SKILL_CONFIG, {"skill": "people-detection", "config": {"skill": "x"}}),
+        (
+            Event.SKILL_CONFIG_GET,
+            {"skill": "people-detection"},
+            Event.SKILL_CONFIG,
+            {"skill": "people-detection", "config": {"skill": "x"}},
+        ),
         (
             Event.COMPONENT_STATUS_GET,
             {"skill": "people-detection", "component": "sampler"},

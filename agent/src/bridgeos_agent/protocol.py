@@ -199,6 +199,12 @@ class ComponentStatusName(enum.StrEnum):
 _ID_PATTERN = r"^[A-Za-z0-9_\-:.]{1,64}$"
 _ID_RE = re.compile(_ID_PATTERN)
 
+
+def is_valid_id(value: object) -> bool:
+    """Tell whether a value can serve as a frame id (or a reply_to)."""
+    return isinstance(value, str) and _ID_RE.fullmatch(value) is not None
+
+
 MessageId = Annotated[str, StringConstraints(pattern=_ID_PATTERN)]
 Slug = Annotated[str, StringConstraints(pattern=SLUG_PATTERN)]
 # Printable ASCII without spaces: covers DRF hex keys and token_urlsafe alike.
