@@ -256,3 +256,28 @@ async def test_relay_command_reaches_the_robot_and_returns_its_answer(daphne_ser
     await asyncio.sleep(0.3)
     with pytest.raises(RobotOffline):
         await relay_command("alice-bot", Event.ROBOT_START, {}, wait=1)
+
+
+async def test_every_command_reaches_the_robot_and_its_ack_returns(daphne_server):
+    alice, token = await make_owner("alice")
+    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    client = await client_link(daphne_server, token)
+    commands = [
+        (Event.ROBOT_START, {}),
+        (Event.ROBOT_STOP, {}),
+        (Event.SKILL_START, {"skill": "people-detection"}),
+        (Event.SKILL_STOP, {"skill": "people-detection"}),
+        (Event.COMPONENT_START, {"skill": "people-detection", "component": "sampler", "location": "cloud"}),
+        (Event.COMPONENT_STOP, {"skill": "people-detection", "component": "sampler", "location": "cloud"}),
+        (Event.COMPONENT_MIGRATE, {"skill": "people-detection", "component": "sampler", "location": "robot"}),
+        (Event.ROBOT_CONFIG_UPDATE, {"changes": {"heartbeat_interval": 2.0}}),
+        (Event.OFFLOADING, {"mode": "robot"}),
+        (Event.SHUTDOWN, {"reason": "maintenance"}),
+    ]
+    for event, data in commands:
+        pending = asyncio.ensure_future(client.request(event, {"robot": "alice-bot", **data}))
+        received = await robot.next(event)
+        assert received.data == data
+        answer = await pending
+        assert answer.event == Event.ACK, (event, answer.data)
+    await robot.close()
