@@ -326,6 +326,11 @@ async def count_rows(conn) -> tuple[int, float]:
     return count, (before + time.time()) / 2
 
 
+def _ms(value: float | None) -> float | None:
+    """Round a lag; None (JSON null) when nothing was received, never a flattering 0."""
+    return None if value is None else round(value, 1)
+
+
 def fmt(value: float | None, digits: int = 0) -> str:
     return "n/a" if value is None else f"{value:,.{digits}f}"
 
@@ -445,10 +450,10 @@ async def measure(args, daphne: Daphne, workers: Workers, api_token, database_ur
         "points_per_s": round((count1 - count0) / elapsed, 1),
         "offered_points_per_s": round(total(CONNECTED) * args.rate, 1),
         "sent_points_per_s": round((sent1 - sent0) * args.points_per_frame / elapsed, 1),
-        "lag_p50_ms": round(percentile(client_lags, 50) or 0.0, 1),
-        "lag_p95_ms": round(percentile(client_lags, 95) or 0.0, 1),
-        "db_lag_p50_ms": round(percentile(db_lags, 50) or 0.0, 1),
-        "db_lag_p95_ms": round(percentile(db_lags, 95) or 0.0, 1),
+        "lag_p50_ms": _ms(percentile(client_lags, 50)),
+        "lag_p95_ms": _ms(percentile(client_lags, 95)),
+        "db_lag_p50_ms": _ms(percentile(db_lags, 50)),
+        "db_lag_p95_ms": _ms(percentile(db_lags, 95)),
         "dropped_connections": len(set(lost) | set(with_unacked)),
         "failed_connects": failed_connects,
         "closed_unexpectedly": closed,
@@ -478,9 +483,9 @@ def report(result: dict) -> None:
         f"points/s offered: {r['offered_points_per_s']:,.0f} (sent {r['sent_points_per_s']:,.0f})",
         f"points/s stored: {r['points_per_s']:,.0f} (goal >=10,000 at 1000 robots; "
         "thesis: one robot, no figure for a fleet)",
-        f"lag to dashboard p50/p95: {r['lag_p50_ms']:,.0f} / {r['lag_p95_ms']:,.0f} ms "
+        f"lag to dashboard p50/p95: {fmt(r['lag_p50_ms'])} / {fmt(r['lag_p95_ms'])} ms "
         "(goal p95 <=1,000 ms; includes the live feed's 500 ms coalescing tick; thesis: one robot)",
-        f"lag to database (ack after commit) p50/p95: {r['db_lag_p50_ms']:,.0f} / {r['db_lag_p95_ms']:,.0f} ms",
+        f"lag to database (ack after commit) p50/p95: {fmt(r['db_lag_p50_ms'])} / {fmt(r['db_lag_p95_ms'])} ms",
         f"dropped connections: {r['dropped_connections']} (goal 0; failed to connect {r['failed_connects']}, "
         f"closed {r['closed_unexpectedly']}, frames never acked {r['unacked_frames']}, "
         f"error frames {r['error_frames']}, dashboard dropped {r['dashboard_dropped']})",
