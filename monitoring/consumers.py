@@ -2,24 +2,20 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
 import time
 from typing import Any
 
-from autobahn.exception import Disconnected
 from channels.db import database_sync_to_async
-from channels.generic.websocket import AsyncWebsocketConsumer
 from django.conf import settings
 from django.core.exceptions import ValidationError
 
 from bridgeos_agent import protocol
-from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, ProtocolError
+from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event
+from bridgeos_cloud.consumers import ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
-from bridgeos_cloud.ratelimit import TokenBucket
 from robots import services as robots
-from robots.consumers import _peek_id, _validation_message
 from skills import services as skills
 
 from . import services
@@ -27,7 +23,6 @@ from .live import LIVE_GROUP
 
 log = logging.getLogger(__name__)
 
-AUTH_TIMEOUT = 10.0
 MAX_COMMANDS_IN_FLIGHT = 16
 # A robot the user does not know yet triggers at most one reload of their robots per this interval.
 VISIBLE_REFRESH_S = 1.0
@@ -48,85 +43,25 @@ STORED_THEN_RELAYED = frozenset({Event.ROBOT_CONFIG_UPDATE, Event.OFFLOADING})
 IGNORED = frozenset({Event.ACK, Event.ERROR_MESSAGE})
 
 
-class ClientConsumer(AsyncWebsocketConsumer):
+class ClientConsumer(ProtocolConsumer):
     """One dashboard or app: authenticate, stream its robots live, carry its commands."""
+
+    direction = Direction.CLIENT_TO_CLOUD
+    auth_event = Event.AUTHENTICATION_CLIENT
+
+    @property
+    def rate_setting(self) -> tuple[float, float]:
+        return settings.BRIDGEOS["CLIENT_FRAMES_PER_S"], settings.BRIDGEOS["CLIENT_FRAME_BURST"]
 
     async def connect(self) -> None:
         self.user = None
-        self.closing = False
         self.visible: set[str] | None = set()
         self.visible_loaded_at = 0.0
-        self.tasks: set[asyncio.Task] = set()
         self.dedup = Dedup(capacity=1000)
-        options = settings.BRIDGEOS
-        self.bucket = TokenBucket(options["CLIENT_FRAMES_PER_S"], options["CLIENT_FRAME_BURST"], time.monotonic())
-        await self.accept()
-        self.auth_timer = asyncio.get_running_loop().call_later(AUTH_TIMEOUT, self._spawn_refuse)
+        await super().connect()
 
-    def _spawn_refuse(self) -> None:
-        self._spawn(self.refuse("authentication timed out"))
-
-    def _spawn(self, coroutine: Any) -> asyncio.Task:
-        task = asyncio.ensure_future(coroutine)
-        self.tasks.add(task)
-        task.add_done_callback(self.tasks.discard)
-        return task
-
-    async def send_envelope(self, envelope: Envelope) -> None:
-        if not self.closing:
-            try:
-                await self.send(text_data=protocol.encode(envelope))
-            except Disconnected:
-                # The peer went away between our check and the write; disconnect() follows.
-                self.closing = True
-
-    async def answer(self, request: Envelope, event: Event, data: dict[str, Any]) -> None:
-        await self.send_envelope(protocol.make(event, data, reply_to=request.id, now=time.time()))
-
-    async def fail(self, message: str, *, reply_to: str | None, field: str | None = None, code: str) -> None:
-        payload = {"message": message[:2000], "code": code}
-        if field:
-            payload["field"] = field
-        await self.send_envelope(protocol.make(Event.ERROR_MESSAGE, payload, reply_to=reply_to, now=time.time()))
-
-    # ---------------------------------------------------------------- authentication
-
-    async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
-        raw = text_data if text_data is not None else bytes_data
-        if self.closing:
-            return
-        if self.user is None:
-            await self.authenticate(raw)
-            return
-        if not self.bucket.allow(time.monotonic()):
-            await self.fail("rate limit exceeded, slow down", reply_to=_peek_id(raw), code="rate_limited")
-            return
-        try:
-            envelope = protocol.decode(raw, direction=Direction.CLIENT_TO_CLOUD)
-        except ProtocolError as exc:
-            await self.fail(exc.message, reply_to=_peek_id(raw), field=exc.field, code=exc.code)
-            return
-        if envelope.event in IGNORED:
-            return
-        # Over one socket nothing is lost, so a resent command is a retransmission: run it once.
-        if envelope.event in protocol.REQUIRES_ACK and self.dedup.seen(envelope.id):
-            return
-        if len(self.tasks) >= MAX_COMMANDS_IN_FLIGHT:
-            await self.fail("too many requests in flight", reply_to=envelope.id, code="rate_limited")
-            return
-        self._spawn(self.handle(envelope))
-
-    async def authenticate(self, raw: str | bytes | None) -> None:
-        """Accept the first frame only if it is a valid authentication_client."""
-        self.auth_timer.cancel()
-        try:
-            envelope = protocol.decode(raw, direction=Direction.CLIENT_TO_CLOUD)
-        except ProtocolError as exc:
-            await self.refuse(f"first frame must be authentication_client ({exc})", reply_to=_peek_id(raw))
-            return
-        if envelope.event != Event.AUTHENTICATION_CLIENT:
-            await self.refuse("first frame must be authentication_client", reply_to=envelope.id)
-            return
+    async def authenticate(self, envelope: Envelope) -> bool:
+        """Accept an API token, or with none the session of a logged-in dashboard."""
         token = protocol.parse_payload(envelope).token
         if token is not None:
             user = await database_sync_to_async(robots.authenticate_api_token)(token)
@@ -135,27 +70,25 @@ class ClientConsumer(AsyncWebsocketConsumer):
             user = session_user if session_user is not None and session_user.is_authenticated else None
         if user is None:
             await self.refuse("invalid token or no logged-in session", reply_to=envelope.id)
-            return
+            return False
         self.user = user
         await self.refresh_visible(force=True)
         await self.channel_layer.group_add(LIVE_GROUP, self.channel_name)
         await self.answer(envelope, Event.AUTHENTICATION_SUCCESS, {"user": user.get_username()[:150]})
+        return True
 
-    async def refuse(self, reason: str, reply_to: str | None = None) -> None:
-        if self.closing:
+    async def handle_frame(self, envelope: Envelope) -> None:
+        if envelope.event in IGNORED:
             return
-        frame = protocol.make(
-            Event.AUTHENTICATION_FAILURE, {"reason": reason[:500]}, reply_to=reply_to, now=time.time()
-        )
-        await self.send_envelope(frame)
-        self.closing = True
-        await self.close(4001)
+        # Over one socket nothing is lost, so a resent command is a retransmission: run it once.
+        if envelope.event in protocol.REQUIRES_ACK and self.dedup.seen(envelope.id):
+            return
+        if len(self.tasks) >= MAX_COMMANDS_IN_FLIGHT:
+            await self.fail("too many requests in flight", reply_to=envelope.id, code="rate_limited")
+            return
+        self.spawn(self.handle(envelope))
 
-    async def disconnect(self, code: int) -> None:
-        self.closing = True
-        self.auth_timer.cancel()
-        for task in self.tasks:
-            task.cancel()
+    async def closed(self, code: int) -> None:
         if self.user is not None:
             await self.channel_layer.group_discard(LIVE_GROUP, self.channel_name)
 
@@ -180,34 +113,19 @@ class ClientConsumer(AsyncWebsocketConsumer):
     async def live_metrics(self, message: dict[str, Any]) -> None:
         """Send the latest metric values of the robots this user may see, one frame per robot."""
         now = time.time()
-        for robot_id, rows in message["robots"].items():
-            if not await self.sees(robot_id):
-                continue
-            points = []
-            for name, value, ts, skill, component in rows:
-                point = {"name": name, "value": value, "ts": ts}
-                if skill:
-                    point["skill"] = skill
-                if component:
-                    point["component"] = component
-                points.append(point)
-            # Built by hand: these frames come from already validated points, at fleet scale.
-            frame = {
-                "event": "metrics",
-                "id": protocol.new_id(),
-                "reply_to": None,
-                "data": {"robot": robot_id, "metrics": points},
-                "ts": now,
-            }
-            if not self.closing:
-                await self.send(text_data=json.dumps(frame, separators=(",", ":")))
+        for robot_id, data in message["robots"].items():
+            if await self.sees(robot_id):
+                # The payload was validated on the way in and encoded once for all clients.
+                await self.send_text(
+                    f'{{"event":"metrics","id":"{protocol.new_id()}","reply_to":null,"data":{data},"ts":{now!r}}}'
+                )
 
     async def live_event(self, message: dict[str, Any]) -> None:
         """Pass on a state change of a robot this user may see."""
         # A robot connecting may be one added since this client connected: always recheck then.
         recheck = message["frame"].get("event") == Event.CONNECTION_ESTABLISHED
-        if await self.sees(message["robot"], recheck=recheck) and not self.closing:
-            await self.send(text_data=json.dumps(message["frame"], separators=(",", ":")))
+        if await self.sees(message["robot"], recheck=recheck):
+            await self.send_text(json.dumps(message["frame"], separators=(",", ":")))
 
     # ---------------------------------------------------------------- commands
 
@@ -234,7 +152,7 @@ class ClientConsumer(AsyncWebsocketConsumer):
         except NotFound as exc:
             await self.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
         except ValidationError as exc:
-            message, field = _validation_message(exc)
+            message, field = validation_message(exc)
             await self.fail(message, reply_to=envelope.id, field=field, code="invalid_payload")
         except Exception:
             log.exception("client request %s failed", envelope.event)
@@ -261,7 +179,7 @@ class ClientConsumer(AsyncWebsocketConsumer):
             # Client links are not bound to one robot, so say which robot answered.
             data = {**data, "robot": robot_id}
         answer = reply.model_copy(update={"reply_to": envelope.id, "data": data})
-        await self.send(text_data=protocol.encode(answer))
+        await self.send_envelope(answer)
 
 
 def store_config_change(event: str, robot_id: str, p: Any) -> None:

@@ -2,16 +2,18 @@
 
 A `group_send` per frame caps a consumer at under 1,000 frames/s and overflows subscribers,
 so metrics are coalesced per process to the latest value per series and sent to the
-`live` group as one message every `interval`. Subscribers filter by the robots they may see.
+`live` group as one message every `interval`, each robot's payload already JSON-encoded.
+Subscribers filter by the robots they may see.
 """
 
 from __future__ import annotations
 
 import asyncio
 import functools
+import json
 import logging
 import weakref
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from asgiref.sync import async_to_sync
@@ -73,10 +75,8 @@ class LiveFeed:
         if not self._latest:
             return
         latest, self._latest = self._latest, {}
-        robots = {
-            robot_id: [[p.name, p.value, p.ts, p.skill, p.component] for p in series.values()]
-            for robot_id, series in latest.items()
-        }
+        # Each robot's payload is encoded once here, not once per subscribed client.
+        robots = {robot_id: metrics_data_json(robot_id, series.values()) for robot_id, series in latest.items()}
         layer = self.layer or get_channel_layer()
         if layer is None:
             return
@@ -91,6 +91,19 @@ class LiveFeed:
             except Exception:
                 # Live values are expendable: the next round carries fresher ones.
                 logger.exception("Sending live metrics failed")
+
+
+def metrics_data_json(robot_id: str, points: Iterable[MetricPoint]) -> str:
+    """Encode the data of a cloud-to-client metrics frame: the robot and its latest points."""
+    encoded = []
+    for point in points:
+        item: dict[str, Any] = {"name": point.name, "value": point.value, "ts": point.ts}
+        if point.skill:
+            item["skill"] = point.skill
+        if point.component:
+            item["component"] = point.component
+        encoded.append(item)
+    return json.dumps({"robot": robot_id, "metrics": encoded}, separators=(",", ":"))
 
 
 _feeds: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, LiveFeed] = weakref.WeakKeyDictionary()

@@ -3,23 +3,20 @@
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import time
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from autobahn.exception import Disconnected
 from channels.db import database_sync_to_async
-from channels.generic.websocket import AsyncWebsocketConsumer
 from django.conf import settings
 from django.core.exceptions import ValidationError
 
 from bridgeos_agent import protocol
-from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, ProtocolError, Reliable
+from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
+from bridgeos_cloud.consumers import ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
-from bridgeos_cloud.ratelimit import TokenBucket
 from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
 from monitoring.services import record_event
@@ -30,63 +27,29 @@ from .dedup import applied_ids
 
 log = logging.getLogger(__name__)
 
-AUTH_TIMEOUT = 10.0
 REQUEST_TTL = 120.0
 MAX_OPEN_REQUESTS = 1000
-# Closed after this many frames refused by the rate limit with no quiet second between: abuse.
-MAX_FLOOD_STRIKES = 500
-FLOOD_QUIET_S = 1.0
+CLOSE_REPLACED = 4009
 
 
-def _peek_id(raw: str | bytes | None) -> str | None:
-    """Return the id of a frame that failed validation, to answer it; only on the error path."""
-    try:
-        frame = json.loads(raw) if raw else None
-    except (ValueError, TypeError, RecursionError):
-        return None
-    frame_id = frame.get("id") if isinstance(frame, dict) else None
-    return frame_id if protocol.is_valid_id(frame_id) else None
-
-
-def _validation_message(exc: ValidationError) -> tuple[str, str | None]:
-    """Flatten a Django field error into one message and the field it names."""
-    for field, messages in getattr(exc, "message_dict", {"": exc.messages}).items():
-        return "; ".join(messages), f"data.{field}" if field else None
-    return "invalid data", None
-
-
-class RobotConsumer(AsyncWebsocketConsumer):
+class RobotConsumer(ProtocolConsumer):
     """One robot's connection: authenticate, apply its reports, relay commands to it."""
 
+    direction = Direction.ROBOT_TO_CLOUD
+    auth_event = Event.AUTHENTICATION_ROBOT
     handlers: dict[str, Callable[[RobotConsumer, Envelope, Any], Awaitable[bool]]] = {}
+
+    @property
+    def rate_setting(self) -> tuple[float, float]:
+        return settings.BRIDGEOS["ROBOT_FRAMES_PER_S"], settings.BRIDGEOS["ROBOT_FRAME_BURST"]
 
     async def connect(self) -> None:
         self.robot_id: str | None = None
-        self.closing = False
         self.dedup = Dedup()
         self.reliable = Reliable()
         self.requests: OrderedDict[str, tuple[str, float]] = OrderedDict()
-        options = settings.BRIDGEOS
-        self.bucket = TokenBucket(options["ROBOT_FRAMES_PER_S"], options["ROBOT_FRAME_BURST"], time.monotonic())
-        self.flood_strikes = 0
-        self.last_refused = 0.0
-        self.tasks: set[asyncio.Task] = set()
         self.retransmit_timer: asyncio.TimerHandle | None = None
-        await self.accept()
-        self.auth_timer = asyncio.get_running_loop().call_later(
-            AUTH_TIMEOUT, self._spawn_cb, self.refuse, "authentication timed out"
-        )
-
-    # ---------------------------------------------------------------- framing
-
-    async def send_envelope(self, envelope: Envelope) -> None:
-        """Send one frame to the robot."""
-        if not self.closing:
-            try:
-                await self.send(text_data=protocol.encode(envelope))
-            except Disconnected:
-                # The peer went away between our check and the write; disconnect() follows.
-                self.closing = True
+        await super().connect()
 
     async def send_reliably(self, envelope: Envelope) -> None:
         """Send a frame and resend it with backoff until the robot acknowledges it."""
@@ -96,59 +59,11 @@ class RobotConsumer(AsyncWebsocketConsumer):
         await self.send_envelope(envelope)
 
     async def reply(self, request: Envelope, event: Event, data: dict[str, Any]) -> None:
-        """Answer a request of the robot."""
+        """Answer a request of the robot, resending until acknowledged."""
         await self.send_reliably(protocol.make(event, data, reply_to=request.id, now=time.time()))
 
-    async def fail(self, message: str, *, reply_to: str | None, field: str | None = None, code: str) -> None:
-        """Tell the robot a frame was refused, and why."""
-        payload = {"message": message[:2000], "code": code}
-        if field:
-            payload["field"] = field
-        await self.send_envelope(protocol.make(Event.ERROR_MESSAGE, payload, reply_to=reply_to, now=time.time()))
-
-    async def ack(self, envelope: Envelope) -> None:
-        await self.send_envelope(protocol.ack_frame(envelope.id, now=time.time()))
-
-    def _spawn(self, coroutine: Awaitable[Any]) -> None:
-        task = asyncio.ensure_future(coroutine)
-        self.tasks.add(task)
-        task.add_done_callback(self.tasks.discard)
-
-    def _spawn_cb(self, function: Callable[..., Awaitable[Any]], *args: Any) -> None:
-        self._spawn(function(*args))
-
-    # ---------------------------------------------------------------- receiving
-
-    async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
-        raw = text_data if text_data is not None else bytes_data
-        if self.closing:
-            return
-        if self.robot_id is None:
-            await self.authenticate(raw)
-            return
-        now = time.monotonic()
-        if not self.bucket.allow(now):
-            await self.flooded(raw, now)
-            return
-        try:
-            envelope = protocol.decode(raw, direction=Direction.ROBOT_TO_CLOUD)
-        except ProtocolError as exc:
-            await self.fail(exc.message, reply_to=_peek_id(raw), field=exc.field, code=exc.code)
-            return
+    async def handle_frame(self, envelope: Envelope) -> None:
         await self.dispatch_envelope(envelope)
-
-    async def flooded(self, raw: str | bytes | None, now: float) -> None:
-        """Refuse a frame over the rate limit; close the connection if the flood goes on."""
-        if now - self.last_refused > FLOOD_QUIET_S:
-            self.flood_strikes = 0
-        self.last_refused = now
-        self.flood_strikes += 1
-        if self.flood_strikes >= MAX_FLOOD_STRIKES:
-            await self.fail("too many frames, closing", reply_to=None, code="rate_limited")
-            await self.close_with(4008, "flooding")
-            return
-        # Not acked, so the robot keeps the frame and sends it again later: nothing is lost.
-        await self.fail("rate limit exceeded, send again later", reply_to=_peek_id(raw), code="rate_limited")
 
     async def dispatch_envelope(self, envelope: Envelope) -> None:
         """Route one valid frame from the robot to its handler."""
@@ -177,7 +92,7 @@ class RobotConsumer(AsyncWebsocketConsumer):
             return
         except ValidationError as exc:
             self.dedup.forget(envelope.id)
-            message, field = _validation_message(exc)
+            message, field = validation_message(exc)
             await self.fail(message, reply_to=envelope.id, field=field, code="invalid_payload")
             return
         except Exception:
@@ -191,22 +106,13 @@ class RobotConsumer(AsyncWebsocketConsumer):
 
     # ---------------------------------------------------------------- authentication
 
-    async def authenticate(self, raw: str | bytes | None) -> None:
-        """Accept the first frame only if it is a valid authentication_robot."""
-        self.auth_timer.cancel()
-        try:
-            envelope = protocol.decode(raw, direction=Direction.ROBOT_TO_CLOUD)
-        except ProtocolError as exc:
-            await self.refuse(f"first frame must be authentication_robot ({exc})", reply_to=_peek_id(raw))
-            return
-        if envelope.event != Event.AUTHENTICATION_ROBOT:
-            await self.refuse("first frame must be authentication_robot", reply_to=envelope.id)
-            return
+    async def authenticate(self, envelope: Envelope) -> bool:
+        """Check the robot's id and token, mark it connected and send it its config."""
         credentials = protocol.parse_payload(envelope)
         robot = await database_sync_to_async(services.authenticate_robot)(credentials.robot, credentials.token)
         if robot is None:
             await self.refuse("unknown robot or wrong token", reply_to=envelope.id)
-            return
+            return False
         self.robot_id = robot.id
         self.dedup.load(await applied_ids().load(robot.id))
         connected = await database_sync_to_async(services.mark_connected)(robot.id, self.channel_name)
@@ -217,22 +123,7 @@ class RobotConsumer(AsyncWebsocketConsumer):
         )
         await self.send_reliably(protocol.make(Event.CONNECTION_ESTABLISHED, {"robot": robot.id}, now=time.time()))
         await self.send_reliably(protocol.make(Event.ROBOT_CONFIG, {"config": connected["config"]}, now=time.time()))
-
-    async def refuse(self, reason: str, reply_to: str | None = None) -> None:
-        """Answer authentication_failure and close."""
-        if self.closing:
-            return
-        frame = protocol.make(
-            Event.AUTHENTICATION_FAILURE, {"reason": reason[:500]}, reply_to=reply_to, now=time.time()
-        )
-        await self.send_envelope(frame)
-        await self.close_with(4001, "authentication failed")
-
-    async def close_with(self, code: int, reason: str) -> None:
-        if not self.closing:
-            self.closing = True
-            self.close_reason = reason
-            await self.close(code)
+        return True
 
     # ---------------------------------------------------------------- commands from the cloud
 
@@ -254,7 +145,7 @@ class RobotConsumer(AsyncWebsocketConsumer):
 
     async def robot_replaced(self, message: dict[str, Any]) -> None:
         """Close this connection: the robot reconnected on a newer one."""
-        await self.close_with(4009, "replaced by a newer connection")
+        await self.close_with(CLOSE_REPLACED, "replaced by a newer connection")
 
     def _schedule_retransmit(self) -> None:
         if self.retransmit_timer is not None:
@@ -262,7 +153,7 @@ class RobotConsumer(AsyncWebsocketConsumer):
         due = self.reliable.next_due()
         if due is not None:
             delay = max(0.0, due - time.monotonic())
-            self.retransmit_timer = asyncio.get_running_loop().call_later(delay, self._spawn_cb, self.retransmit)
+            self.retransmit_timer = asyncio.get_running_loop().call_later(delay, self.spawn_call, self.retransmit)
 
     async def retransmit(self) -> None:
         """Resend every unacknowledged frame whose time has come."""
@@ -275,13 +166,9 @@ class RobotConsumer(AsyncWebsocketConsumer):
 
     # ---------------------------------------------------------------- closing
 
-    async def disconnect(self, code: int) -> None:
-        self.closing = True
-        self.auth_timer.cancel()
+    async def closed(self, code: int) -> None:
         if self.retransmit_timer is not None:
             self.retransmit_timer.cancel()
-        for task in self.tasks:
-            task.cancel()
         for reply_channel, _ in self.requests.values():
             await self.channel_layer.send(reply_channel, {"type": "robot.reply", "offline": True})
         self.requests.clear()
@@ -321,12 +208,12 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
     def acknowledge(future: asyncio.Future) -> None:
         if future.cancelled() or future.exception() is not None:
             consumer.dedup.forget(envelope.id)
-            consumer._spawn(
+            consumer.spawn(
                 consumer.fail("metrics not stored, send again later", reply_to=envelope.id, code="unavailable")
             )
         else:
             applied_ids().add(robot_id, envelope.id)
-            consumer._spawn(consumer.ack(envelope))
+            consumer.spawn(consumer.ack(envelope))
 
     written.add_done_callback(acknowledge)
     return False

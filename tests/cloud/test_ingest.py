@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import logging
 from collections.abc import AsyncIterator, Callable
 from datetime import UTC, datetime, timedelta
@@ -269,11 +270,18 @@ async def test_live_feed_coalesces_many_adds_into_one_message_of_latest_values(r
 
         message = await asyncio.wait_for(layer.receive(channel), timeout=3)
 
-        assert message == {
-            "type": "live.metrics",
-            "robots": {
-                "r1": [["cpu", 99.0, T0 + 99, None, None], ["mem", 198.0, T0 + 99, "nav", None]],
-                "r2": [["cpu", -99.0, T0 + 99, "nav", "planner"]],
+        assert message["type"] == "live.metrics"
+        assert {robot: json.loads(data) for robot, data in message["robots"].items()} == {
+            "r1": {
+                "robot": "r1",
+                "metrics": [
+                    {"name": "cpu", "value": 99.0, "ts": T0 + 99},
+                    {"name": "mem", "value": 198.0, "ts": T0 + 99, "skill": "nav"},
+                ],
+            },
+            "r2": {
+                "robot": "r2",
+                "metrics": [{"name": "cpu", "value": -99.0, "ts": T0 + 99, "skill": "nav", "component": "planner"}],
             },
         }
         with pytest.raises(TimeoutError):

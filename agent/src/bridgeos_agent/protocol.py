@@ -839,6 +839,14 @@ def ack_frame(envelope_id: str, *, now: float, id: str | None = None) -> Envelop
     return make(Event.ACK, reply_to=envelope_id, id=id, now=now)
 
 
+def ack_text(envelope_id: str, *, now: float) -> str:
+    """Encode the ``ack`` of a decoded frame as text, skipping validation on this hot path.
+
+    ``envelope_id`` must come from a decoded envelope, whose id pattern leaves nothing to escape.
+    """
+    return f'{{"event":"ack","id":"{new_id()}","reply_to":"{envelope_id}","data":{{}},"ts":{float(now)!r}}}'
+
+
 def error_frame(exc: BaseException, reply_to: str | None = None, *, now: float, id: str | None = None) -> Envelope:
     """Build an ``error_message`` describing ``exc``, answering ``reply_to``."""
     if isinstance(exc, ValidationError):
