@@ -484,7 +484,7 @@ def report(result: dict) -> None:
         f"points/s stored: {r['points_per_s']:,.0f} (goal >=10,000 at 1000 robots; "
         "thesis: one robot, no figure for a fleet)",
         f"lag to dashboard p50/p95: {fmt(r['lag_p50_ms'])} / {fmt(r['lag_p95_ms'])} ms "
-        "(goal p95 <=1,000 ms; includes the live feed's 500 ms coalescing tick; thesis: one robot)",
+        "(goal p95 <=1,000 ms; includes the live feed's 250 ms coalescing tick; thesis: one robot)",
         f"lag to database (ack after commit) p50/p95: {fmt(r['db_lag_p50_ms'])} / {fmt(r['db_lag_p95_ms'])} ms",
         f"dropped connections: {r['dropped_connections']} (goal 0; failed to connect {r['failed_connects']}, "
         f"closed {r['closed_unexpectedly']}, frames never acked {r['unacked_frames']}, "

@@ -373,14 +373,20 @@ class MetricWriter:
             await asyncio.gather(*futures, return_exceptions=True)
 
     async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        last_started = loop.time()
         while True:
-            if not self._wake.is_set() and not self._closing:
+            # Flushes start every interval, not an interval after the last one ended: a slow
+            # COPY must not add its own duration to every point's wait.
+            wait = self.flush_interval - (loop.time() - last_started)
+            if wait > 0 and not self._wake.is_set() and not self._closing:
                 try:
-                    async with asyncio.timeout(self.flush_interval):
+                    async with asyncio.timeout(wait):
                         await self._wake.wait()
                 except TimeoutError:
                     pass
             self._wake.clear()
+            last_started = loop.time()
             if self._buffer:
                 await self._flush()
             elif self._closing:

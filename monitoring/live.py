@@ -34,7 +34,7 @@ SeriesKey = tuple[str | None, str | None, str]
 class LiveFeed:
     """Keep the latest value of every series and push the changes to the live group periodically."""
 
-    def __init__(self, *, interval: float = 0.5, layer: BaseChannelLayer | None = None) -> None:
+    def __init__(self, *, interval: float = 0.25, layer: BaseChannelLayer | None = None) -> None:
         self.interval = interval
         self.layer = layer
         self.messages_sent = 0

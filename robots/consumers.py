@@ -23,6 +23,7 @@ from monitoring.services import record_event
 from skills import services as skills
 
 from . import services
+from . import dedup
 from .dedup import applied_ids
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ class RobotConsumer(ProtocolConsumer):
 
     async def connect(self) -> None:
         self.robot_id: str | None = None
-        self.dedup = Dedup()
+        self.dedup = Dedup(capacity=dedup.WINDOW)
         self.reliable = Reliable()
         self.requests: OrderedDict[str, tuple[str, float]] = OrderedDict()
         self.retransmit_timer: asyncio.TimerHandle | None = None

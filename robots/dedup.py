@@ -7,8 +7,9 @@ from collections import defaultdict
 
 from django.conf import settings
 
-WINDOW = 10_000
-FLUSH_INTERVAL = 1.0
+# Only frames in flight when a link dropped are ever resent, so a short window is plenty.
+WINDOW = 1_000
+FLUSH_INTERVAL = 2.0
 KEY = "bridgeos:applied:{}"
 KEEP_SECONDS = 7 * 24 * 3600
 
@@ -16,8 +17,8 @@ KEEP_SECONDS = 7 * 24 * 3600
 class AppliedIds:
     """Remember applied frame ids per robot, in Redis when configured, else in this process.
 
-    Ids are saved in one pipeline for all robots every second, rather than a round trip per
-    frame; a consumer that starts after a crash loses at most that last second of ids.
+    Ids are saved in one pipeline for all robots every two seconds, rather than a round trip
+    per frame; a consumer that starts after a crash loses at most those last seconds of ids.
     """
 
     def __init__(self, redis_url: str | None) -> None:
@@ -40,7 +41,7 @@ class AppliedIds:
         return [raw.decode() for raw in reversed(newest_first)]
 
     def add(self, robot_id: str, frame_id: str) -> None:
-        """Note that a frame was applied; it is saved within a second."""
+        """Note that a frame was applied; it is saved within two seconds."""
         self._unsaved[robot_id].append(frame_id)
         if self._flusher is None:
             self._flusher = asyncio.get_running_loop().call_later(FLUSH_INTERVAL, self._flush_soon)
