@@ -22,8 +22,7 @@ from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
 
-from . import services
-from . import dedup
+from . import dedup, services
 from .dedup import applied_ids
 
 log = logging.getLogger(__name__)
