@@ -44,7 +44,6 @@ INSTALLED_APPS = [
     "django.contrib.messages",
     "django.contrib.staticfiles",
     "rest_framework",
-    "rest_framework.authtoken",
     "drf_spectacular",
     "drf_spectacular_sidecar",
     "channels",
@@ -98,6 +97,8 @@ AUTH_PASSWORD_VALIDATORS = [
     {"NAME": "django.contrib.auth.password_validation.CommonPasswordValidator"},
     {"NAME": "django.contrib.auth.password_validation.NumericPasswordValidator"},
 ]
+# Request bodies above 1 MiB are refused (the same ceiling as WebSocket frames).
+DATA_UPLOAD_MAX_MEMORY_SIZE = 1_048_576
 LOGIN_URL = "login"
 LOGIN_REDIRECT_URL = "dashboard:index"
 LOGOUT_REDIRECT_URL = "login"
@@ -160,7 +161,7 @@ CELERY_BEAT_SCHEDULE = {
 
 REST_FRAMEWORK = {
     "DEFAULT_AUTHENTICATION_CLASSES": [
-        "rest_framework.authentication.TokenAuthentication",
+        "bridgeos_cloud.authentication.ApiTokenAuthentication",
         "rest_framework.authentication.SessionAuthentication",
     ],
     "DEFAULT_PERMISSION_CLASSES": ["rest_framework.permissions.IsAuthenticated"],
@@ -177,6 +178,15 @@ SPECTACULAR_SETTINGS = {
     "SWAGGER_UI_DIST": "SIDECAR",
     "SWAGGER_UI_FAVICON_HREF": "SIDECAR",
     "REDOC_DIST": "SIDECAR",
+    "ENUM_NAME_OVERRIDES": {
+        "LocationEnum": "skills.choices.LOCATION_CHOICES",
+        "SideEnum": "skills.choices.ACTIVE_LOCATION_CHOICES",
+        "SkillStatusEnum": "skills.choices.SKILL_STATUS_CHOICES",
+        "ComponentStatusEnum": "skills.choices.COMPONENT_STATUS_CHOICES",
+        "RobotStatusEnum": "robots.choices.RobotStatus",
+        "LevelEnum": "monitoring.choices.Level",
+        "SourceEnum": "monitoring.choices.Source",
+    },
 }
 
 # bridgeOS knobs.
@@ -187,6 +197,8 @@ BRIDGEOS = {
     "ROBOT_FRAME_BURST": env_float("BRIDGEOS_ROBOT_FRAME_BURST", 1000.0),
     "CLIENT_FRAMES_PER_S": env_float("BRIDGEOS_CLIENT_FRAMES_PER_S", 50.0),
     "CLIENT_FRAME_BURST": env_float("BRIDGEOS_CLIENT_FRAME_BURST", 200.0),
+    # Lifetime of an API token from /api/auth; /api/auth/renew extends it by as much.
+    "API_TOKEN_TTL_S": env_float("BRIDGEOS_API_TOKEN_TTL_S", 24 * 3600.0),
     # How long a client's command waits for the robot's reply.
     "COMMAND_WAIT_S": env_float("BRIDGEOS_COMMAND_WAIT_S", 5.0),
 }

@@ -95,3 +95,118 @@ def _point(metric: Metric) -> dict[str, Any]:
     if metric.labels:
         point["labels"] = metric.labels
     return point
+
+
+AGGREGATES = {
+    "avg": "avg(value)",
+    "min": "min(value)",
+    "max": "max(value)",
+    "count": "count(*)::float8",
+    "last": "(array_agg(value ORDER BY ts DESC))[1]",
+}
+QUERY_TIMEOUT_MS = 5000
+
+
+def aggregate_metrics(
+    robot_ids: list[str],
+    *,
+    since: datetime,
+    until: datetime,
+    aggregate: str = "avg",
+    bucket_seconds: int | None = None,
+    names: list[str] | None = None,
+    skill: str | None = None,
+    component: str | None = None,
+    limit: int = 1000,
+) -> list[dict[str, Any]]:
+    """Aggregate metric points per series, over the whole range or per time bucket, newest first."""
+    if connection.vendor != "postgresql":
+        return _aggregate_in_python(robot_ids, since, until, aggregate, bucket_seconds, names, skill, component, limit)
+    where = ["robot_id = ANY(%s)", "ts >= %s", "ts < %s"]
+    params: list[Any] = [robot_ids, since, until]
+    for column, value in (("name", names), ("skill", skill), ("component", component)):
+        if value:
+            where.append(f"{column} = ANY(%s)" if isinstance(value, list) else f"{column} = %s")
+            params.append(value)
+    bucket = "date_bin(make_interval(secs => %s), ts, TIMESTAMPTZ 'epoch')" if bucket_seconds else "min(ts)"
+    group_bucket = ", 5" if bucket_seconds else ""
+    # Only whitelisted SQL fragments are interpolated; every value travels as a parameter.
+    sql = (
+        f"SELECT robot_id, skill, component, name, {bucket} AS bucket, {AGGREGATES[aggregate]} AS value, count(*)"
+        f" FROM monitoring_metric WHERE {' AND '.join(where)}"
+        f" GROUP BY 1, 2, 3, 4{group_bucket} ORDER BY 5 DESC, 1, 4, 2, 3 LIMIT %s"
+    )
+    query_params = ([bucket_seconds] if bucket_seconds else []) + params + [limit]
+    with transaction.atomic(), connection.cursor() as cursor:
+        # Bounded time: a query too broad for the deadline fails instead of loading the database.
+        cursor.execute(f"SET LOCAL statement_timeout = {QUERY_TIMEOUT_MS}")
+        cursor.execute(sql, query_params)
+        rows = cursor.fetchall()
+    return [
+        {"robot": r, "skill": s, "component": c, "name": n, "bucket": b, "value": v, "points": k}
+        for r, s, c, n, b, v, k in rows
+    ]
+
+
+def _aggregate(values: list[float], aggregate: str) -> float:
+    """Aggregate values in time order the way the SQL path does."""
+    if aggregate == "avg":
+        return sum(values) / len(values)
+    if aggregate == "min":
+        return min(values)
+    if aggregate == "max":
+        return max(values)
+    if aggregate == "count":
+        return float(len(values))
+    return values[-1]
+
+
+def _aggregate_in_python(
+    robot_ids: list[str],
+    since: datetime,
+    until: datetime,
+    aggregate: str,
+    bucket_seconds: int | None,
+    names: list[str] | None,
+    skill: str | None,
+    component: str | None,
+    limit: int,
+) -> list[dict[str, Any]]:
+    """Aggregate without PostgreSQL (the embedded SQLite default), over a bounded number of points."""
+    points = Metric.objects.filter(robot_id__in=robot_ids, ts__gte=since, ts__lt=until)
+    if names:
+        points = points.filter(name__in=names)
+    if skill:
+        points = points.filter(skill=skill)
+    if component:
+        points = points.filter(component=component)
+    groups: dict[tuple, list[tuple[datetime, float]]] = {}
+    for robot_id, s, c, name, ts, value in points.order_by("ts").values_list(
+        "robot_id", "skill", "component", "name", "ts", "value"
+    )[:200_000]:
+        start = (
+            datetime.fromtimestamp(ts.timestamp() // bucket_seconds * bucket_seconds, tz=UTC)
+            if bucket_seconds
+            else None
+        )
+        groups.setdefault((robot_id, s, c, name, start), []).append((ts, value))
+    results = []
+    for (robot_id, s, c, name, start), series in groups.items():
+        values = [value for _, value in series]
+        value = _aggregate(values, aggregate)
+        bucket = start or series[0][0]
+        results.append(
+            {
+                "robot": robot_id,
+                "skill": s,
+                "component": c,
+                "name": name,
+                "bucket": bucket,
+                "value": value,
+                "points": len(values),
+            }
+        )
+    results.sort(
+        key=lambda row: (-row["bucket"].timestamp(), row["robot"], row["name"], row["skill"], row["component"])
+    )
+    return results[:limit]

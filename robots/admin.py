@@ -9,7 +9,7 @@ from django.db.models import QuerySet
 from django.http import HttpRequest
 
 from . import services
-from .models import Robot
+from .models import ApiToken, Robot
 
 
 @admin.register(Robot)
@@ -35,3 +35,15 @@ class RobotAdmin(admin.ModelAdmin):
         for robot in queryset:
             token = services.rotate_token(robot)
             messages.warning(request, f"New token of robot {robot.id} (shown only once): {token}")
+
+
+@admin.register(ApiToken)
+class ApiTokenAdmin(admin.ModelAdmin):
+    """API tokens can be reviewed and revoked (deleted), never read: only their hash is kept."""
+
+    list_display = ["user", "created_at", "expires_at"]
+    search_fields = ["user__username"]
+    readonly_fields = ["user", "created_at", "expires_at"]
+
+    def has_add_permission(self, request: HttpRequest) -> bool:
+        return False

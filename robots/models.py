@@ -75,3 +75,22 @@ class Robot(models.Model):
     def check_token(self, token: str) -> bool:
         """Tell whether a presented token is this robot's, in constant time."""
         return bool(self.token_hash) and hmac.compare_digest(self.token_hash, hash_token(token))
+
+
+class ApiToken(models.Model):
+    """A user's API token from /api/auth: stored hashed, valid until it expires."""
+
+    user = models.ForeignKey(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="api_tokens")
+    key_hash = models.CharField(max_length=64, unique=True, editable=False)
+    created_at = models.DateTimeField(default=timezone.now, editable=False)
+    expires_at = models.DateTimeField()
+
+    class Meta:
+        indexes = [models.Index(fields=["expires_at"])]
+
+    def __str__(self) -> str:
+        return f"token of {self.user} until {self.expires_at:%Y-%m-%d %H:%M}"
+
+    @property
+    def expired(self) -> bool:
+        return self.expires_at <= timezone.now()

@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import asyncio
 import json
+import secrets
 import time
+from datetime import timedelta
 from typing import Any
 
 from asgiref.sync import sync_to_async
 from channels.layers import get_channel_layer
+from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
 from django.db.models import QuerySet
 from django.utils import timezone
-from rest_framework.authtoken.models import Token
 
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
@@ -22,7 +24,7 @@ from monitoring.live import publish_on_commit
 from monitoring.services import record_event
 
 from .choices import RobotStatus
-from .models import Robot, hash_token
+from .models import ApiToken, Robot, hash_token
 
 
 def create_robot(
@@ -211,14 +213,60 @@ def can_see(user: AbstractBaseUser, robot_id: str) -> bool:
     return visible_robots(user).filter(id=robot_id).exists()
 
 
-def authenticate_api_token(key: str) -> AbstractBaseUser | None:
-    """Return the active user an API token belongs to, else None."""
-    token = Token.objects.select_related("user").filter(key=key).first()
-    if token is None or not token.user.is_active:
+API_TOKEN_PREFIX = "bat_"
+
+
+def issue_api_token(user: AbstractBaseUser) -> tuple[str, ApiToken]:
+    """Create an API token for a user and return its key (shown only now) and the token."""
+    key = API_TOKEN_PREFIX + secrets.token_urlsafe(32)
+    lifetime = timedelta(seconds=settings.BRIDGEOS["API_TOKEN_TTL_S"])
+    token = ApiToken.objects.create(user=user, key_hash=hash_token(key), expires_at=timezone.now() + lifetime)
+    return key, token
+
+
+def api_token(key: str) -> ApiToken | None:
+    """Return the unexpired token with this key whose user is active, else None."""
+    if not key.startswith(API_TOKEN_PREFIX):
         return None
-    return token.user
+    token = ApiToken.objects.select_related("user").filter(key_hash=hash_token(key)).first()
+    if token is None or token.expired or not token.user.is_active:
+        return None
+    return token
+
+
+def renew_api_token(token: ApiToken) -> ApiToken:
+    """Extend a token's validity by its full lifetime from now."""
+    token.expires_at = timezone.now() + timedelta(seconds=settings.BRIDGEOS["API_TOKEN_TTL_S"])
+    token.save(update_fields=["expires_at"])
+    return token
+
+
+def authenticate_api_token(key: str) -> AbstractBaseUser | None:
+    """Return the active user an unexpired API token belongs to, else None."""
+    token = api_token(key)
+    return None if token is None else token.user
 
 
 def robot_config(robot_id: str) -> dict[str, Any]:
     """Return a robot's stored config."""
     return Robot.objects.values_list("config", flat=True).get(id=robot_id)
+
+
+def update_robot(robot: Robot, *, name: str | None = None, config: dict[str, Any] | None = None) -> Robot:
+    """Rename a robot or replace its config (validated as a whole)."""
+    if name is not None:
+        robot.name = name
+    if config is not None:
+        robot.config = config
+    with transaction.atomic():
+        robot.save(update_fields=["name", "config"])
+        record_event(f"Robot {robot.id} updated", robot_id=robot.id, kind="robot_updated")
+    return robot
+
+
+def delete_robot(robot: Robot) -> None:
+    """Delete a robot with its skills, components, metrics and events."""
+    robot_id = robot.id
+    with transaction.atomic():
+        robot.delete()
+        record_event(f"Robot {robot_id} deleted", kind="robot_deleted", data={"robot": robot_id})

@@ -197,3 +197,23 @@ def component_state(robot_id: str, skill_id: str, component_id: str) -> Componen
     """Return a skill's component, or raise NotFound."""
     with transaction.atomic():
         return _component(robot_id, skill_id, component_id)
+
+
+def remove_skill(skill: Skill) -> bool:
+    """Remove a skill that is not running; return False (changing nothing) if it runs."""
+    with transaction.atomic():
+        locked = Skill.objects.select_for_update().get(pk=skill.pk)
+        if locked.status in (SkillStatusName.RUNNING, SkillStatusName.STARTING, SkillStatusName.STOPPING):
+            return False
+        locked.delete()
+        record_event(
+            f"Skill {skill.skill_id} removed", robot_id=skill.robot_id, skill=skill.skill_id, kind="skill_removed"
+        )
+    return True
+
+
+def create_template(
+    *, name: str, config: dict[str, Any], description: str = "", tags: list[str] | None = None
+) -> SkillTemplate:
+    """Add a Skill config to the catalog."""
+    return SkillTemplate.objects.create(name=name, config=config, description=description, tags=tags or [])

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from asgiref.sync import sync_to_async
 from django.contrib.auth import get_user_model
-from rest_framework.authtoken.models import Token
 
 from bridgeos_agent.link import Link
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.skillconfig import load_sample_skill_config
-from robots.services import create_robot
+from robots.services import create_robot, issue_api_token
 from skills.services import add_skill
 
 
@@ -17,7 +16,7 @@ from skills.services import add_skill
 def make_owner(username: str, *, staff: bool = False):
     """Create a user with an API token; return (user, token key)."""
     user = get_user_model().objects.create_user(username, password=f"{username}-pass-123", is_staff=staff)
-    return user, Token.objects.create(user=user).key
+    return user, issue_api_token(user)[0]
 
 
 @sync_to_async

@@ -1,0 +1,118 @@
+"""The Robot API's monitoring routes: /api/database/query and the event log."""
+
+from __future__ import annotations
+
+from django.db import OperationalError
+from django.db.models import QuerySet
+from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
+from rest_framework import generics, status
+from rest_framework.exceptions import ValidationError
+from rest_framework.request import Request
+from rest_framework.response import Response
+from rest_framework.views import APIView
+
+from robots.services import visible_robots
+
+from .. import services
+from ..choices import Level
+from ..models import Event
+from .serializers import EventSerializer, MetricRowSerializer, QueryResultSerializer, QuerySerializer
+
+LEVEL_ORDER = [level.value for level in Level]
+
+
+def events_of(request: Request, filters: dict) -> QuerySet[Event]:
+    """Return the events of the user's robots (staff: also fleet-wide events) matching filters."""
+    events = Event.objects.all()
+    if not request.user.is_staff:
+        events = events.filter(robot__owner=request.user)
+    if filters.get("robots"):
+        events = events.filter(robot_id__in=filters["robots"])
+    for field in ("skill", "component"):
+        if filters.get(field):
+            events = events.filter(**{field: filters[field]})
+    if filters.get("event"):
+        events = events.filter(kind=filters["event"])
+    if filters.get("level"):
+        events = events.filter(level__in=LEVEL_ORDER[LEVEL_ORDER.index(filters["level"]) :])
+    if filters.get("since"):
+        events = events.filter(ts__gte=filters["since"])
+    if filters.get("until"):
+        events = events.filter(ts__lt=filters["until"])
+    return events.order_by("-ts", "-id")
+
+
+class DatabaseQueryView(APIView):
+    """Query the latest metrics and activity of your robots: filters, time range, aggregation per bucket."""
+
+    @extend_schema(request=QuerySerializer, responses={200: QueryResultSerializer, 400: OpenApiResponse()})
+    def post(self, request: Request) -> Response:
+        form = QuerySerializer(data=request.data)
+        form.is_valid(raise_exception=True)
+        query = form.validated_data
+        robots = visible_robots(request.user)
+        if query.get("robots"):
+            robots = robots.filter(id__in=query["robots"])
+            unknown = set(query["robots"]) - set(robots.values_list("id", flat=True))
+            if unknown:
+                raise ValidationError({"robots": [f"No robot {robot_id!r}." for robot_id in sorted(unknown)]})
+        if query["kind"] == "events":
+            events = events_of(request, query)[: query["limit"]]
+            return Response({"kind": "events", "results": EventSerializer(events, many=True).data})
+        try:
+            rows = services.aggregate_metrics(
+                list(robots.values_list("id", flat=True)),
+                since=query["since"],
+                until=query["until"],
+                aggregate=query["aggregate"],
+                bucket_seconds=query.get("bucket"),
+                names=query.get("names"),
+                skill=query.get("skill"),
+                component=query.get("component"),
+                limit=query["limit"],
+            )
+        except OperationalError:
+            return Response(
+                {"detail": "The query took too long; narrow the time range, robots or names."},
+                status=status.HTTP_503_SERVICE_UNAVAILABLE,
+            )
+        return Response({"kind": "metrics", "results": MetricRowSerializer(rows, many=True).data})
+
+
+class EventListView(generics.ListAPIView):
+    """The event log of your robots, newest first, filtered and paginated."""
+
+    serializer_class = EventSerializer
+
+    @extend_schema(
+        parameters=[
+            OpenApiParameter("robot", str),
+            OpenApiParameter("skill", str),
+            OpenApiParameter("component", str),
+            OpenApiParameter("kind", str),
+            OpenApiParameter("level", str, enum=LEVEL_ORDER, description="Minimum level."),
+            OpenApiParameter("since", str, description="ISO 8601 time."),
+            OpenApiParameter("until", str, description="ISO 8601 time."),
+        ]
+    )
+    def get(self, request: Request, *args: object, **kwargs: object) -> Response:
+        return super().get(request, *args, **kwargs)
+
+    def get_queryset(self) -> QuerySet[Event]:
+        params = self.request.query_params
+        form = QuerySerializer(
+            data={
+                "kind": "events",
+                **({"robots": [params["robot"]]} if "robot" in params else {}),
+                **{key: params[key] for key in ("skill", "component", "level", "since", "until") if key in params},
+            }
+        )
+        form.is_valid(raise_exception=True)
+        filters = dict(form.validated_data)
+        # The log is browsed without a default window: only the bounds the caller gave apply.
+        for bound in ("since", "until"):
+            if bound not in params:
+                filters.pop(bound)
+        if "kind" in params:
+            filters["event"] = params["kind"][:64]
+        return events_of(self.request, filters)

@@ -1,0 +1,84 @@
+"""Shapes of the Robot API's requests and answers about robots, tokens and commands."""
+
+from __future__ import annotations
+
+from rest_framework import serializers
+
+from bridgeos_agent.skillconfig import SLUG_PATTERN
+from skills.api.serializers import SkillSerializer
+
+from ..models import Robot
+
+
+class AuthTokenSerializer(serializers.Serializer):
+    token = serializers.CharField(help_text="Send as `Authorization: Token <token>`.")
+    expires_at = serializers.DateTimeField()
+
+
+class RenewedTokenSerializer(serializers.Serializer):
+    expires_at = serializers.DateTimeField()
+
+
+class RobotSerializer(serializers.ModelSerializer):
+    """A robot with its skills and their components."""
+
+    owner = serializers.CharField(source="owner.get_username", read_only=True)
+    skills = SkillSerializer(many=True, read_only=True)
+
+    class Meta:
+        model = Robot
+        fields = ["id", "name", "owner", "status", "connected", "last_seen", "config", "skills"]
+        read_only_fields = fields
+
+
+class RobotCreateSerializer(serializers.Serializer):
+    id = serializers.RegexField(SLUG_PATTERN, max_length=64, help_text="Slug: lowercase letters, digits, '-', '_'.")
+    name = serializers.CharField(max_length=200, required=False, default="")
+    config = serializers.JSONField(required=False, help_text="Robot config; defaults fill what is left out.")
+    owner = serializers.CharField(required=False, help_text="Username of the owner (staff only; default: you).")
+
+    def validate_id(self, value: str) -> str:
+        # These would collide with the fleet-wide routes /api/robot/start|stop|shutdown.
+        if value in {"start", "stop", "shutdown"}:
+            raise serializers.ValidationError(f"{value!r} is reserved; choose another id.")
+        return value
+
+
+class RobotCreatedSerializer(RobotSerializer):
+    token = serializers.CharField(help_text="The robot's token, shown only this once.")
+
+    class Meta(RobotSerializer.Meta):
+        fields = [*RobotSerializer.Meta.fields, "token"]
+        read_only_fields = fields
+
+
+class RobotUpdateSerializer(serializers.Serializer):
+    name = serializers.CharField(max_length=200, required=False)
+    config = serializers.JSONField(required=False, help_text="Replaces the whole robot config.")
+
+
+class RobotTokenSerializer(serializers.Serializer):
+    token = serializers.CharField(help_text="The new token, shown only this once; the old one stops working.")
+
+
+class ReplySerializer(serializers.Serializer):
+    event = serializers.CharField()
+    data = serializers.JSONField()
+
+
+class CommandResultSerializer(serializers.Serializer):
+    robot = serializers.CharField()
+    event = serializers.CharField()
+    accepted = serializers.BooleanField(help_text="True when the robot acknowledged the command.")
+    reply = ReplySerializer(help_text="The robot's answer: an `ack`, or an `error_message` saying why not.")
+
+
+class FleetCommandResultSerializer(serializers.Serializer):
+    robot = serializers.CharField()
+    accepted = serializers.BooleanField()
+    reply = ReplySerializer(required=False)
+    error = serializers.CharField(required=False)
+
+
+class FleetCommandSerializer(serializers.Serializer):
+    results = FleetCommandResultSerializer(many=True)

@@ -1,0 +1,203 @@
+"""The Robot API about robots: authentication, the fleet, and robot-wide commands (thesis Table 3.1)."""
+
+from __future__ import annotations
+
+from django.contrib.auth import get_user_model
+from django.core.exceptions import ValidationError as DjangoValidationError
+from django.db.models import Prefetch, QuerySet
+from django.shortcuts import get_object_or_404
+from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
+from rest_framework import status
+from rest_framework.authentication import BasicAuthentication, SessionAuthentication
+from rest_framework.exceptions import PermissionDenied, ValidationError
+from rest_framework.permissions import IsAuthenticated
+from rest_framework.request import Request
+from rest_framework.response import Response
+from rest_framework.views import APIView
+
+from bridgeos_agent.protocol import Event
+from bridgeos_cloud.authentication import ApiTokenAuthentication
+from skills.models import Skill
+
+from .. import services
+from ..models import ApiToken, Robot
+from .commands import relay, relay_to_fleet, wait_seconds
+from .serializers import (
+    AuthTokenSerializer,
+    CommandResultSerializer,
+    FleetCommandSerializer,
+    RenewedTokenSerializer,
+    RobotCreatedSerializer,
+    RobotCreateSerializer,
+    RobotSerializer,
+    RobotTokenSerializer,
+    RobotUpdateSerializer,
+)
+
+WAIT = OpenApiParameter("wait", float, description="Seconds to wait for the robot's reply (default 5, max 60).")
+COMMAND_RESPONSES = {
+    200: CommandResultSerializer,
+    400: OpenApiResponse(description="Invalid request"),
+    404: OpenApiResponse(description="No such robot, skill or component (or not yours)"),
+    409: OpenApiResponse(description="The robot is offline"),
+    504: OpenApiResponse(description="The robot did not answer in time"),
+}
+
+
+def django_errors(exc: DjangoValidationError) -> ValidationError:
+    """Turn a model's field errors into a DRF 400."""
+    return ValidationError(getattr(exc, "message_dict", {"non_field_errors": exc.messages}))
+
+
+def robots_of(request: Request) -> QuerySet[Robot]:
+    """Return the robots the user may see, with skills and components fetched in two queries."""
+    skills = Skill.objects.prefetch_related("components")
+    return (
+        services.visible_robots(request.user)
+        .select_related("owner")
+        .prefetch_related(Prefetch("skills", queryset=skills))
+    )
+
+
+def robot_of(request: Request, robot_id: str) -> Robot:
+    """Return one of the user's robots; another user's robot is a 404, as if it did not exist."""
+    return get_object_or_404(services.visible_robots(request.user), id=robot_id)
+
+
+class AuthView(APIView):
+    """Exchange a username and password (HTTP Basic) for an API token with an expiry."""
+
+    authentication_classes = [BasicAuthentication, SessionAuthentication]
+    permission_classes = [IsAuthenticated]
+    serializer_class = AuthTokenSerializer
+
+    @extend_schema(auth=[{"basicAuth": []}], responses={200: AuthTokenSerializer, 401: OpenApiResponse()})
+    def get(self, request: Request) -> Response:
+        key, token = services.issue_api_token(request.user)
+        return Response({"token": key, "expires_at": token.expires_at})
+
+    @extend_schema(auth=[{"basicAuth": []}], responses={200: AuthTokenSerializer, 401: OpenApiResponse()})
+    def post(self, request: Request) -> Response:
+        return self.get(request)
+
+
+class AuthRenewView(APIView):
+    """Extend the validity of the API token this request carries."""
+
+    authentication_classes = [ApiTokenAuthentication]
+    serializer_class = RenewedTokenSerializer
+
+    @extend_schema(responses={200: RenewedTokenSerializer, 401: OpenApiResponse()})
+    def get(self, request: Request) -> Response:
+        if not isinstance(request.auth, ApiToken):
+            raise PermissionDenied("Only an API token can be renewed.")
+        return Response({"expires_at": services.renew_api_token(request.auth).expires_at})
+
+    @extend_schema(responses={200: RenewedTokenSerializer, 401: OpenApiResponse()})
+    def post(self, request: Request) -> Response:
+        return self.get(request)
+
+
+class RobotListView(APIView):
+    """List the robots you may see with their skills and components, or add a robot."""
+
+    @extend_schema(
+        parameters=[OpenApiParameter("connected", bool, description="Only connected (true) or offline (false).")],
+        responses={200: RobotSerializer(many=True)},
+    )
+    def get(self, request: Request) -> Response:
+        robots = robots_of(request).order_by("id")
+        connected = request.query_params.get("connected")
+        if connected is not None:
+            if connected not in ("true", "false"):
+                raise ValidationError({"connected": ["Use true or false."]})
+            robots = robots.filter(connected=connected == "true")
+        return Response(RobotSerializer(robots, many=True).data)
+
+    @extend_schema(request=RobotCreateSerializer, responses={201: RobotCreatedSerializer, 400: OpenApiResponse()})
+    def post(self, request: Request) -> Response:
+        form = RobotCreateSerializer(data=request.data)
+        form.is_valid(raise_exception=True)
+        owner = request.user
+        if "owner" in form.validated_data and form.validated_data["owner"] != request.user.get_username():
+            if not request.user.is_staff:
+                raise PermissionDenied("Only staff may create robots for another user.")
+            owner = get_user_model().objects.filter(username=form.validated_data["owner"]).first()
+            if owner is None:
+                raise ValidationError({"owner": ["No such user."]})
+        if Robot.objects.filter(id=form.validated_data["id"]).exists():
+            raise ValidationError({"id": ["A robot with this id exists already."]})
+        try:
+            robot, token = services.create_robot(
+                form.validated_data["id"],
+                owner,
+                name=form.validated_data["name"],
+                config=form.validated_data.get("config"),
+            )
+        except DjangoValidationError as exc:
+            raise django_errors(exc) from None
+        data = RobotSerializer(robots_of(request).get(id=robot.id)).data
+        return Response({**data, "token": token}, status=status.HTTP_201_CREATED)
+
+
+class RobotDetailView(APIView):
+    """Read, rename or reconfigure, or delete one robot."""
+
+    @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
+    def get(self, request: Request, robot_id: str) -> Response:
+        return Response(RobotSerializer(get_object_or_404(robots_of(request), id=robot_id)).data)
+
+    @extend_schema(request=RobotUpdateSerializer, responses={200: RobotSerializer, 400: OpenApiResponse()})
+    def patch(self, request: Request, robot_id: str) -> Response:
+        robot = robot_of(request, robot_id)
+        form = RobotUpdateSerializer(data=request.data)
+        form.is_valid(raise_exception=True)
+        try:
+            services.update_robot(robot, **form.validated_data)
+        except DjangoValidationError as exc:
+            raise django_errors(exc) from None
+        return Response(RobotSerializer(robots_of(request).get(id=robot_id)).data)
+
+    @extend_schema(responses={204: OpenApiResponse(description="Deleted"), 404: OpenApiResponse()})
+    def delete(self, request: Request, robot_id: str) -> Response:
+        services.delete_robot(robot_of(request, robot_id))
+        return Response(status=status.HTTP_204_NO_CONTENT)
+
+
+class RobotInfoView(APIView):
+    """Everything about the current state of a robot, its skills and components."""
+
+    @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
+    def get(self, request: Request, robot_id: str) -> Response:
+        return Response(RobotSerializer(get_object_or_404(robots_of(request), id=robot_id)).data)
+
+
+class RobotTokenView(APIView):
+    """Rotate a robot's token: the old one stops working at once."""
+
+    @extend_schema(request=None, responses={200: RobotTokenSerializer, 404: OpenApiResponse()})
+    def post(self, request: Request, robot_id: str) -> Response:
+        return Response({"token": services.rotate_token(robot_of(request, robot_id))})
+
+
+class RobotCommandView(APIView):
+    """Relay start, stop or shutdown to one robot."""
+
+    event = Event.ROBOT_START  # each route sets its own
+
+    @extend_schema(request=None, parameters=[WAIT], responses=COMMAND_RESPONSES)
+    def post(self, request: Request, robot_id: str) -> Response:
+        robot = robot_of(request, robot_id)
+        return relay(robot.id, self.event, {}, wait_seconds(request))
+
+
+class FleetCommandView(APIView):
+    """Relay start, stop or shutdown to every connected robot you may see."""
+
+    event = Event.ROBOT_START  # each route sets its own
+
+    @extend_schema(request=None, parameters=[WAIT], responses={200: FleetCommandSerializer})
+    def post(self, request: Request) -> Response:
+        wait = wait_seconds(request)
+        robot_ids = list(services.visible_robots(request.user).filter(connected=True).values_list("id", flat=True))
+        return relay_to_fleet(robot_ids, self.event, wait)

@@ -1,0 +1,24 @@
+"""Routes of the Robot API about skills, components and the catalog."""
+
+from __future__ import annotations
+
+from django.urls import path
+
+from . import views
+
+SKILL = "robot/<str:robot_id>/skill/<str:skill_id>"
+COMPONENT = f"{SKILL}/component/<str:component_id>"
+
+urlpatterns = [
+    path("robot/<str:robot_id>/skill/add", views.SkillAddView.as_view(), name="skill-add"),
+    path("robot/<str:robot_id>/skill/remove", views.SkillRemoveView.as_view(), name="skill-remove"),
+    path(f"{SKILL}/info", views.SkillInfoView.as_view(), name="skill-info"),
+    path(f"{SKILL}/start", views.SkillStartView.as_view(), name="skill-start"),
+    path(f"{SKILL}/stop", views.SkillStopView.as_view(), name="skill-stop"),
+    path(f"{COMPONENT}/info", views.ComponentInfoView.as_view(), name="component-info"),
+    path(f"{COMPONENT}/start", views.ComponentStartView.as_view(), name="component-start"),
+    path(f"{COMPONENT}/stop", views.ComponentStopView.as_view(), name="component-stop"),
+    path(f"{COMPONENT}/migrate", views.ComponentMigrateView.as_view(), name="component-migrate"),
+    path("templates", views.SkillTemplateListView.as_view(), name="template-list"),
+    path("templates/<int:template_id>", views.SkillTemplateDetailView.as_view(), name="template-detail"),
+]

@@ -1,0 +1,203 @@
+"""The Robot API about skills, components and the catalog (thesis Table 3.1)."""
+
+from __future__ import annotations
+
+from django.core.exceptions import ValidationError as DjangoValidationError
+from django.shortcuts import get_object_or_404
+from drf_spectacular.utils import OpenApiResponse, extend_schema
+from rest_framework import status
+from rest_framework.exceptions import ValidationError
+from rest_framework.permissions import IsAdminUser, IsAuthenticated
+from rest_framework.request import Request
+from rest_framework.response import Response
+from rest_framework.views import APIView
+
+from bridgeos_agent.protocol import Event, Location
+from robots.api.commands import relay, wait_seconds
+from robots.api.views import COMMAND_RESPONSES, WAIT, django_errors, robot_of
+
+from .. import services
+from ..models import Component, Skill, SkillTemplate
+from .serializers import (
+    ComponentDetailSerializer,
+    ComponentMigrateSerializer,
+    ComponentStartSerializer,
+    ComponentStopSerializer,
+    SkillAddSerializer,
+    SkillDetailSerializer,
+    SkillRemoveSerializer,
+    SkillTemplateSerializer,
+)
+
+
+def skill_of(request: Request, robot_id: str, skill_id: str) -> Skill:
+    """Return a skill of one of the user's robots, or 404."""
+    robot = robot_of(request, robot_id)
+    return get_object_or_404(Skill.objects.prefetch_related("components"), robot=robot, skill_id=skill_id)
+
+
+def component_of(request: Request, robot_id: str, skill_id: str, component_id: str) -> Component:
+    """Return a component of a skill of one of the user's robots, or 404."""
+    skill = skill_of(request, robot_id, skill_id)
+    return get_object_or_404(Component.objects.select_related("skill"), skill=skill, component_id=component_id)
+
+
+def validated(serializer_class: type, request: Request) -> dict:
+    form = serializer_class(data=request.data)
+    form.is_valid(raise_exception=True)
+    return form.validated_data
+
+
+class SkillAddView(APIView):
+    """Add a Skill to a robot, from a config or a catalog template."""
+
+    @extend_schema(request=SkillAddSerializer, responses={201: SkillDetailSerializer, 400: OpenApiResponse()})
+    def post(self, request: Request, robot_id: str) -> Response:
+        robot = robot_of(request, robot_id)
+        data = validated(SkillAddSerializer, request)
+        config = data["template"].config if "template" in data else data["config"]
+        if not isinstance(config, dict):
+            raise ValidationError({"config": ["A Skill config is a JSON object."]})
+        try:
+            skill = services.add_skill(robot, config)
+        except DjangoValidationError as exc:
+            raise django_errors(exc) from None
+        return Response(SkillDetailSerializer(skill_of(request, robot_id, skill.skill_id)).data, status=201)
+
+
+class SkillRemoveView(APIView):
+    """Remove a stopped Skill from a robot."""
+
+    @extend_schema(
+        request=SkillRemoveSerializer,
+        responses={204: OpenApiResponse(description="Removed"), 404: OpenApiResponse(), 409: OpenApiResponse()},
+    )
+    def post(self, request: Request, robot_id: str) -> Response:
+        skill = skill_of(request, robot_id, validated(SkillRemoveSerializer, request)["skill"])
+        if not services.remove_skill(skill):
+            return Response(
+                {"detail": f"Skill {skill.skill_id} is {skill.status}; stop it before removing it."},
+                status=status.HTTP_409_CONFLICT,
+            )
+        return Response(status=status.HTTP_204_NO_CONTENT)
+
+
+class SkillInfoView(APIView):
+    """The current state of a Skill, its config and components."""
+
+    @extend_schema(responses={200: SkillDetailSerializer, 404: OpenApiResponse()})
+    def get(self, request: Request, robot_id: str, skill_id: str) -> Response:
+        return Response(SkillDetailSerializer(skill_of(request, robot_id, skill_id)).data)
+
+
+class SkillStartView(APIView):
+    """Launch a Skill on its robot."""
+
+    @extend_schema(request=None, parameters=[WAIT], responses=COMMAND_RESPONSES)
+    def post(self, request: Request, robot_id: str, skill_id: str) -> Response:
+        skill = skill_of(request, robot_id, skill_id)
+        return relay(
+            robot_id, Event.SKILL_START, {"skill": skill.skill_id, "config": skill.config}, wait_seconds(request)
+        )
+
+
+class SkillStopView(APIView):
+    """Shut a Skill down."""
+
+    @extend_schema(request=None, parameters=[WAIT], responses=COMMAND_RESPONSES)
+    def post(self, request: Request, robot_id: str, skill_id: str) -> Response:
+        skill = skill_of(request, robot_id, skill_id)
+        return relay(robot_id, Event.SKILL_STOP, {"skill": skill.skill_id}, wait_seconds(request))
+
+
+class ComponentInfoView(APIView):
+    """A component: where it may and does run, its status and containers."""
+
+    @extend_schema(responses={200: ComponentDetailSerializer, 404: OpenApiResponse()})
+    def get(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
+        return Response(ComponentDetailSerializer(component_of(request, robot_id, skill_id, component_id)).data)
+
+
+def allowed_at(component: Component, location: str) -> None:
+    """Refuse a location the component's config does not allow."""
+    if component.location not in (location, Location.EITHER):
+        raise ValidationError(
+            {"location": [f"Component {component.component_id} may only run on the {component.location}."]}
+        )
+
+
+class ComponentStartView(APIView):
+    """Start a component at the requested location."""
+
+    @extend_schema(request=ComponentStartSerializer, parameters=[WAIT], responses=COMMAND_RESPONSES)
+    def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
+        component = component_of(request, robot_id, skill_id, component_id)
+        location = validated(ComponentStartSerializer, request)["location"]
+        allowed_at(component, location)
+        data = {"skill": skill_id, "component": component_id, "location": location}
+        return relay(robot_id, Event.COMPONENT_START, data, wait_seconds(request))
+
+
+class ComponentStopView(APIView):
+    """Stop a component (at one location, or wherever it runs)."""
+
+    @extend_schema(request=ComponentStopSerializer, parameters=[WAIT], responses=COMMAND_RESPONSES)
+    def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
+        component_of(request, robot_id, skill_id, component_id)
+        data = {"skill": skill_id, "component": component_id, **validated(ComponentStopSerializer, request)}
+        return relay(robot_id, Event.COMPONENT_STOP, data, wait_seconds(request))
+
+
+class ComponentMigrateView(APIView):
+    """Move a component to the other side (or the given one)."""
+
+    @extend_schema(request=ComponentMigrateSerializer, parameters=[WAIT], responses=COMMAND_RESPONSES)
+    def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
+        component = component_of(request, robot_id, skill_id, component_id)
+        target = validated(ComponentMigrateSerializer, request).get("location")
+        if target is None:
+            if not component.active_location:
+                raise ValidationError({"location": ["The component is not running; say where to move it."]})
+            target = Location.CLOUD if component.active_location == Location.ROBOT else Location.ROBOT
+        allowed_at(component, target)
+        if target == component.active_location:
+            raise ValidationError({"location": [f"Component {component_id} runs on the {target} already."]})
+        data = {"skill": skill_id, "component": component_id, "location": str(target)}
+        return relay(robot_id, Event.COMPONENT_MIGRATE, data, wait_seconds(request))
+
+
+class SkillTemplateListView(APIView):
+    """The Skill catalog: list templates, or upload a config as a new one (staff)."""
+
+    def get_permissions(self) -> list:
+        return [IsAuthenticated()] if self.request.method == "GET" else [IsAdminUser()]
+
+    @extend_schema(responses={200: SkillTemplateSerializer(many=True)})
+    def get(self, request: Request) -> Response:
+        return Response(SkillTemplateSerializer(SkillTemplate.objects.order_by("name"), many=True).data)
+
+    @extend_schema(request=SkillTemplateSerializer, responses={201: SkillTemplateSerializer, 400: OpenApiResponse()})
+    def post(self, request: Request) -> Response:
+        form = SkillTemplateSerializer(data=request.data)
+        form.is_valid(raise_exception=True)
+        try:
+            template = services.create_template(**form.validated_data)
+        except DjangoValidationError as exc:
+            raise django_errors(exc) from None
+        return Response(SkillTemplateSerializer(template).data, status=status.HTTP_201_CREATED)
+
+
+class SkillTemplateDetailView(APIView):
+    """One catalog template; staff may delete it."""
+
+    def get_permissions(self) -> list:
+        return [IsAuthenticated()] if self.request.method == "GET" else [IsAdminUser()]
+
+    @extend_schema(responses={200: SkillTemplateSerializer, 404: OpenApiResponse()})
+    def get(self, request: Request, template_id: int) -> Response:
+        return Response(SkillTemplateSerializer(get_object_or_404(SkillTemplate, pk=template_id)).data)
+
+    @extend_schema(responses={204: OpenApiResponse(description="Deleted"), 404: OpenApiResponse()})
+    def delete(self, request: Request, template_id: int) -> Response:
+        get_object_or_404(SkillTemplate, pk=template_id).delete()
+        return Response(status=status.HTTP_204_NO_CONTENT)
