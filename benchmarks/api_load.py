@@ -1,0 +1,554 @@
+"""Robot API under load: 100 robots x 5 skills x 5 components, 50 concurrent REST clients.
+
+Prints p50/p99 of GET /api/robot (the whole fleet) and of the /info routes (robot, skill,
+component) under `--clients` concurrent clients, each sending its next request as soon as
+the last one answered; the round trip of a command (POST .../skill/<sid>/start) to a
+connected robot until the HTTP answer carries the robot's ack, idle and under the load;
+and the number of SQL queries GET /api/robot makes at 10 and at 100 robots. Goal: p99
+<=50 ms for reads, a query count constant in fleet size. The routes are thesis Table 3.1;
+the thesis gives no latency figure for the Robot API.
+
+    .venv/bin/python benchmarks/api_load.py --quick
+    .venv/bin/python benchmarks/api_load.py --duration 20
+    .venv/bin/python benchmarks/api_load.py --quick --profile /tmp/api_load.txt   # py-spy on daphne
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import multiprocessing as mp
+import os
+import random
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from array import array
+from collections import Counter
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, percentile, setup_django
+
+PREFIX = "api-bench-"
+OPERATOR = "api-bench-operator"
+SMALL_OWNER = "api-bench-small"
+PASSWORD = "api-bench-pass-123"
+SKILLS = 5
+COMPONENTS = 5
+SMALL_FLEET = 10
+READ_GOAL_P99_MS = 50.0
+COMMAND_PERIOD_S = 0.5
+# Route families of the read mix and their share of requests.
+FAMILIES = ("list", "robot_info", "skill_info", "component_info")
+INFO_FAMILIES = FAMILIES[1:]
+
+
+# --------------------------------------------------------------------------- setup (in-process, Django ORM)
+
+
+def skill_configs() -> list[dict]:
+    """Five distinct valid Skill configs of five components each, normalised by the schema."""
+    from bridgeos_agent.skillconfig import parse_skill_config
+    from bridgeos_cloud.validation import validated_config
+
+    configs = []
+    for k in range(SKILLS):
+        components = {}
+        for j in range(COMPONENTS):
+            spec = {"command": ["sleep", "1"], "env": {"BENCH_SKILL": str(k)}}
+            either = j % 2 == 1
+            components[f"comp-{j}"] = {
+                "name": f"Component {k}.{j}",
+                "location": "either" if either else "robot",
+                "resources": {"cpu": 0.1 * (j + 1), "ram": 64 * (k + 1)},
+                "robot": spec,
+                **({"cloud": spec} if either else {}),
+            }
+        raw = {"skill": f"Bench skill {k}", "skill_id": f"skill-{k}", "components": components}
+        configs.append(validated_config(parse_skill_config, raw))
+    return configs
+
+
+def make_fleet(owner, count: int, prefix: str, configs: list[dict]) -> list[tuple[str, str]]:
+    """Bulk-create robots with every config as a Skill; return (robot id, token) pairs."""
+    from robots.models import Robot, default_robot_config
+    from skills.models import Component, Skill
+
+    config = default_robot_config()
+    robots, tokens = [], []
+    for i in range(count):
+        robot = Robot(id=f"{prefix}{i:04d}", owner=owner, name=f"Bench robot {i}", config=config)
+        tokens.append((robot.id, robot.issue_token()))
+        robots.append(robot)
+    Robot.objects.bulk_create(robots)
+    skills = Skill.objects.bulk_create(
+        Skill(robot=robot, skill_id=c["skill_id"], name=c["skill"], config=c) for robot in robots for c in configs
+    )
+    Component.objects.bulk_create(
+        Component(skill=skill, component_id=cid, location=comp["location"], resources=comp["resources"])
+        for skill in skills
+        for cid, comp in skill.config["components"].items()
+    )
+    return tokens
+
+
+def prepare(args: argparse.Namespace) -> dict:
+    """Replace earlier bench data with a user owning the fleet, and one owning a small fleet."""
+    from django.contrib.auth import get_user_model
+    from django.db import connection
+
+    from robots.models import Robot
+
+    started = time.monotonic()
+    Robot.objects.filter(id__startswith=PREFIX).delete()
+    User = get_user_model()
+    User.objects.filter(username__in=[OPERATOR, SMALL_OWNER]).delete()
+    owner = User.objects.create_user(OPERATOR, password=PASSWORD)
+    small = User.objects.create_user(SMALL_OWNER, password=PASSWORD)
+    configs = skill_configs()
+    tokens = make_fleet(owner, args.robots, PREFIX, configs)
+    make_fleet(small, SMALL_FLEET, PREFIX + "small-", configs)
+    connection.close()
+    log(
+        f"created {args.robots} + {SMALL_FLEET} robots x {SKILLS} skills x {COMPONENTS} components "
+        f"in {time.monotonic() - started:.1f} s"
+    )
+    return {
+        "robots": [robot_id for robot_id, _ in tokens],
+        "skills": [c["skill_id"] for c in configs],
+        "components": list(configs[0]["components"]),
+        "connected": tokens[0],
+    }
+
+
+def count_queries(fleet: dict) -> dict:
+    """Count the SQL queries of each read route, in-process, at the small and the full fleet."""
+    from django.contrib.auth import get_user_model
+    from django.db import connection
+    from django.test import Client
+    from django.test.utils import CaptureQueriesContext
+
+    from robots.services import issue_api_token
+
+    User = get_user_model()
+
+    def queries(username: str, path: str, expect: int | None = None) -> int:
+        key, _ = issue_api_token(User.objects.get(username=username))
+        client = Client(SERVER_NAME="localhost", HTTP_AUTHORIZATION=f"Token {key}")
+        with CaptureQueriesContext(connection) as captured:
+            response = client.get(path)
+        if response.status_code != 200:
+            raise RuntimeError(f"GET {path} answered {response.status_code}: {response.content[:300]!r}")
+        if expect is not None and len(response.json()) != expect:
+            raise RuntimeError(f"GET {path} listed {len(response.json())} robots, expected {expect}")
+        return len(captured)
+
+    robot, skill, component = fleet["robots"][-1], fleet["skills"][-1], fleet["components"][-1]
+    result = {
+        "list_small": queries(SMALL_OWNER, "/api/robot", SMALL_FLEET),
+        "list_full": queries(OPERATOR, "/api/robot", len(fleet["robots"])),
+        "robot_info": queries(OPERATOR, f"/api/robot/{robot}/info"),
+        "skill_info": queries(OPERATOR, f"/api/robot/{robot}/skill/{skill}/info"),
+        "component_info": queries(OPERATOR, f"/api/robot/{robot}/skill/{skill}/component/{component}/info"),
+    }
+    connection.close()
+    return result
+
+
+# --------------------------------------------------------------------------- the read load (a process of its own)
+
+
+def pick_path(rnd: random.Random, fleet: dict, list_share: float) -> tuple[int, str]:
+    if rnd.random() < list_share:
+        return 0, "/api/robot"
+    family = rnd.randrange(1, 4)
+    base = f"/api/robot/{rnd.choice(fleet['robots'])}"
+    if family == 1:
+        return 1, f"{base}/info"
+    base += f"/skill/{rnd.choice(fleet['skills'])}"
+    if family == 2:
+        return 2, f"{base}/info"
+    return 3, f"{base}/component/{rnd.choice(fleet['components'])}/info"
+
+
+async def read_load(url: str, token: str, fleet: dict, args: dict) -> dict:
+    """Closed loop: each client sends its next read as soon as the last one answered."""
+    import httpx
+
+    t0 = time.time() + args["warmup"]
+    t1 = t0 + args["duration"]
+    samples = [array("d") for _ in FAMILIES]  # latency in seconds, requests started in [t0, t1]
+    errors: Counter[str] = Counter()
+    sizes: dict[int, int] = {}
+    limits = httpx.Limits(max_connections=args["clients"], max_keepalive_connections=args["clients"])
+    headers = {"Authorization": f"Token {token}"}
+
+    async def client(index: int, http: httpx.AsyncClient) -> None:
+        rnd = random.Random(index)
+        while True:
+            start = time.time()
+            if start >= t1:
+                return
+            family, path = pick_path(rnd, fleet, args["list_share"])
+            began = time.perf_counter()
+            try:
+                response = await http.get(path)
+            except httpx.HTTPError as exc:
+                errors[type(exc).__name__] += 1
+                continue
+            elapsed = time.perf_counter() - began
+            if response.status_code != 200:
+                errors[f"HTTP {response.status_code}"] += 1
+                continue
+            sizes[family] = len(response.content)
+            if start >= t0:
+                samples[family].append(elapsed)
+
+    cpu0 = sum(resource.getrusage(resource.RUSAGE_SELF)[:2])
+    async with httpx.AsyncClient(base_url=url, headers=headers, limits=limits, timeout=60) as http:
+        await asyncio.gather(*(client(i, http) for i in range(args["clients"])))
+    cpu = sum(resource.getrusage(resource.RUSAGE_SELF)[:2]) - cpu0
+    return {
+        "t0": t0,
+        "t1": t1,
+        "samples": [s.tobytes() for s in samples],
+        "errors": dict(errors),
+        "sizes": sizes,
+        "cpu_percent": 100 * cpu / (args["warmup"] + args["duration"]),
+    }
+
+
+def load_main(url, token, fleet, args, start_event, results) -> None:
+    start_event.wait()
+    try:
+        results.put(asyncio.run(read_load(url, token, fleet, args)))
+    except BaseException as exc:
+        results.put({"crash": repr(exc)})
+
+
+# --------------------------------------------------------------------------- commands and the measurement
+
+
+async def command_round_trips(http, path: str, count: int | None, until: float | None = None) -> list[tuple]:
+    """POST a command again and again; return (wall time sent, seconds to the robot's ack) pairs."""
+    out = []
+    while (count is None or len(out) < count) and (until is None or time.time() < until):
+        sent = time.time()
+        began = time.perf_counter()
+        response = await http.post(path)
+        elapsed = time.perf_counter() - began
+        body = response.json() if response.status_code == 200 else {}
+        if response.status_code != 200 or not body.get("accepted") or body["reply"]["event"] != "ack":
+            raise RuntimeError(f"POST {path} answered {response.status_code}: {response.text[:300]}")
+        out.append((sent, elapsed))
+    return out
+
+
+def spawn_profiler(pid: int, seconds: float, out: str) -> subprocess.Popen:
+    py_spy = Path(sys.executable).parent / "py-spy"
+    cmd = [str(py_spy), "record", "-d", str(int(seconds)), "-r", "50", "-f", "raw", "-o", out, "--pid", str(pid)]
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+async def measure(args, daphne: Daphne, fleet: dict, token: str, loader: mp.Process, start_event, results) -> dict:
+    import httpx
+
+    from bridgeos_agent.link import Link
+    from bridgeos_agent.protocol import Event
+
+    robot_id, robot_token = fleet["connected"]
+    link = Link(daphne.ws_url + "/ws/robot/")
+    await link.connect(Event.AUTHENTICATION_ROBOT, {"robot": robot_id, "token": robot_token})
+    await link.next(Event.CONNECTION_ESTABLISHED)
+    await link.next(Event.ROBOT_CONFIG)
+    log(f"robot {robot_id} connected")
+    command = f"/api/robot/{robot_id}/skill/{fleet['skills'][0]}/start?wait=10"
+    headers = {"Authorization": f"Token {token}"}
+    loop = asyncio.get_running_loop()
+    async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{daphne.port}", headers=headers, timeout=60) as http:
+        # Warm daphne up: imports, database connections, the thread pool.
+        for _ in range(3):
+            for path in ("/api/robot", f"/api/robot/{robot_id}/info"):
+                (await http.get(path)).raise_for_status()
+        await command_round_trips(http, command, 5)
+        # One client alone: each route's own cost, before any queueing.
+        alone: dict[str, list[float]] = {}
+        rnd = random.Random(0)
+        for family in FAMILIES:
+            share = 1.0 if family == "list" else 0.0
+            for _ in range(args.alone if family != "list" else max(3, args.alone // 4)):
+                while True:
+                    index, path = pick_path(rnd, fleet, share)
+                    if FAMILIES[index] == family:
+                        break
+                began = time.perf_counter()
+                (await http.get(path)).raise_for_status()
+                alone.setdefault(family, []).append(1000 * (time.perf_counter() - began))
+        idle = [lag for _, lag in await command_round_trips(http, command, args.commands)]
+        log(f"{len(idle)} idle command round trips: p50 {1000 * percentile(idle, 50):.1f} ms")
+
+        log(f"read load: {args.clients} clients, {args.duration:g} s (+{args.warmup:g} s warm-up)")
+        wall0 = time.time()
+        start_event.set()
+        await asyncio.sleep(args.warmup)
+        cpu0, window0 = daphne.cpu_seconds(), time.time()
+        profiler = spawn_profiler(daphne.pid, min(args.duration, 10), args.profile) if args.profile else None
+        # Commands during the load: one every COMMAND_PERIOD_S, each on its own (open loop).
+        tasks = []
+        while time.time() < wall0 + args.warmup + args.duration:
+            tasks.append(asyncio.create_task(command_round_trips(http, command, 1)))
+            await asyncio.sleep(COMMAND_PERIOD_S)
+        cpu = daphne.cpu_seconds() - cpu0
+        cpu_window = time.time() - window0
+        loaded = [pair for batch in await asyncio.gather(*tasks) for pair in batch]
+        report = await loop.run_in_executor(None, results.get, True, 120)
+        loader.join(timeout=30)
+        rss, peak = daphne.memory_mib()
+    await link.close()
+    if "crash" in report:
+        raise RuntimeError(f"the load process crashed: {report['crash']}")
+    if profiler is not None:
+        _, err = profiler.communicate(timeout=60)
+        if profiler.returncode != 0:
+            log(f"py-spy failed: {err.decode(errors='replace')[-500:]}")
+        else:
+            summarise_profile(args.profile)
+
+    t0, t1 = report["t0"], report["t1"]
+    per_family = {}
+    for family, raw in zip(FAMILIES, report["samples"], strict=True):
+        values = array("d")
+        values.frombytes(raw)
+        per_family[family] = [v * 1000 for v in values]
+    reads = [v for values in per_family.values() for v in values]
+    infos = [v for family in INFO_FAMILIES for v in per_family[family]]
+    loaded_ms = [lag * 1000 for sent, lag in loaded if t0 <= sent <= t1]
+    idle_ms = [lag * 1000 for lag in idle]
+    elapsed = t1 - t0
+
+    def ms(values: list[float], q: float) -> float | None:
+        value = percentile(values, q)
+        return None if value is None else round(value, 1)
+
+    return {
+        **{f"alone_{family}_p50_ms": ms(values, 50) for family, values in alone.items()},
+        "read_p50_ms": ms(reads, 50),
+        "read_p99_ms": ms(reads, 99),
+        "list_p50_ms": ms(per_family["list"], 50),
+        "list_p99_ms": ms(per_family["list"], 99),
+        "info_p50_ms": ms(infos, 50),
+        "info_p99_ms": ms(infos, 99),
+        **{f"{family}_p50_ms": ms(per_family[family], 50) for family in INFO_FAMILIES},
+        **{f"{family}_p99_ms": ms(per_family[family], 99) for family in INFO_FAMILIES},
+        "reads_per_s": round(len(reads) / elapsed, 1),
+        "reads": {family: len(values) for family, values in per_family.items()},
+        "read_errors": report["errors"],
+        "list_bytes": report["sizes"].get(0),
+        "command_roundtrip_p50_ms": ms(idle_ms, 50),
+        "command_roundtrip_p99_ms": ms(idle_ms, 99),
+        "commands": len(idle_ms),
+        "command_roundtrip_loaded_p50_ms": ms(loaded_ms, 50),
+        "command_roundtrip_loaded_p99_ms": ms(loaded_ms, 99),
+        "commands_loaded": len(loaded_ms),
+        "clients": args.clients,
+        "list_share": args.list_share,
+        "duration_s": round(elapsed, 1),
+        "daphne_cpu_percent": round(100 * cpu / cpu_window, 1),
+        "daphne_rss_mib": round(rss, 1),
+        "daphne_peak_rss_mib": round(peak, 1),
+        "client_cpu_percent": round(report["cpu_percent"], 1),
+    }
+
+
+def frame_name(frame: str) -> str:
+    """Turn py-spy's `func (path/to/file.py:123)` into `to/file.py:func`."""
+    func, sep, where = frame.partition(" (")
+    if not sep:
+        return frame
+    path = where.rsplit(":", 1)[0]
+    for marker in ("site-packages/", str(ROOT) + "/"):
+        path = path.split(marker, 1)[-1]
+    return f"{path}:{func}"
+
+
+IDLE_FRAMES = ("EpollSelector.select", "Condition.wait", "thread.py:_worker", "Thread._wait_for_tstate_lock")
+WRAPPER_PREFIXES = (
+    "threading.py",
+    "concurrent/",
+    "asgiref/",
+    "asyncio/",
+    "selectors.py",
+    "django/core/handlers/",
+    "django/utils/deprecation.py",
+    "whitenoise/",
+    "django/views/",
+    "daphne/",
+    "twisted/",
+    "channels/",
+)
+
+
+def summarise_profile(path: str, top: int = 15) -> None:
+    """Log the hottest functions of a py-spy raw (collapsed) profile, as shares of busy samples."""
+    own: Counter[str] = Counter()
+    inclusive: Counter[str] = Counter()
+    total = idle = 0
+    for line in Path(path).read_text().splitlines():
+        stack, _, count = line.rpartition(" ")
+        if not stack or not count.isdigit():
+            continue
+        frames = [frame_name(f) for f in stack.split(";")]
+        if frames[-1].endswith(IDLE_FRAMES):
+            idle += int(count)
+            continue
+        total += int(count)
+        own[frames[-1]] += int(count)
+        for frame in set(frames):
+            inclusive[frame] += int(count)
+    if not total:
+        log("py-spy: no busy samples")
+        return
+    log(f"py-spy: {total} busy samples ({idle} idle left out) in {path}; self time:")
+    for frame, n in own.most_common(top):
+        log(f"  {100 * n / total:5.1f}%  {frame}")
+    log("py-spy: inclusive time (request wrappers left out):")
+    hot = [(f, n) for f, n in inclusive.most_common() if not f.startswith(WRAPPER_PREFIXES)]
+    for frame, n in hot[: 2 * top]:
+        log(f"  {100 * n / total:5.1f}%  {frame}")
+
+
+def fmt(value, unit: str = " ms") -> str:
+    return "n/a" if value is None else f"{value:,.1f}{unit}"
+
+
+def goal(value) -> str:
+    if value is None:
+        return "n/a"
+    return "met" if value <= READ_GOAL_P99_MS else "MISSED"
+
+
+def report(r: dict, q: dict) -> None:
+    print(
+        "\n".join(
+            [
+                f"fleet: {len(r['fleet'])} robots x {SKILLS} skills x {COMPONENTS} components; "
+                f"{r['clients']} concurrent clients for {r['duration_s']} s, GET /api/robot in "
+                f"{100 * r['list_share']:.0f}% of reads (thesis Table 3.1 routes; the thesis gives no "
+                "latency figure for the Robot API)",
+                f"reads: {r['reads_per_s']:,.1f}/s ({r['reads']}), errors {r['read_errors'] or 0}",
+                f"all reads p50/p99: {fmt(r['read_p50_ms'])} / {fmt(r['read_p99_ms'])} "
+                f"(goal p99 <=50 ms: {goal(r['read_p99_ms'])})",
+                f"GET /api/robot ({r['list_bytes'] or 0:,} bytes) p50/p99: {fmt(r['list_p50_ms'])} / "
+                f"{fmt(r['list_p99_ms'])} (goal p99 <=50 ms: {goal(r['list_p99_ms'])})",
+                f"/info routes p50/p99: {fmt(r['info_p50_ms'])} / {fmt(r['info_p99_ms'])} "
+                f"(goal p99 <=50 ms: {goal(r['info_p99_ms'])}); robot {fmt(r['robot_info_p50_ms'])} / "
+                f"{fmt(r['robot_info_p99_ms'])}, skill {fmt(r['skill_info_p50_ms'])} / "
+                f"{fmt(r['skill_info_p99_ms'])}, component {fmt(r['component_info_p50_ms'])} / "
+                f"{fmt(r['component_info_p99_ms'])}",
+                f"one client alone, p50: list {fmt(r['alone_list_p50_ms'])}, robot info "
+                f"{fmt(r['alone_robot_info_p50_ms'])}, skill info {fmt(r['alone_skill_info_p50_ms'])}, "
+                f"component info {fmt(r['alone_component_info_p50_ms'])}",
+                f"command round trip (skill start to the robot's ack) p50/p99: idle "
+                f"{fmt(r['command_roundtrip_p50_ms'])} / {fmt(r['command_roundtrip_p99_ms'])} "
+                f"({r['commands']}), under the read load {fmt(r['command_roundtrip_loaded_p50_ms'])} / "
+                f"{fmt(r['command_roundtrip_loaded_p99_ms'])} ({r['commands_loaded']}) (no goal set)",
+                f"queries of GET /api/robot: {q['list_small']} at {SMALL_FLEET} robots, {q['list_full']} at "
+                f"{len(r['fleet'])} (goal constant: {'met' if q['list_small'] == q['list_full'] else 'MISSED'}); "
+                f"robot info {q['robot_info']}, skill info {q['skill_info']}, component info {q['component_info']}",
+                f"daphne: CPU {r['daphne_cpu_percent']:.0f}% of one core, RSS {r['daphne_rss_mib']:.0f} MiB "
+                f"(peak {r['daphne_peak_rss_mib']:.0f}); load client CPU {r['client_cpu_percent']:.0f}%",
+            ]
+        ),
+        flush=True,
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--robots", type=int, default=100)
+    parser.add_argument("--clients", type=int, default=50)
+    parser.add_argument("--duration", type=float, default=20.0, help="measured seconds of read load")
+    parser.add_argument("--warmup", type=float, default=2.0, help="seconds of load before measuring")
+    parser.add_argument("--list-share", type=float, default=0.1, help="share of reads that are GET /api/robot")
+    parser.add_argument("--commands", type=int, default=200, help="sequential command round trips, idle")
+    parser.add_argument("--alone", type=int, default=40, help="sequential reads per /info route, one client")
+    parser.add_argument("--quick", action="store_true", help="8 s of load, 50 commands: under a minute in all")
+    parser.add_argument("--profile", metavar="OUT", help="record daphne with py-spy (raw) during the load")
+    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_api")
+    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/11")
+    args = parser.parse_args()
+    if args.quick:
+        args.duration, args.warmup = min(args.duration, 8.0), 1.0
+        args.commands, args.alone = min(args.commands, 50), min(args.alone, 12)
+    if args.robots < SMALL_FLEET or args.clients < 1 or args.duration <= 0 or not 0 <= args.list_share <= 1:
+        parser.error(f"robots >= {SMALL_FLEET}, clients >= 1, duration > 0, 0 <= list share <= 1")
+
+    import httpx
+    import redis
+
+    data_dir = tempfile.mkdtemp(prefix="bridgeos-bench-api-")
+    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": data_dir}
+    ensure_postgres_database(args.database_url)
+    redis.Redis.from_url(args.redis_url).flushdb()
+    migrate(env)
+    setup_django(env)
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # Django's config logs every request at INFO
+    fleet = prepare(args)
+    queries = count_queries(fleet)
+    log(
+        f"queries of GET /api/robot: {queries['list_small']} at {SMALL_FLEET} robots, {queries['list_full']} at "
+        f"{args.robots}"
+    )
+
+    daphne = Daphne(env, Path(data_dir) / "daphne.log")
+    loader = None
+    try:
+        daphne.wait()
+        log(f"daphne pid {daphne.pid} on port {daphne.port}")
+        url = f"http://127.0.0.1:{daphne.port}"
+        answer = httpx.get(url + "/api/auth", auth=(OPERATOR, PASSWORD), timeout=30)
+        answer.raise_for_status()
+        token = answer.json()["token"]
+        ctx = mp.get_context("fork")
+        start_event, results = ctx.Event(), ctx.Queue()
+        load_args = {k: getattr(args, k) for k in ("clients", "duration", "warmup", "list_share")}
+        loader = ctx.Process(target=load_main, args=(url, token, fleet, load_args, start_event, results), daemon=True)
+        loader.start()
+        result = asyncio.run(measure(args, daphne, fleet, token, loader, start_event, results))
+    except BaseException:
+        log(f"daphne log tail:\n{daphne.log_tail()}")
+        raise
+    finally:
+        if loader is not None and loader.is_alive():
+            loader.kill()
+            loader.join()
+        daphne.stop()
+    errors = [line for line in daphne.log_tail(200_000).splitlines() if "Traceback" in line or "ERROR" in line]
+    if errors:
+        log(f"daphne logged {len(errors)} error line(s); see {daphne.log_path}")
+    result["fleet"] = fleet["robots"]
+    report(result, queries)
+    del result["fleet"]
+    result.update(
+        {
+            "queries_per_list": queries["list_full"],
+            "queries_per_list_small": queries["list_small"],
+            "queries_constant": queries["list_small"] == queries["list_full"],
+            "queries_robot_info": queries["robot_info"],
+            "queries_skill_info": queries["skill_info"],
+            "queries_component_info": queries["component_info"],
+            "robots": args.robots,
+        }
+    )
+    print(json.dumps(result), flush=True)
+
+
+if __name__ == "__main__":
+    os.chdir(ROOT)
+    main()
