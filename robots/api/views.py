@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from django.contrib.auth import get_user_model
 from django.core.exceptions import ValidationError as DjangoValidationError
-from django.db.models import Prefetch, QuerySet
+from django.http import Http404
 from django.shortcuts import get_object_or_404
 from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import status
@@ -17,7 +17,6 @@ from rest_framework.views import APIView
 
 from bridgeos_agent.protocol import Event
 from bridgeos_cloud.authentication import ApiTokenAuthentication
-from skills.models import Skill
 
 from .. import services
 from ..models import ApiToken, Robot
@@ -49,14 +48,12 @@ def django_errors(exc: DjangoValidationError) -> ValidationError:
     return ValidationError(getattr(exc, "message_dict", {"non_field_errors": exc.messages}))
 
 
-def robots_of(request: Request) -> QuerySet[Robot]:
-    """Return the robots the user may see, with skills and components fetched in two queries."""
-    skills = Skill.objects.prefetch_related("components")
-    return (
-        services.visible_robots(request.user)
-        .select_related("owner")
-        .prefetch_related(Prefetch("skills", queryset=skills))
-    )
+def state_of(request: Request, robot_id: str) -> dict:
+    """Return the state of one of the user's robots, or 404."""
+    found = services.fleet_state(services.visible_robots(request.user).filter(id=robot_id))
+    if not found:
+        raise Http404(f"No robot {robot_id!r}.")
+    return found[0]
 
 
 def robot_of(request: Request, robot_id: str) -> Robot:
@@ -106,13 +103,13 @@ class RobotListView(APIView):
         responses={200: RobotSerializer(many=True)},
     )
     def get(self, request: Request) -> Response:
-        robots = robots_of(request).order_by("id")
+        robots = services.visible_robots(request.user)
         connected = request.query_params.get("connected")
         if connected is not None:
             if connected not in ("true", "false"):
                 raise ValidationError({"connected": ["Use true or false."]})
             robots = robots.filter(connected=connected == "true")
-        return Response(RobotSerializer(robots, many=True).data)
+        return Response(services.fleet_state(robots))
 
     @extend_schema(request=RobotCreateSerializer, responses={201: RobotCreatedSerializer, 400: OpenApiResponse()})
     def post(self, request: Request) -> Response:
@@ -136,8 +133,7 @@ class RobotListView(APIView):
             )
         except DjangoValidationError as exc:
             raise django_errors(exc) from None
-        data = RobotSerializer(robots_of(request).get(id=robot.id)).data
-        return Response({**data, "token": token}, status=status.HTTP_201_CREATED)
+        return Response({**state_of(request, robot.id), "token": token}, status=status.HTTP_201_CREATED)
 
 
 class RobotDetailView(APIView):
@@ -145,7 +141,7 @@ class RobotDetailView(APIView):
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str) -> Response:
-        return Response(RobotSerializer(get_object_or_404(robots_of(request), id=robot_id)).data)
+        return Response(state_of(request, robot_id))
 
     @extend_schema(request=RobotUpdateSerializer, responses={200: RobotSerializer, 400: OpenApiResponse()})
     def patch(self, request: Request, robot_id: str) -> Response:
@@ -156,7 +152,7 @@ class RobotDetailView(APIView):
             services.update_robot(robot, **form.validated_data)
         except DjangoValidationError as exc:
             raise django_errors(exc) from None
-        return Response(RobotSerializer(robots_of(request).get(id=robot_id)).data)
+        return Response(state_of(request, robot_id))
 
     @extend_schema(responses={204: OpenApiResponse(description="Deleted"), 404: OpenApiResponse()})
     def delete(self, request: Request, robot_id: str) -> Response:
@@ -169,7 +165,7 @@ class RobotInfoView(APIView):
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str) -> Response:
-        return Response(RobotSerializer(get_object_or_404(robots_of(request), id=robot_id)).data)
+        return Response(state_of(request, robot_id))
 
 
 class RobotTokenView(APIView):
