@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
-from django.db import OperationalError
+import re
+
+from django.db import DataError, OperationalError
 from django.db.models import QuerySet
 from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import generics, status
 from rest_framework.exceptions import ValidationError
+from rest_framework.pagination import LimitOffsetPagination
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
+from bridgeos_agent.skillconfig import SLUG_PATTERN
 from robots.services import visible_robots
 
 from .. import services
@@ -76,13 +80,22 @@ class DatabaseQueryView(APIView):
                 {"detail": "The query took too long; narrow the time range, robots or names."},
                 status=status.HTTP_503_SERVICE_UNAVAILABLE,
             )
+        except DataError:
+            # Points are finite but may be near the largest float, and PostgreSQL refuses a sum past it.
+            raise ValidationError({"aggregate": ["The values overflow this aggregate; choose another."]}) from None
         return Response({"kind": "metrics", "results": MetricRowSerializer(rows, many=True).data})
+
+
+class EventPagination(LimitOffsetPagination):
+    # Unbounded, a huge ?limit= overflows PostgreSQL's bigint LIMIT.
+    max_limit = 1000
 
 
 class EventListView(generics.ListAPIView):
     """The event log of your robots, newest first, filtered and paginated."""
 
     serializer_class = EventSerializer
+    pagination_class = EventPagination
 
     @extend_schema(
         parameters=[
@@ -114,5 +127,7 @@ class EventListView(generics.ListAPIView):
             if bound not in params:
                 filters.pop(bound)
         if "kind" in params:
-            filters["event"] = params["kind"][:64]
+            if not re.fullmatch(SLUG_PATTERN, params["kind"]):
+                raise ValidationError({"kind": ["An event kind, such as skill_status."]})
+            filters["event"] = params["kind"]
         return events_of(self.request, filters)

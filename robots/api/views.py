@@ -8,7 +8,7 @@ from django.http import Http404
 from django.shortcuts import get_object_or_404
 from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import status
-from rest_framework.authentication import BasicAuthentication, SessionAuthentication
+from rest_framework.authentication import SessionAuthentication
 from rest_framework.exceptions import PermissionDenied, ValidationError
 from rest_framework.permissions import IsAuthenticated
 from rest_framework.request import Request
@@ -16,7 +16,7 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from bridgeos_agent.protocol import Event
-from bridgeos_cloud.authentication import ApiTokenAuthentication
+from bridgeos_cloud.authentication import ApiTokenAuthentication, PasswordAuthentication
 
 from .. import services
 from ..models import ApiToken, Robot
@@ -64,7 +64,7 @@ def robot_of(request: Request, robot_id: str) -> Robot:
 class AuthView(APIView):
     """Exchange a username and password (HTTP Basic) for an API token with an expiry."""
 
-    authentication_classes = [BasicAuthentication, SessionAuthentication]
+    authentication_classes = [PasswordAuthentication, SessionAuthentication]
     permission_classes = [IsAuthenticated]
     serializer_class = AuthTokenSerializer
 

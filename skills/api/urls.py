@@ -6,12 +6,12 @@ from django.urls import path
 
 from . import views
 
-SKILL = "robot/<str:robot_id>/skill/<str:skill_id>"
-COMPONENT = f"{SKILL}/component/<str:component_id>"
+SKILL = "robot/<slug:robot_id>/skill/<slug:skill_id>"
+COMPONENT = f"{SKILL}/component/<slug:component_id>"
 
 urlpatterns = [
-    path("robot/<str:robot_id>/skill/add", views.SkillAddView.as_view(), name="skill-add"),
-    path("robot/<str:robot_id>/skill/remove", views.SkillRemoveView.as_view(), name="skill-remove"),
+    path("robot/<slug:robot_id>/skill/add", views.SkillAddView.as_view(), name="skill-add"),
+    path("robot/<slug:robot_id>/skill/remove", views.SkillRemoveView.as_view(), name="skill-remove"),
     path(f"{SKILL}/info", views.SkillInfoView.as_view(), name="skill-info"),
     path(f"{SKILL}/start", views.SkillStartView.as_view(), name="skill-start"),
     path(f"{SKILL}/stop", views.SkillStopView.as_view(), name="skill-stop"),
