@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 REQUEST_TTL = 120.0
 MAX_OPEN_REQUESTS = 1000
 CLOSE_REPLACED = 4009
+CLOSE_REVOKED = 4004
 
 
 class RobotConsumer(ProtocolConsumer):
@@ -142,6 +143,10 @@ class RobotConsumer(ProtocolConsumer):
         """Hand the robot's answer to whoever relayed the command."""
         reply_channel, _ = self.requests.pop(envelope.reply_to)
         await self.channel_layer.send(reply_channel, {"type": "robot.reply", "frame": protocol.encode(envelope)})
+
+    async def robot_revoked(self, message: dict[str, Any]) -> None:
+        """Close this connection: the robot's token was rotated or the robot deleted."""
+        await self.close_with(CLOSE_REVOKED, "credentials revoked")
 
     async def robot_replaced(self, message: dict[str, Any]) -> None:
         """Close this connection: the robot reconnected on a newer one."""

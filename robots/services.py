@@ -9,7 +9,7 @@ import time
 from datetime import timedelta
 from typing import Any
 
-from asgiref.sync import sync_to_async
+from asgiref.sync import async_to_sync, sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
@@ -43,12 +43,21 @@ def create_robot(
 
 
 def rotate_token(robot: Robot) -> str:
-    """Give a robot a new token, invalidating the old one, and return it."""
+    """Give a robot a new token, invalidating the old one and any connection made with it."""
     token = robot.issue_token()
     with transaction.atomic():
+        channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot.id)
         robot.save(update_fields=["token_hash"])
         record_event(f"Token of robot {robot.id} rotated", robot_id=robot.id, kind="robot_token_rotated")
+        _revoke_on_commit(channel)
     return token
+
+
+def _revoke_on_commit(channel: str) -> None:
+    """Close a robot's live connection once the change that revoked its credentials commits."""
+    if channel:
+        send = async_to_sync(get_channel_layer().send)
+        transaction.on_commit(lambda: send(channel, {"type": "robot.revoked"}), robust=True)
 
 
 # --------------------------------------------------------------------------- connections
@@ -268,6 +277,8 @@ def delete_robot(robot: Robot) -> None:
     """Delete a robot with its skills, components, metrics and events."""
     robot_id = robot.id
     with transaction.atomic():
+        channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot_id)
+        _revoke_on_commit(channel)
         robot.delete()
         record_event(f"Robot {robot_id} deleted", kind="robot_deleted", data={"robot": robot_id})
 

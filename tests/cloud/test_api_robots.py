@@ -92,6 +92,26 @@ async def test_rotating_the_token_shuts_the_old_one_out_and_lets_the_new_one_in(
         pass
 
 
+async def test_rotating_the_token_closes_the_connection_made_with_the_old_one(daphne_server):
+    alice, key = await make_owner("alice")
+    old = await make_robot(alice, "alice-bot")
+    link = await robot_link(daphne_server, "alice-bot", old)
+    async with async_client(daphne_server, key) as http:
+        assert (await http.post("/api/robot/alice-bot/token")).status_code == 200
+    await asyncio.wait_for(link.closed.wait(), 5)
+    assert link.close_code == 4004
+
+
+async def test_deleting_a_robot_closes_its_connection(daphne_server):
+    alice, key = await make_owner("alice")
+    link = await robot_link(daphne_server, "alice-bot", await make_robot(alice, "alice-bot"))
+    async with async_client(daphne_server, key) as http:
+        assert (await http.delete("/api/robot/alice-bot")).status_code == 204
+    await asyncio.wait_for(link.closed.wait(), 5)
+    assert link.close_code == 4004
+    assert not await sync_to_async(Robot.objects.filter(id="alice-bot").exists)()
+
+
 @pytest.mark.parametrize(
     ("body", "field"),
     [
