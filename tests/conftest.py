@@ -144,3 +144,31 @@ def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) 
             process.kill()
         with django_db_blocker.unblock():
             close_other_sessions()
+
+
+@pytest.fixture(autouse=True)
+def quiet_server_before_flush(request):
+    """Close every robot connection and wait until the server recorded it, before the tables are flushed.
+
+    A test that leaves a robot connected lets the server write its disconnect while
+    pytest-django truncates the tables, and the two deadlock. Depending on pytest-django's
+    database fixture makes this teardown run before its flush.
+    """
+    if "daphne_server" not in request.fixturenames:
+        yield
+        return
+    request.getfixturevalue("_django_db_helper")
+    yield
+    from asgiref.sync import async_to_sync
+    from channels.layers import get_channel_layer
+
+    from robots.models import Robot
+
+    layer = get_channel_layer()
+    for channel in Robot.objects.exclude(channel="").values_list("channel", flat=True):
+        async_to_sync(layer.send)(channel, {"type": "robot.revoked"})
+    deadline = time.monotonic() + 10
+    while Robot.objects.filter(connected=True).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    # Let the last disconnect's transaction and broadcast finish.
+    time.sleep(0.1)
