@@ -13,7 +13,8 @@ from asgiref.sync import async_to_sync, sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
-from django.db import transaction
+from django.core.serializers.json import DjangoJSONEncoder
+from django.db import connection, transaction
 from django.db.models import QuerySet
 from django.utils import timezone
 
@@ -309,3 +310,29 @@ def fleet_state(robots: QuerySet[Robot]) -> list[dict[str, Any]]:
         row["owner"] = row.pop("owner__username")
         row["skills"] = skills.get(row["id"], [])
     return robot_rows
+
+
+FLEET_JSON_SQL = """
+SELECT coalesce(json_agg(r ORDER BY r.id), '[]')::text FROM (
+  SELECT ro.id, ro.name, u.username AS owner, ro.status, ro.connected, ro.last_seen, ro.config,
+    coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
+      SELECT sk.skill_id, sk.name, sk.status, sk.updated_at,
+        coalesce((SELECT json_agg(c ORDER BY c.component_id) FROM (
+          SELECT co.component_id, co.location, co.active_location, co.status, co.container, co.resources,
+                 co.updated_at
+          FROM skills_component co WHERE co.skill_id = sk.id) c), '[]') AS components
+      FROM skills_skill sk WHERE sk.robot_id = ro.id) s), '[]') AS skills
+  FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
+  WHERE ro.id IN ({robots})
+) r
+"""
+
+
+def fleet_state_json(robots: QuerySet[Robot]) -> str:
+    """Return fleet_state() as JSON text, built by PostgreSQL in one query where available."""
+    if connection.vendor != "postgresql":
+        return json.dumps(fleet_state(robots), cls=DjangoJSONEncoder, separators=(",", ":"))
+    subquery, params = robots.values("id").query.sql_with_params()
+    with connection.cursor() as cursor:
+        cursor.execute(FLEET_JSON_SQL.format(robots=subquery), params)
+        return cursor.fetchone()[0]

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from django.contrib.auth import get_user_model
 from django.core.exceptions import ValidationError as DjangoValidationError
-from django.http import Http404
+from django.db.models import QuerySet
+from django.http import Http404, HttpResponse
 from django.shortcuts import get_object_or_404
 from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import status
@@ -54,6 +55,17 @@ def state_of(request: Request, robot_id: str) -> dict:
     if not found:
         raise Http404(f"No robot {robot_id!r}.")
     return found[0]
+
+
+def json_state(request: Request, robots: QuerySet[Robot], *, one: bool = False) -> HttpResponse:
+    """Answer with robots' state as JSON built by the database (one robot, or 404, when ``one``)."""
+    text = services.fleet_state_json(robots)
+    if one:
+        if text == "[]":
+            raise Http404("No such robot.")
+        # The array holds exactly one robot: answer with the object inside it.
+        text = text[1:-1]
+    return HttpResponse(text, content_type="application/json")
 
 
 def robot_of(request: Request, robot_id: str) -> Robot:
@@ -109,7 +121,7 @@ class RobotListView(APIView):
             if connected not in ("true", "false"):
                 raise ValidationError({"connected": ["Use true or false."]})
             robots = robots.filter(connected=connected == "true")
-        return Response(services.fleet_state(robots))
+        return json_state(request, robots)
 
     @extend_schema(request=RobotCreateSerializer, responses={201: RobotCreatedSerializer, 400: OpenApiResponse()})
     def post(self, request: Request) -> Response:
@@ -140,8 +152,8 @@ class RobotDetailView(APIView):
     """Read, rename or reconfigure, or delete one robot."""
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
-    def get(self, request: Request, robot_id: str) -> Response:
-        return Response(state_of(request, robot_id))
+    def get(self, request: Request, robot_id: str) -> HttpResponse:
+        return json_state(request, services.visible_robots(request.user).filter(id=robot_id), one=True)
 
     @extend_schema(request=RobotUpdateSerializer, responses={200: RobotSerializer, 400: OpenApiResponse()})
     def patch(self, request: Request, robot_id: str) -> Response:
@@ -164,8 +176,8 @@ class RobotInfoView(APIView):
     """Everything about the current state of a robot, its skills and components."""
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
-    def get(self, request: Request, robot_id: str) -> Response:
-        return Response(state_of(request, robot_id))
+    def get(self, request: Request, robot_id: str) -> HttpResponse:
+        return json_state(request, services.visible_robots(request.user).filter(id=robot_id), one=True)
 
 
 class RobotTokenView(APIView):
