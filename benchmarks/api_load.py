@@ -1,8 +1,9 @@
 """Robot API under load: 100 robots x 5 skills x 5 components, 50 concurrent REST clients.
 
 Prints p50/p99 of GET /api/robot (the whole fleet) and of the /info routes (robot, skill,
-component) under `--clients` concurrent clients, each sending its next request as soon as
-the last one answered; the round trip of a command (POST .../skill/<sid>/start) to a
+component) under `--clients` concurrent clients, each reading `--client-rate` times a second
+(open loop, latency counted from when a request was due; `--client-rate 0` sends back to
+back instead, to find the saturation point); the round trip of a command (POST .../skill/<sid>/start) to a
 connected robot until the HTTP answer carries the robot's ack, idle and under the load;
 and the number of SQL queries GET /api/robot makes at 10 and at 100 robots. Goal: p99
 <=50 ms for reads, a query count constant in fleet size. The routes are thesis Table 3.1;
@@ -178,7 +179,11 @@ def pick_path(rnd: random.Random, fleet: dict, list_share: float) -> tuple[int, 
 
 
 async def read_load(url: str, token: str, fleet: dict, args: dict) -> dict:
-    """Closed loop: each client sends its next read as soon as the last one answered."""
+    """Each client reads at `client_rate` per second (open loop), or back to back when it is 0.
+
+    Open-loop latency is measured from when a request was due, so a server that falls
+    behind is charged for the wait too (no coordinated omission).
+    """
     import httpx
 
     t0 = time.time() + args["warmup"]
@@ -189,20 +194,28 @@ async def read_load(url: str, token: str, fleet: dict, args: dict) -> dict:
     limits = httpx.Limits(max_connections=args["clients"], max_keepalive_connections=args["clients"])
     headers = {"Authorization": f"Token {token}"}
 
+    rate = args["client_rate"]
+
     async def client(index: int, http: httpx.AsyncClient) -> None:
         rnd = random.Random(index)
+        due = time.time() + (rnd.random() / rate if rate else 0.0)
         while True:
-            start = time.time()
+            if rate:
+                wait = due - time.time()
+                if wait > 0:
+                    await asyncio.sleep(wait)
+                start, due = due, due + 1.0 / rate
+            else:
+                start = time.time()
             if start >= t1:
                 return
             family, path = pick_path(rnd, fleet, args["list_share"])
-            began = time.perf_counter()
             try:
                 response = await http.get(path)
             except httpx.HTTPError as exc:
                 errors[type(exc).__name__] += 1
                 continue
-            elapsed = time.perf_counter() - began
+            elapsed = time.time() - start
             if response.status_code != 200:
                 errors[f"HTTP {response.status_code}"] += 1
                 continue
@@ -367,6 +380,7 @@ async def measure(args, daphne: Daphne, fleet: dict, token: str, loader: mp.Proc
         "commands_loaded": len(loaded_ms),
         "commands_loaded_failed": loaded_failed,
         "clients": args.clients,
+        "client_rate": args.client_rate,
         "list_share": args.list_share,
         "duration_s": round(elapsed, 1),
         "daphne_cpu_percent": round(100 * cpu / cpu_window, 1),
@@ -448,7 +462,13 @@ def report(r: dict, q: dict) -> None:
         "\n".join(
             [
                 f"fleet: {len(r['fleet'])} robots x {SKILLS} skills x {COMPONENTS} components; "
-                f"{r['clients']} concurrent clients for {r['duration_s']} s, GET /api/robot in "
+                f"{r['clients']} concurrent clients for {r['duration_s']} s, "
+                + (
+                    f"each reading {r['client_rate']:g}/s (open loop, latency from when due), "
+                    if r["client_rate"]
+                    else "each reading back to back (closed loop: the saturation point), "
+                )
+                + "GET /api/robot in "
                 f"{100 * r['list_share']:.0f}% of reads (thesis Table 3.1 routes; the thesis gives no "
                 "latency figure for the Robot API)",
                 f"reads: {r['reads_per_s']:,.1f}/s ({r['reads']}), errors {r['read_errors'] or 0}",
@@ -484,6 +504,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=100)
     parser.add_argument("--clients", type=int, default=50)
+    parser.add_argument(
+        "--client-rate",
+        type=float,
+        default=2.0,
+        help="reads per second per client (open loop); 0 sends back to back to find the saturation point",
+    )
     parser.add_argument("--duration", type=float, default=20.0, help="measured seconds of read load")
     parser.add_argument("--warmup", type=float, default=2.0, help="seconds of load before measuring")
     parser.add_argument("--list-share", type=float, default=0.1, help="share of reads that are GET /api/robot")
@@ -528,7 +554,7 @@ def main() -> None:
         token = answer.json()["token"]
         ctx = mp.get_context("fork")
         start_event, results = ctx.Event(), ctx.Queue()
-        load_args = {k: getattr(args, k) for k in ("clients", "duration", "warmup", "list_share")}
+        load_args = {k: getattr(args, k) for k in ("clients", "client_rate", "duration", "warmup", "list_share")}
         loader = ctx.Process(target=load_main, args=(url, token, fleet, load_args, start_event, results), daemon=True)
         loader.start()
         result = asyncio.run(measure(args, daphne, fleet, token, loader, start_event, results))
