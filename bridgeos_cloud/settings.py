@@ -61,6 +61,8 @@ MIDDLEWARE = [
     "django.contrib.auth.middleware.AuthenticationMiddleware",
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
+    # Innermost on purpose: see its docstring.
+    "bridgeos_cloud.middleware.SyncChain",
 ]
 
 ROOT_URLCONF = "bridgeos_cloud.urls"
