@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from django.core.exceptions import ValidationError as DjangoValidationError
+from django.http import Http404, HttpResponse
 from django.shortcuts import get_object_or_404
 from drf_spectacular.utils import OpenApiResponse, extend_schema
 from rest_framework import status
@@ -15,6 +16,7 @@ from rest_framework.views import APIView
 from bridgeos_agent.protocol import Event, Location
 from robots.api.commands import relay, wait_seconds
 from robots.api.views import COMMAND_RESPONSES, WAIT, django_errors, robot_of
+from robots.services import visible_robots
 
 from .. import services
 from ..models import Component, Skill, SkillTemplate
@@ -86,8 +88,11 @@ class SkillInfoView(APIView):
     """The current state of a Skill, its config and components."""
 
     @extend_schema(responses={200: SkillDetailSerializer, 404: OpenApiResponse()})
-    def get(self, request: Request, robot_id: str, skill_id: str) -> Response:
-        return Response(SkillDetailSerializer(skill_of(request, robot_id, skill_id)).data)
+    def get(self, request: Request, robot_id: str, skill_id: str) -> HttpResponse:
+        text = services.skill_state_json(visible_robots(request.user), robot_id, skill_id)
+        if text is None:
+            raise Http404("No such skill.")
+        return HttpResponse(text, content_type="application/json")
 
 
 class SkillStartView(APIView):
@@ -114,8 +119,11 @@ class ComponentInfoView(APIView):
     """A component: where it may and does run, its status and containers."""
 
     @extend_schema(responses={200: ComponentDetailSerializer, 404: OpenApiResponse()})
-    def get(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
-        return Response(ComponentDetailSerializer(component_of(request, robot_id, skill_id, component_id)).data)
+    def get(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> HttpResponse:
+        text = services.component_state_json(visible_robots(request.user), robot_id, skill_id, component_id)
+        if text is None:
+            raise Http404("No such component.")
+        return HttpResponse(text, content_type="application/json")
 
 
 def allowed_at(component: Component, location: str) -> None:
