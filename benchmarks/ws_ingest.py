@@ -235,22 +235,25 @@ def prepare(args: argparse.Namespace) -> tuple[list[tuple[str, str]], str]:
     """Delete earlier bench robots and create N fresh ones; return their tokens and an API token."""
     from django.contrib.auth import get_user_model
     from django.db import connection
-    from rest_framework.authtoken.models import Token
 
     from monitoring.models import Metric
     from robots.models import Robot as RobotModel
     from robots.models import default_robot_config
+    from robots.services import issue_api_token
 
     started = time.monotonic()
     with connection.cursor() as cursor:
         # Straight SQL: a cascade through the ORM would walk every old metric row.
         cursor.execute(f"DELETE FROM {Metric._meta.db_table} WHERE robot_id LIKE %s", [ROBOT_PREFIX + "%"])
     RobotModel.objects.filter(id__startswith=ROBOT_PREFIX).delete()
+    with connection.cursor() as cursor:
+        # Reclaim the deleted rows now: an autovacuum during the measurement would slow every COPY.
+        cursor.execute(f"VACUUM ANALYZE {Metric._meta.db_table}")
     user, _ = get_user_model().objects.get_or_create(username=OPERATOR, defaults={"is_staff": True})
     if not user.is_staff:
         user.is_staff = True
         user.save(update_fields=["is_staff"])
-    api_token, _ = Token.objects.get_or_create(user=user)
+    api_token, _ = issue_api_token(user)
     config = default_robot_config()
     rows, tokens = [], []
     for i in range(args.robots):
@@ -260,7 +263,7 @@ def prepare(args: argparse.Namespace) -> tuple[list[tuple[str, str]], str]:
     RobotModel.objects.bulk_create(rows, batch_size=1000)
     connection.close()
     log(f"created {args.robots} robots in {time.monotonic() - started:.1f} s")
-    return tokens, api_token.key
+    return tokens, api_token
 
 
 # --------------------------------------------------------------------------- the dashboard and the measurement
@@ -428,6 +431,15 @@ async def measure(args, daphne: Daphne, workers: Workers, api_token, database_ur
     for process in workers.processes:
         process.join(timeout=30)
     await dashboard.close()
+    # Every frame has been acked (or counted lost) by now, so the points sent inside the window
+    # that reached the database give the sustained rate without the window-edge noise of
+    # counting rows at two instants a flush apart.
+    cursor = await conn.execute(
+        "SELECT count(*) FROM monitoring_metric"
+        " WHERE robot_id LIKE %s AND ts >= to_timestamp(%s) AND ts < to_timestamp(%s)",
+        [ROBOT_PREFIX + "%", t0, t1],
+    )
+    (stored_in_window,) = await cursor.fetchone()
     await conn.close()
     crashed = [r["crash"] for r in reports if "crash" in r]
     if crashed:
@@ -447,7 +459,8 @@ async def measure(args, daphne: Daphne, workers: Workers, api_token, database_ur
         log(f"note: {note}")
     elapsed = t1 - t0
     return {
-        "points_per_s": round((count1 - count0) / elapsed, 1),
+        "points_per_s": round(stored_in_window / elapsed, 1),
+        "committed_points_per_s": round((count1 - count0) / elapsed, 1),
         "offered_points_per_s": round(total(CONNECTED) * args.rate, 1),
         "sent_points_per_s": round((sent1 - sent0) * args.points_per_frame / elapsed, 1),
         "lag_p50_ms": _ms(percentile(client_lags, 50)),
@@ -481,7 +494,8 @@ def report(result: dict) -> None:
         f"robots: {r['robots']} ({r['robots_connected']} connected, {r['robot_processes']} client process(es), "
         f"ramp-up {r['ramp_up_s']} s), measured {r['duration_s']} s",
         f"points/s offered: {r['offered_points_per_s']:,.0f} (sent {r['sent_points_per_s']:,.0f})",
-        f"points/s stored: {r['points_per_s']:,.0f} (goal >=10,000 at 1000 robots; "
+        f"points/s stored: {r['points_per_s']:,.0f} of those sent in the window "
+        f"(committed during it: {r['committed_points_per_s']:,.0f}) (goal >=10,000 at 1000 robots; "
         "thesis: one robot, no figure for a fleet)",
         f"lag to dashboard p50/p95: {fmt(r['lag_p50_ms'])} / {fmt(r['lag_p95_ms'])} ms "
         "(goal p95 <=1,000 ms; includes the live feed's 250 ms coalescing tick; thesis: one robot)",
