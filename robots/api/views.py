@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 from django.contrib.auth import get_user_model
 from django.core.exceptions import ValidationError as DjangoValidationError
 from django.db.models import QuerySet
@@ -50,8 +52,8 @@ def django_errors(exc: DjangoValidationError) -> ValidationError:
 
 
 def state_of(request: Request, robot_id: str) -> dict:
-    """Return the state of one of the user's robots, or 404."""
-    found = services.fleet_state(services.visible_robots(request.user).filter(id=robot_id))
+    """Return the state of one of the user's robots, or 404, as every robot route renders it."""
+    found = json.loads(services.fleet_state_json(services.visible_robots(request.user).filter(id=robot_id)))
     if not found:
         raise Http404(f"No robot {robot_id!r}.")
     return found[0]
