@@ -74,6 +74,9 @@ class RobotConsumer(ProtocolConsumer):
         if event == Event.ACK:
             self.reliable.on_ack(envelope.reply_to)
             return
+        if event == Event.ERROR_MESSAGE:
+            # The robot refused a frame: sending it again would be refused again.
+            self.reliable.on_ack(envelope.reply_to)
         payload = protocol.parse_payload(envelope)
         named = getattr(payload, "robot", None)
         if named is not None and named != self.robot_id:
@@ -319,10 +322,6 @@ async def on_authentication_again(consumer: RobotConsumer, envelope: Envelope, p
 @handles(Event.COMPONENT_START, Event.COMPONENT_STOP)
 async def on_cloud_component_request(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
     # The robot asks the cloud to run (or stop) the cloud side of a component.
-    await sync(skills.component_state)(consumer.robot_id, p.skill, p.component)
-    await consumer.fail(
-        "this cloud does not orchestrate cloud components yet; run the component on the robot",
-        reply_to=envelope.id,
-        code="unsupported",
-    )
-    return False
+    action = "start" if envelope.event == Event.COMPONENT_START else "stop"
+    await sync(skills.request_cloud_component)(consumer.robot_id, p.skill, p.component, action)
+    return True

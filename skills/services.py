@@ -196,6 +196,34 @@ def skill_state(robot_id: str, skill_id: str) -> Skill:
     return _skill(robot_id, skill_id)
 
 
+def request_cloud_component(robot_id: str, skill_id: str, component_id: str, action: str) -> None:
+    """Record a robot's request to start or stop the cloud side of a component.
+
+    The request is accepted and shown as pending in the cloud; the cloud runtime (the
+    orchestration's Celery workers) is what launches or stops it.
+    """
+    with transaction.atomic():
+        component = _component(robot_id, skill_id, component_id)
+        if action == "start" and component.location == Location.ROBOT:
+            raise NotFound(f"component {component_id!r} may only run on the robot", field="data.location")
+        if action == "start":
+            component.active_location = Location.CLOUD
+            component.status = ComponentStatusName.PENDING
+        elif component.active_location == Location.CLOUD:
+            component.status = ComponentStatusName.STOPPED
+        component.save(update_fields=["status", "active_location", "updated_at"])
+        record_event(
+            f"Robot asks the cloud to {action} component {component_id}",
+            robot_id=robot_id,
+            source=Source.ROBOT,
+            kind=f"component_{action}",
+            skill=skill_id,
+            component=component_id,
+        )
+        data = {"skill": skill_id, "component": component_id, "status": component.status}
+        _announce(robot_id, Event.COMPONENT_STATUS, {**data, "location": Location.CLOUD.value})
+
+
 def component_state(robot_id: str, skill_id: str, component_id: str) -> Component:
     """Return a skill's component, or raise NotFound."""
     with transaction.atomic():

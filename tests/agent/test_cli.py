@@ -108,17 +108,28 @@ def test_run_rejects_invalid_master_from_env(clean_env: pytest.MonkeyPatch, caps
     assert "invalid master URL" in capsys.readouterr().err
 
 
-def test_run_with_valid_options_says_controller_comes_later(
-    clean_env: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_run_options_come_from_the_environment(clean_env: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from bridgeos_agent.agent import settings_from_args
+    from bridgeos_agent.cli import build_parser
+
     clean_env.setenv("BRIDGEOS_MASTER", "ws://127.0.0.1:8000")
     clean_env.setenv("BRIDGEOS_ROBOT", "robot-1")
     clean_env.setenv("BRIDGEOS_TOKEN", "secret-token")
-    assert main(["run", "--runtime", "docker", "--simulate"]) == 2
-    err = capsys.readouterr().err
-    assert "later release" in err
-    assert "robot-1" in err
-    assert "secret-token" not in err
+    clean_env.setenv("BRIDGEOS_RUNTIME", "docker")
+    clean_env.setenv("BRIDGEOS_DATA_DIR", str(tmp_path))
+    clean_env.setenv("BRIDGEOS_SIMULATE", "1")
+    settings = settings_from_args(build_parser().parse_args(["run", "--sim-cpu", "4"]))
+    assert (settings.master, settings.robot, settings.token) == ("ws://127.0.0.1:8000", "robot-1", "secret-token")
+    assert settings.runtime == "docker" and settings.simulate and settings.data_dir == tmp_path
+    assert settings.simulated is not None and settings.simulated.cpu == 4.0
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "two"])
+def test_run_rejects_a_bad_simulated_resource(
+    value: str, clean_env: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["run", "--master", "ws://h:1", "--robot", "r", "--token", "t", "--sim-cpu", value]) == 2
+    assert "--sim-cpu" in capsys.readouterr().err
 
 
 def test_run_rejects_unknown_runtime(clean_env: pytest.MonkeyPatch) -> None:

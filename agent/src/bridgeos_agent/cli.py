@@ -23,7 +23,6 @@ __all__ = ["build_parser", "main"]
 EXIT_OK = 0
 EXIT_INVALID = 1
 EXIT_USAGE = 2
-EXIT_NOT_AVAILABLE = 2
 
 MAX_ID_LENGTH = 128
 
@@ -62,6 +61,21 @@ def _identifier(what: str) -> Any:
     return check
 
 
+def _positive(option: str) -> Any:
+    """Build an argparse type accepting a positive finite number."""
+
+    def check(value: str) -> float:
+        try:
+            number = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{option} must be a number, not {value!r}") from None
+        if not (number > 0 and number < float("inf")):
+            raise argparse.ArgumentTypeError(f"{option} must be a positive number, not {value!r}")
+        return number
+
+    return check
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser for every subcommand."""
     parser = argparse.ArgumentParser(
@@ -85,50 +99,87 @@ def build_parser() -> argparse.ArgumentParser:
         help="configuration kind (default: skill)",
     )
 
-    run = commands.add_parser(
-        "run",
-        help="run the Robot Controller",
-        description="Connect this robot to a bridgeOS cloud and run its Skills.",
-    )
-    run.add_argument(
+    connection = argparse.ArgumentParser(add_help=False)
+    connection.add_argument(
         "--master",
         type=_master_url,
         default=os.environ.get("BRIDGEOS_MASTER"),
         metavar="ws://HOST:PORT",
         help="cloud WebSocket URL (env BRIDGEOS_MASTER)",
     )
-    run.add_argument(
+    connection.add_argument(
         "--robot",
         type=_identifier("robot id"),
         default=os.environ.get("BRIDGEOS_ROBOT"),
         metavar="ID",
         help="robot id (env BRIDGEOS_ROBOT)",
     )
-    run.add_argument(
+    connection.add_argument(
         "--token",
         type=_identifier("token"),
         default=os.environ.get("BRIDGEOS_TOKEN"),
         metavar="TOKEN",
         help="robot token (env BRIDGEOS_TOKEN)",
     )
-    run.add_argument(
+    connection.add_argument(
         "--runtime",
         choices=("docker", "process"),
-        default="process",
-        help="how components are started (default: process)",
+        default=os.environ.get("BRIDGEOS_RUNTIME", "process"),
+        help="how components are started (env BRIDGEOS_RUNTIME; default: process)",
+    )
+
+    run = commands.add_parser(
+        "run",
+        parents=[connection],
+        help="run the Robot Controller",
+        description="Connect this robot to a bridgeOS cloud and run its Skills.",
     )
     run.add_argument(
         "--data-dir",
         type=Path,
-        default=None,
-        help="where the agent keeps its state (default: ~/.local/share/bridgeos-agent)",
+        default=os.environ.get("BRIDGEOS_DATA_DIR"),
+        help="where the agent keeps its state (env BRIDGEOS_DATA_DIR; default: ~/.local/share/bridgeos-agent/ROBOT)",
     )
     run.add_argument(
         "--simulate",
         action="store_true",
-        help="run as a simulated robot with synthetic resources",
+        default=os.environ.get("BRIDGEOS_SIMULATE", "") not in ("", "0", "false", "no"),
+        help="run as a simulated robot with synthetic resources (env BRIDGEOS_SIMULATE=1)",
     )
+    run.add_argument(
+        "--sim-cpu", type=_positive("--sim-cpu"), default=2.0, metavar="CORES", help="simulated CPU cores (default 2)"
+    )
+    run.add_argument(
+        "--sim-ram",
+        type=_positive("--sim-ram"),
+        default=2048.0,
+        metavar="MIB",
+        help="simulated memory in MiB (default 2048)",
+    )
+    run.add_argument(
+        "--sim-bandwidth",
+        type=_positive("--sim-bandwidth"),
+        default=100.0,
+        metavar="MBIT",
+        help="simulated peak bandwidth in Mbit/s (default 100); it swings down to 5%% and back",
+    )
+    run.add_argument(
+        "--sample-interval",
+        type=_positive("--sample-interval"),
+        default=1.0,
+        metavar="S",
+        help="seconds between resource samples (default 1)",
+    )
+    run.add_argument("-q", "--quiet", action="store_true", help="print warnings and errors only")
     run.set_defaults(run_parser=run)
+
+    doctor = commands.add_parser(
+        "doctor",
+        parents=[connection],
+        help="check that this robot can run the agent",
+        description="Check the cloud, the token, Docker, the ROS master and free resources; say how to fix what fails.",
+    )
+    doctor.set_defaults(run_parser=doctor)
     return parser
 
 
@@ -163,8 +214,7 @@ def _validate(path: Path, kind: str) -> int:
     return EXIT_OK
 
 
-def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    """Check the run options, then say that the controller is not in this release."""
+def _check_connection_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     # argparse also applies each option's type to a string default, so values taken
     # from the environment are already checked; only absence is left to report.
     missing = [
@@ -178,16 +228,24 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     ]
     if missing:
         parser.error("missing " + ", ".join(missing))
+
+
+def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """Check the run options, then run the Robot Controller until it is stopped."""
+    _check_connection_args(parser, args)
     if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
         parser.error(f"--data-dir {args.data_dir} exists and is not a directory")
-    print(
-        f"bridgeos-agent {__version__}: options are valid (master {args.master}, "
-        f"robot {args.robot}, runtime {args.runtime}"
-        f"{', simulated' if args.simulate else ''}), but the Robot Controller arrives "
-        "in a later release of bridgeos-agent; nothing was started.",
-        file=sys.stderr,
-    )
-    return EXIT_NOT_AVAILABLE
+    from bridgeos_agent.agent import run_agent
+
+    return run_agent(args)
+
+
+def _doctor(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """Check what the agent needs and print how to fix what is missing."""
+    _check_connection_args(parser, args)
+    from bridgeos_agent.agent import doctor
+
+    return doctor(args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -206,6 +264,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _validate(args.file, args.kind)
         if args.command == "run":
             return _run(args.run_parser, args)
+        if args.command == "doctor":
+            return _doctor(args.run_parser, args)
     except SystemExit as exc:
         # argparse exits for --help and usage errors; return its code so main stays callable.
         return exc.code if isinstance(exc.code, int) else EXIT_USAGE

@@ -1,0 +1,1082 @@
+"""The Robot Controller (thesis §3.3): the robot's link to the cloud and the owner of its Skills.
+
+One asyncio task tree per robot: the cloud connection (reconnecting with backoff), the
+outbox that keeps every owed frame on disk until acked, the resource monitor, the cloud
+role takeover watch (Algorithm 7), and one supervisor per active Skill. Components are
+launched through a runtime after an allocation check (Algorithm 1); cloud-side launches
+are forwarded to the cloud.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import websockets
+from pydantic import ValidationError
+from websockets.client import backoff
+
+from bridgeos_agent import protocol
+from bridgeos_agent.allocation import (
+    AllocationSettings,
+    Cloud,
+    Decision,
+    Measurement,
+    Refuse,
+    Replace,
+    allocate,
+    allocation_state,
+)
+from bridgeos_agent.errors import field_errors
+from bridgeos_agent.heuristics import Resources, Weights
+from bridgeos_agent.monitor import Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
+from bridgeos_agent.outbox import Outbox
+from bridgeos_agent.protocol import ComponentStatusName as CS
+from bridgeos_agent.protocol import Envelope, Event, ProtocolError
+from bridgeos_agent.protocol import SkillStatusName as SS
+from bridgeos_agent.robotconfig import RobotConfig, parse_robot_config
+from bridgeos_agent.rosmaster import find_ros_master
+from bridgeos_agent.runtime import ComponentSpec, ComponentState, Runtime, RuntimeFailure, Status, create_runtime
+from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
+from bridgeos_agent.supervisor import SkillPlugin, SkillSupervisor
+from bridgeos_agent.takeover import CloudMonitor, plan_takeover
+
+__all__ = ["AgentSettings", "AuthenticationRefused", "RobotController"]
+
+logger = logging.getLogger("bridgeos_agent")
+
+# Error codes from the cloud that mean "try again later": the frame stays owed.
+RETRY_CODES = frozenset({"unavailable", "internal_error", "rate_limited"})
+
+
+class AuthenticationRefused(RuntimeError):
+    """The cloud refused the robot's id or token: retrying will not help."""
+
+
+@dataclass
+class AgentSettings:
+    """Everything `bridgeos-agent run` is told."""
+
+    master: str
+    robot: str
+    token: str
+    data_dir: Path
+    runtime: str = "process"
+    simulate: bool = False
+    sample_interval: float = 1.0
+    report_max_interval: float = 10.0
+    startup_parallelism: int = 8
+    outbox_max_bytes: int = 64 * 1024 * 1024
+    reconnect_initial: float = 1.0
+    reconnect_max: float = 30.0
+    runtime_options: dict[str, Any] = field(default_factory=dict)
+    simulated: SimulatedRobot | None = None
+
+
+@dataclass
+class SkillRecord:
+    """What the controller knows of one Skill on this robot."""
+
+    config: SkillConfig
+    status: SS = SS.STOPPED
+    locations: dict[str, str | None] = field(default_factory=dict)  # component -> robot|cloud|None
+    statuses: dict[str, CS] = field(default_factory=dict)
+    supervisor: SkillSupervisor | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return what survives an agent restart."""
+        return {
+            "config": self.config.model_dump(mode="json"),
+            "status": str(self.status),
+            "locations": self.locations,
+        }
+
+
+class RobotController:
+    """Attach one robot to the cloud and run its Skills."""
+
+    def __init__(
+        self,
+        settings: AgentSettings,
+        *,
+        runtime: Runtime | None = None,
+        plugins: Mapping[str, SkillPlugin] | None = None,
+        say: Callable[[str], None] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.data_dir = Path(settings.data_dir)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.say = say or (lambda line: logger.info("%s", line))
+        self.outbox = Outbox(self.data_dir / "outbox.sqlite3", max_bytes=settings.outbox_max_bytes)
+        self.runtime = runtime or create_runtime(
+            settings.runtime,
+            settings.robot,
+            data_dir=self.data_dir / "runtime",
+            on_status=self._on_runtime_status,
+            **settings.runtime_options,
+        )
+        if runtime is not None and runtime.on_status is None:
+            runtime.on_status = self._on_runtime_status
+        self.plugins = dict(plugins or {})
+        self.config: RobotConfig | None = None
+        self.config_from_cloud = asyncio.Event()
+        self.skills: dict[str, SkillRecord] = {}
+        self.ros_master: str | None = None
+        self.connected = asyncio.Event()
+        self.stopped = asyncio.Event()
+        self.exit_code = 0
+        self.ws: Any = None
+        self.cloud_bytes = [0, 0]  # received, sent on the cloud link
+        self.metric_points_sent = 0
+        self._unacked: dict[str, tuple[float, int]] = {}  # frame id -> (next resend at, attempts)
+        self._replaying = False
+        self._dedup = protocol.Dedup(capacity=2000)
+        self._answers: dict[str, str] = {}  # command id -> the frame that answered it
+        self._waiters: dict[str, asyncio.Future[Envelope]] = {}
+        self._tasks: list[asyncio.Task] = []
+        self._handlers: set[asyncio.Task] = set()
+        self._takeover: dict[str, list[str]] = {}
+        self._usage: dict[tuple[str, str], Any] = {}
+        self._reporter = Reporter(max_interval=settings.report_max_interval)
+        self._save_pending = False
+        self._cloud_monitor: CloudMonitor | None = None
+        self._startup_done = False
+        self._lock = asyncio.Lock()  # serialises placement decisions so two never claim the same headroom
+        if settings.simulate:
+            self.monitor = ResourceMonitor(settings.simulated or SimulatedRobot())
+        else:
+            self.monitor = ResourceMonitor(SystemRobot())
+
+    # ------------------------------------------------------------------ life cycle
+
+    async def run(self) -> int:
+        """Run until stopped (signal, shutdown command or a refused token); return the exit code."""
+        await self._restore()
+        self.ros_master = await asyncio.to_thread(find_ros_master)
+        self.say(f"ROS master: {self.ros_master or 'none found; asking the cloud for one'}")
+        loop = asyncio.get_running_loop()
+        self._cloud_monitor = CloudMonitor(self._lost_after(), time.monotonic())
+        for coroutine, name in (
+            (self._connection_loop(), "connection"),
+            (self._resend_loop(), "resend"),
+            (self._monitor_loop(), "monitor"),
+            (self._takeover_loop(), "takeover"),
+            (self._startup(), "startup"),
+        ):
+            self._tasks.append(loop.create_task(coroutine, name=name))
+        await self.stopped.wait()
+        await self._shutdown()
+        return self.exit_code
+
+    def stop(self, code: int = 0) -> None:
+        """Ask the controller to stop (safe to call from a signal handler)."""
+        self.exit_code = self.exit_code or code
+        self.stopped.set()
+
+    async def _shutdown(self) -> None:
+        self.say("stopping")
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        for task in list(self._handlers):
+            task.cancel()
+        await asyncio.gather(*self._handlers, return_exceptions=True)
+        for record in self.skills.values():
+            if record.supervisor is not None:
+                await record.supervisor.close()
+        self._save_now()
+        # Components keep running across an agent restart; the next agent re-adopts them.
+        await self.runtime.close(stop_components=False)
+        if self.ws is not None:
+            with contextlib.suppress(Exception):
+                await self.ws.close()
+        self.outbox.close()
+        self.say("stopped")
+
+    # ------------------------------------------------------------------ persistence
+
+    @property
+    def _state_path(self) -> Path:
+        return self.data_dir / "state.json"
+
+    async def _restore(self) -> None:
+        """Load the last config and Skills and re-adopt the components still running."""
+        try:
+            state = json.loads(self._state_path.read_text())
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError) as exc:
+            self.say(f"ignoring unreadable state file {self._state_path}: {exc}")
+            return
+        if state.get("config"):
+            with contextlib.suppress(ValueError):
+                self.config = parse_robot_config(state["config"])
+        for skill_id, saved in state.get("skills", {}).items():
+            try:
+                config = parse_skill_config(saved["config"])
+            except (ValueError, KeyError):
+                continue
+            record = SkillRecord(config=config, status=SS(saved.get("status", "stopped")))
+            record.locations = {c: saved.get("locations", {}).get(c) for c in config.components}
+            self.skills[skill_id] = record
+        adopted = await self.runtime.load_state(state.get("runtime", {}))
+        for component in adopted:
+            record = self.skills.get(component.skill)
+            if record is not None and component.component in record.config.components:
+                record.locations[component.component] = "robot"
+                record.statuses[component.component] = CS.RUNNING
+        if adopted:
+            self.say(f"re-adopted {len(adopted)} running component(s)")
+
+    def _save_soon(self) -> None:
+        if not self._save_pending:
+            self._save_pending = True
+            asyncio.get_running_loop().call_later(0.2, self._save_now)
+
+    def _save_now(self) -> None:
+        self._save_pending = False
+        state = {
+            "config": self.config.model_dump(mode="json") if self.config else None,
+            "skills": {skill_id: record.to_dict() for skill_id, record in self.skills.items()},
+            "runtime": self.runtime.get_state(),
+        }
+        tmp = self._state_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(state))
+        os.replace(tmp, self._state_path)
+
+    # ------------------------------------------------------------------ the cloud link
+
+    def _lost_after(self) -> float:
+        return self.config.connection_lost_after if self.config else 15.0
+
+    async def _connection_loop(self) -> None:
+        heartbeat = self.config.heartbeat_interval if self.config else 5.0
+        delays = functools.partial(
+            backoff,
+            initial_delay=self.settings.reconnect_initial,
+            min_delay=self.settings.reconnect_initial,
+            max_delay=self.settings.reconnect_max,
+        )
+        url = self.settings.master.rstrip("/") + "/ws/robot/"
+        self.say(f"connecting to {url} as robot {self.settings.robot}")
+        async for ws in websockets.connect(
+            url,
+            reconnect_delays=delays,
+            ping_interval=heartbeat,
+            ping_timeout=self._lost_after(),
+            max_size=protocol.MAX_FRAME_BYTES * 2,
+            open_timeout=10,
+            compression=None,
+        ):
+            try:
+                await self._session(ws)
+            except AuthenticationRefused as exc:
+                self.say(f"the cloud refused this robot: {exc}. Check --robot and --token.")
+                self.stop(3)
+                return
+            except websockets.ConnectionClosed:
+                pass
+            finally:
+                self._on_disconnect()
+
+    async def _session(self, ws: Any) -> None:
+        credentials: dict[str, Any] = {"robot": self.settings.robot, "token": self.settings.token}
+        await ws.send(protocol.encode(protocol.make(Event.AUTHENTICATION_ROBOT, credentials, now=time.time())))
+        answer = protocol.decode(await asyncio.wait_for(ws.recv(), 10), direction=protocol.Direction.CLOUD_TO_ROBOT)
+        if answer.event != Event.AUTHENTICATION_SUCCESS:
+            reason = getattr(protocol.parse_payload(answer), "reason", answer.event)
+            raise AuthenticationRefused(reason)
+        self.ws = ws
+        self.connected.set()
+        self.say("connected to the cloud")
+        self._contact()
+        await self._replay_backlog()
+        async for raw in ws:
+            self.cloud_bytes[0] += len(raw)
+            self._contact()
+            try:
+                envelope = protocol.decode(raw, direction=protocol.Direction.CLOUD_TO_ROBOT)
+            except ProtocolError as exc:
+                await self._send_direct(protocol.error_frame(exc, now=time.time()))
+                continue
+            self._receive(envelope)
+
+    def _on_disconnect(self) -> None:
+        if self.ws is not None:
+            self.say("disconnected from the cloud; frames are kept until it is back")
+        self.ws = None
+        self.connected.clear()
+        # Everything unacked is sent again, in order, on the next connection.
+        self._unacked.clear()
+
+    def _contact(self) -> None:
+        if self._cloud_monitor is not None and self._cloud_monitor.on_message(time.monotonic()) == "revert":
+            self._spawn(self._revert_takeover())
+
+    async def _replay_backlog(self) -> None:
+        """Send every frame still owed, oldest first, before anything new."""
+        self._replaying = True
+        try:
+            sent = 0
+            for _, frame_id, text in self.outbox.backlog():
+                if self.ws is None:
+                    return
+                await self.ws.send(text)
+                self.cloud_bytes[1] += len(text)
+                self._unacked[frame_id] = (time.monotonic() + 5.0, 1)
+                sent += 1
+            if sent:
+                self.say(f"re-sent {sent} frame(s) kept while disconnected")
+        finally:
+            self._replaying = False
+
+    async def _resend_loop(self) -> None:
+        """Resend frames the cloud has not acked, with backoff, while connected."""
+        while True:
+            await asyncio.sleep(0.5)
+            if self.ws is None or self._replaying:
+                continue
+            now = time.monotonic()
+            due = [frame_id for frame_id, (at, _) in self._unacked.items() if at <= now]
+            for frame_id in due:
+                text = self.outbox.frame(frame_id)
+                _, attempts = self._unacked.pop(frame_id)
+                if text is None:
+                    continue
+                with contextlib.suppress(websockets.ConnectionClosed):
+                    await self.ws.send(text)
+                self._unacked[frame_id] = (now + min(30.0, 5.0 * 2**attempts), attempts + 1)
+
+    async def emit(self, event: Event, data: Mapping[str, Any], *, reply_to: str | None = None) -> Envelope:
+        """Send a frame to the cloud; one that changes state is kept on disk until acked."""
+        envelope = protocol.make(event, dict(data), reply_to=reply_to, now=time.time())
+        if event == Event.METRICS:
+            self.metric_points_sent += len(data["metrics"])
+        if event in protocol.REQUIRES_ACK:
+            text = self.outbox.put(envelope)
+            if self.ws is not None and not self._replaying:
+                self._unacked[envelope.id] = (time.monotonic() + 5.0, 1)
+                await self._send_text(text)
+        else:
+            await self._send_direct(envelope)
+        return envelope
+
+    async def _send_direct(self, envelope: Envelope) -> None:
+        await self._send_text(protocol.encode(envelope))
+
+    async def _send_text(self, text: str) -> None:
+        ws = self.ws
+        if ws is None:
+            return
+        try:
+            await ws.send(text)
+            self.cloud_bytes[1] += len(text)
+        except websockets.ConnectionClosed:
+            pass
+
+    # ------------------------------------------------------------------ frames from the cloud
+
+    def _receive(self, envelope: Envelope) -> None:
+        event = envelope.event
+        if event == Event.ACK:
+            if envelope.reply_to:
+                self.outbox.ack(envelope.reply_to)
+                self._unacked.pop(envelope.reply_to, None)
+            return
+        if event == Event.ERROR_MESSAGE and envelope.reply_to:
+            self._on_refused(envelope)
+            return
+        if event in protocol.REQUIRES_ACK and self._dedup.seen(envelope.id):
+            # A retransmission of something already handled: answer it the same way again.
+            answer = self._answers.get(envelope.id) or protocol.ack_text(envelope.id, now=time.time())
+            self._spawn(self._send_text(answer))
+            return
+        self._spawn(self._handle(envelope))
+
+    def _on_refused(self, envelope: Envelope) -> None:
+        payload = protocol.parse_payload(envelope)
+        frame_id = envelope.reply_to or ""
+        if payload.code in RETRY_CODES:
+            return  # kept: the resend loop tries again later
+        text = self.outbox.frame(frame_id)
+        self.outbox.ack(frame_id)
+        self._unacked.pop(frame_id, None)
+        self.say(f"the cloud refused a frame: {payload.message}")
+        if text is None:
+            return
+        refused = protocol.decode(text)
+        if refused.event == Event.COMPONENT_START:
+            data = refused.data
+            record = self.skills.get(data["skill"])
+            if record is not None and record.locations.get(data["component"]) == "cloud":
+                record.locations[data["component"]] = None
+                self._spawn(self._set_status(record, data["component"], CS.FAILED, None, payload.message))
+
+    async def _handle(self, envelope: Envelope) -> None:
+        handler = HANDLERS.get(envelope.event)
+        try:
+            if handler is None:
+                raise ProtocolError(f"a robot does not handle {envelope.event}", code="unsupported")
+            payload = protocol.parse_payload(envelope)
+            if getattr(payload, "robot", None) not in (None, self.settings.robot):
+                raise ProtocolError("addressed to another robot", field="data.robot", code="forbidden")
+            reply = await handler(self, envelope, payload)
+        except ProtocolError as exc:
+            await self._answer(envelope, protocol.encode(protocol.error_frame(exc, envelope.id, now=time.time())))
+            return
+        except Exception as exc:
+            logger.exception("handling %s failed", envelope.event)
+            error = ProtocolError(str(exc) or type(exc).__name__, code="internal_error")
+            await self._answer(envelope, protocol.encode(protocol.error_frame(error, envelope.id, now=time.time())))
+            return
+        if reply is not None:
+            event, data = reply
+            await self._answer(
+                envelope, protocol.encode(protocol.make(event, data, reply_to=envelope.id, now=time.time()))
+            )
+        elif envelope.event in protocol.REQUIRES_ACK:
+            await self._answer(envelope, protocol.ack_text(envelope.id, now=time.time()))
+
+    async def _answer(self, envelope: Envelope, text: str) -> None:
+        if envelope.event in protocol.REQUIRES_ACK:
+            self._answers[envelope.id] = text
+            if len(self._answers) > 2000:
+                self._answers.pop(next(iter(self._answers)))
+        await self._send_text(text)
+
+    def _spawn(self, coroutine: Any) -> None:
+        task = asyncio.get_running_loop().create_task(coroutine)
+        self._handlers.add(task)
+        task.add_done_callback(self._handlers.discard)
+
+    # ------------------------------------------------------------------ config
+
+    def apply_config(self, config: RobotConfig, *, source: str) -> None:
+        """Make a validated robot config the one in force and keep it on disk."""
+        first = not self.config_from_cloud.is_set()
+        self.config = config
+        if self._cloud_monitor is not None:
+            self._cloud_monitor.disconnection_delay = config.connection_lost_after
+        for name in ("cpu", "gpu", "ram", "bandwidth", "io"):
+            setattr(self.monitor.robot, name, getattr(config.resources, name))
+        if source == "cloud":
+            self.config_from_cloud.set()
+        self._save_soon()
+        if first and source == "cloud":
+            self.say(f"robot config received (heuristic {config.heuristic}, offloading {config.offloading})")
+
+    def allocation_settings(self) -> AllocationSettings:
+        """Return Algorithm 1's settings from the robot config."""
+        config = self.config or RobotConfig()
+        weights = Weights(**config.weights.model_dump())
+        return AllocationSettings(
+            heuristic=config.heuristic, threshold=config.threshold, weights=weights, per_gb=config.costs.per_gb
+        )
+
+    # ------------------------------------------------------------------ startup skills
+
+    async def _startup(self) -> None:
+        """Once the cloud sent a config, relaunch the Skills that ran before, in parallel."""
+        await self.config_from_cloud.wait()
+        wanted = [skill for skill, record in self.skills.items() if record.status in (SS.RUNNING, SS.STARTING)]
+        if not wanted:
+            self._startup_done = True
+            return
+        self.say(f"restarting {len(wanted)} skill(s) with their latest config from the cloud")
+        limit = asyncio.Semaphore(self.settings.startup_parallelism)
+
+        async def one(skill_id: str) -> None:
+            async with limit:
+                reply = await self.request(Event.SKILL_CONFIG_GET, {"skill": skill_id})
+                if reply is None or reply.event != Event.SKILL_CONFIG:
+                    self.say(f"skill {skill_id}: the cloud has no config for it any more; not restarted")
+                    record = self.skills.pop(skill_id)
+                    await self._stop_components(record, record.config.components)
+                    return
+                await self.start_skill(parse_skill_config(dict(reply.data["config"])))
+
+        await asyncio.gather(*(one(skill_id) for skill_id in wanted), return_exceptions=True)
+        self._startup_done = True
+
+    async def request(self, event: Event, data: Mapping[str, Any], timeout: float = 10.0) -> Envelope | None:
+        """Ask the cloud something and wait for the answer (None if it does not come)."""
+        await self.connected.wait()
+        future: asyncio.Future[Envelope] = asyncio.get_running_loop().create_future()
+        envelope = protocol.make(event, dict(data), now=time.time())
+        self._waiters[envelope.id] = future
+        try:
+            await self._send_direct(envelope)
+            return await asyncio.wait_for(future, timeout)
+        except TimeoutError:
+            return None
+        finally:
+            self._waiters.pop(envelope.id, None)
+
+    # ------------------------------------------------------------------ skills and components
+
+    async def start_skill(self, config: SkillConfig, *, starting: Iterable[str] | None = None) -> SkillRecord:
+        """Launch a Skill: place each component (Algorithm 1) and start it where it goes."""
+        record = self.skills.get(config.skill_id)
+        if record is None:
+            record = self.skills[config.skill_id] = SkillRecord(config=config)
+        else:
+            record.config = config
+        for component in config.components:
+            record.locations.setdefault(component, None)
+        await self._set_skill_status(record, SS.STARTING)
+        if record.supervisor is None:
+            record.supervisor = SkillSupervisor(
+                config.skill_id, on_failure=functools.partial(self._plugin_failed, record)
+            )
+            for name, plugin in self.plugins.items():
+                record.supervisor.start(name, plugin)
+        names = list(starting if starting is not None else config.components)
+        results = await asyncio.gather(*(self.place_component(record, name) for name in names), return_exceptions=True)
+        failures = [
+            f"{name}: {result}" for name, result in zip(names, results, strict=True) if isinstance(result, Exception)
+        ]
+        if failures and len(failures) == len(names):
+            await self._set_skill_status(record, SS.FAILED, "; ".join(failures)[:1900])
+        else:
+            await self._set_skill_status(record, SS.RUNNING, "; ".join(failures)[:1900] or None)
+        return record
+
+    async def stop_skill(self, skill_id: str) -> None:
+        """Stop a Skill's components on the robot and in the cloud."""
+        record = self._skill(skill_id)
+        await self._set_skill_status(record, SS.STOPPING)
+        await self._stop_components(record, record.config.components)
+        if record.supervisor is not None:
+            await record.supervisor.close()
+            record.supervisor = None
+        await self._set_skill_status(record, SS.STOPPED)
+
+    async def _stop_components(self, record: SkillRecord, names: Iterable[str]) -> None:
+        await asyncio.gather(*(self.stop_component(record, name) for name in names), return_exceptions=True)
+
+    async def place_component(self, record: SkillRecord, name: str, *, location: str | None = None) -> str:
+        """Start a component where it should run; return that location."""
+        component = record.config.components[name]
+        target = location or self._preferred_location(component.location)
+        if target == "cloud":
+            if component.location == "robot":
+                raise ProtocolError(f"component {name!r} may only run on the robot", field="data.location")
+            await self._start_in_cloud(record, name)
+            return "cloud"
+        if component.location == "cloud":
+            raise ProtocolError(f"component {name!r} may only run in the cloud", field="data.location")
+        async with self._lock:
+            decision = self.allocate(record.config.skill_id, name)
+            if isinstance(decision, Replace):
+                replaced = self.skills[decision.skill_id]
+                self.say(
+                    f"{record.config.skill_id}/{name}: moving {decision.skill_id}/{decision.component_id} "
+                    f"to the cloud first ({decision.reason})"
+                )
+                for moved in (decision.component_id, *decision.links):
+                    # The cloud copy is asked for first, then the robot copy makes room.
+                    await self._start_in_cloud(replaced, moved)
+                    await self.runtime.stop(decision.skill_id, moved)
+                    self._usage.pop((decision.skill_id, moved), None)
+            elif isinstance(decision, Cloud):
+                if location == "robot":
+                    raise ProtocolError(f"no room on the robot for {name!r}: {decision.reason}", code="no_resources")
+                await self._start_in_cloud(record, name)
+                return "cloud"
+            elif isinstance(decision, Refuse):
+                await self._set_status(record, name, CS.FAILED, None, decision.reason)
+                raise ProtocolError(f"no room on the robot for {name!r}: {decision.reason}", code="no_resources")
+            await self._start_on_robot(record, name)
+        return "robot"
+
+    def _preferred_location(self, required: str) -> str:
+        if required in ("robot", "cloud"):
+            return required
+        mode = self.config.offloading if self.config else "auto"
+        return "cloud" if mode == "cloud" else "robot"
+
+    def allocate(self, skill_id: str, component_id: str) -> Decision:
+        """Run Algorithm 1 for one component against the robot's state now."""
+        total = (self.config or RobotConfig()).resources
+        used = self._reserved()
+        free = self.monitor.free(used)
+        active = {
+            (skill, name): where
+            for skill, record in self.skills.items()
+            for name, where in record.locations.items()
+            if where is not None
+        }
+        measurements = {
+            key: Measurement(usage=Resources(cpu=usage.cpu, ram=usage.ram)) for key, usage in self._usage.items()
+        }
+        configs = [record.config for record in self.skills.values()]
+        state = allocation_state(total, Resources(**free), configs, active, measurements)
+        return allocate(state, skill_id, component_id, self.allocation_settings())
+
+    def _reserved(self) -> dict[str, float]:
+        """Sum the declared needs of every component running on the robot."""
+        used = dict.fromkeys(("cpu", "gpu", "ram", "bandwidth", "io"), 0.0)
+        for record in self.skills.values():
+            for name, where in record.locations.items():
+                if where == "robot":
+                    needs = record.config.components[name].resources
+                    for key in used:
+                        used[key] += getattr(needs, key)
+        return used
+
+    def component_spec(self, record: SkillRecord, name: str) -> ComponentSpec:
+        """Build the launch spec of a robot-side component with the env contract."""
+        component = record.config.components[name]
+        launch = component.robot
+        if launch is None:
+            raise ProtocolError(f"component {name!r} has no robot launch spec", field=f"components.{name}.robot")
+        env = {
+            "BRIDGEOS_ROBOT": self.settings.robot,
+            "BRIDGEOS_SKILL": record.config.skill_id,
+            "BRIDGEOS_COMPONENT": name,
+            "BRIDGEOS_LOCATION": "robot",
+        }
+        if self.ros_master:
+            env["ROS_MASTER_URI"] = self.ros_master
+        if record.supervisor is not None:
+            env.update({k: str(v) for k, v in record.supervisor.context.get("env", {}).items()})
+        return ComponentSpec(
+            robot=self.settings.robot,
+            skill=record.config.skill_id,
+            component=name,
+            location="robot",
+            launch=launch,
+            resources=component.resources,
+            env=env,
+            volumes=tuple(record.config.volumes),
+        )
+
+    async def _start_on_robot(self, record: SkillRecord, name: str) -> None:
+        spec = self.component_spec(record, name)
+        await self._set_status(record, name, CS.STARTING, "robot")
+        try:
+            state = await self.runtime.start(spec)
+        except RuntimeFailure as exc:
+            await self._set_status(record, name, CS.FAILED, "robot", str(exc))
+            raise ProtocolError(str(exc), code="launch_failed") from None
+        record.locations[name] = "robot"
+        await self._set_status(record, name, CS.RUNNING, "robot")
+        await self.emit(
+            Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": "robot"}
+        )
+        container = {"runtime": self.runtime.name}
+        ident = state.pid_or_container_id
+        if isinstance(ident, int):
+            container["pid"] = ident
+        elif ident:
+            container["id"] = str(ident)[:64]
+        await self.emit(
+            Event.COMPONENT_INFORMATION,
+            {"skill": record.config.skill_id, "component": name, "location": "robot", "container": container},
+        )
+        self._save_soon()
+
+    async def _start_in_cloud(self, record: SkillRecord, name: str) -> None:
+        """Forward a cloud-side launch to the cloud (thesis: the controller only forwards those)."""
+        record.locations[name] = "cloud"
+        await self._set_status(record, name, CS.STARTING, "cloud")
+        await self.emit(
+            Event.COMPONENT_START, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
+        )
+        self._save_soon()
+
+    async def stop_component(self, record: SkillRecord, name: str, *, only: str | None = None) -> None:
+        """Stop a component where it runs (or only at ``only``)."""
+        where = record.locations.get(name)
+        skill_id = record.config.skill_id
+        if where == "robot" and only in (None, "robot"):
+            await self._set_status(record, name, CS.STOPPING, "robot")
+            await self.runtime.stop(skill_id, name)
+        elif where == "cloud" and only in (None, "cloud"):
+            await self.emit(Event.COMPONENT_STOP, {"skill": skill_id, "component": name, "location": "cloud"})
+        if only is None or only == where:
+            record.locations[name] = None
+            await self._set_status(record, name, CS.STOPPED, None)
+        self._reporter.forget(skill_id, name)
+        self._usage.pop((skill_id, name), None)
+        self._save_soon()
+
+    async def migrate_component(self, record: SkillRecord, name: str, target: str | None) -> str:
+        """Move a running component to the other side: start there first, then stop here."""
+        component = record.config.components[name]
+        current = record.locations.get(name)
+        if component.location != "either":
+            raise ProtocolError(f"component {name!r} may only run on the {component.location}", field="data.component")
+        target = target or ("robot" if current == "cloud" else "cloud")
+        if target == current:
+            return target
+        await self._set_status(record, name, CS.MIGRATING, current)
+        if target == "robot":
+            # The cloud copy keeps serving until the robot copy runs (no downtime window).
+            await self.place_component(record, name, location="robot")
+            if current == "cloud":
+                await self.emit(
+                    Event.COMPONENT_STOP, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
+                )
+        else:
+            await self._start_in_cloud(record, name)
+            if current == "robot":
+                await self.runtime.stop(record.config.skill_id, name)
+                self._usage.pop((record.config.skill_id, name), None)
+        await self.emit(
+            Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": target}
+        )
+        return target
+
+    async def _set_status(
+        self, record: SkillRecord, name: str, status: CS, location: str | None, message: str | None = None
+    ) -> None:
+        record.statuses[name] = status
+        data: dict[str, Any] = {"skill": record.config.skill_id, "component": name, "status": str(status)}
+        if location:
+            data["location"] = location
+        if message:
+            data["message"] = message[:1900]
+        await self.emit(Event.COMPONENT_STATUS, data)
+
+    async def _set_skill_status(self, record: SkillRecord, status: SS, message: str | None = None) -> None:
+        record.status = status
+        data: dict[str, Any] = {"skill": record.config.skill_id, "status": str(status)}
+        if message:
+            data["message"] = message
+        await self.emit(Event.SKILL_STATUS, data)
+        self._save_soon()
+
+    def _plugin_failed(self, record: SkillRecord, name: str, message: str) -> None:
+        self._spawn(self._set_skill_status(record, SS.FAILED, message))
+
+    def _on_runtime_status(self, state: ComponentState) -> None:
+        """Report a component's crash, restart or give-up that the runtime saw."""
+        record = self.skills.get(state.skill)
+        if record is None or state.component not in record.config.components:
+            return
+        mapped = {
+            Status.RUNNING: CS.RUNNING,
+            Status.STARTING: CS.STARTING,
+            Status.RESTARTING: CS.STARTING,
+            Status.FAILED: CS.FAILED,
+            Status.EXITED: CS.STOPPED,
+        }.get(state.status)
+        if mapped is None or record.locations.get(state.component) != "robot":
+            return
+        if record.statuses.get(state.component) == mapped:
+            return
+        message = None
+        if state.status == Status.RESTARTING:
+            message = f"crashed (exit code {state.exit_code}); restart {state.restarts}"
+        elif state.status == Status.FAILED:
+            message = f"crashed too often (exit code {state.exit_code}); gave up"
+        self._spawn(self._set_status(record, state.component, mapped, "robot", message))
+
+    def _skill(self, skill_id: str) -> SkillRecord:
+        record = self.skills.get(skill_id)
+        if record is None:
+            raise ProtocolError(f"no skill {skill_id!r} on this robot", field="data.skill", code="not_found")
+        return record
+
+    def _component(self, skill_id: str, name: str) -> SkillRecord:
+        record = self._skill(skill_id)
+        if name not in record.config.components:
+            raise ProtocolError(
+                f"skill {skill_id!r} has no component {name!r}", field="data.component", code="not_found"
+            )
+        return record
+
+    # ------------------------------------------------------------------ monitoring
+
+    async def _monitor_loop(self) -> None:
+        """Sample the robot and its components; send what changed enough, or is due."""
+        interval = self.settings.sample_interval
+        stats_every = max(1, round(5.0 / interval)) if self.runtime.name == "docker" else 1
+        tick = 0
+        last_cloud = (0, 0, time.monotonic())
+        while True:
+            await asyncio.sleep(interval)
+            tick += 1
+            if tick % stats_every == 0:
+                with contextlib.suppress(Exception):
+                    self._usage = await self.runtime.stats()
+            now = time.monotonic()
+            span = max(1e-3, now - last_cloud[2])
+            cloud_rates = ((self.cloud_bytes[0] - last_cloud[0]) / span, (self.cloud_bytes[1] - last_cloud[1]) / span)
+            last_cloud = (self.cloud_bytes[0], self.cloud_bytes[1], now)
+            sample = self.monitor.sample(self._reserved(), cloud_rates)
+            readings: list[tuple[str, float, str | None, str | None]] = [
+                (name, float(value), None, None) for name, value in sample.values.items()
+            ]
+            for (skill, component), usage in self._usage.items():
+                readings.append(("cpu", round(100 * usage.cpu, 2), skill, component))
+                readings.append(("ram", round(usage.ram, 1), skill, component))
+            points = self._reporter.select(time.time(), readings)
+            if points:
+                await self.emit(Event.METRICS, {"metrics": points})
+
+    # ------------------------------------------------------------------ cloud role takeover (Algorithm 7)
+
+    async def _takeover_loop(self) -> None:
+        while True:
+            await asyncio.sleep(0.25)
+            if self.ws is not None:
+                self._contact()  # the socket's keepalive closes it when pongs stop
+                continue
+            if self._cloud_monitor is not None and self._cloud_monitor.tick(time.monotonic()) == "takeover":
+                await self._take_over()
+
+    async def _take_over(self) -> None:
+        """Run locally the cloud part of every Skill that can run whole on the robot."""
+        self.say("cloud lost: taking over its role")
+        for record in self.skills.values():
+            if record.supervisor is not None:
+                record.supervisor.context["cloud"] = "lost"
+        active = {
+            (skill, name): where
+            for skill, record in self.skills.items()
+            if record.status in (SS.RUNNING, SS.STARTING)
+            for name, where in record.locations.items()
+            if where is not None
+        }
+        running = [r.config for r in self.skills.values() if r.status in (SS.RUNNING, SS.STARTING)]
+        free = Resources(**self.monitor.free(self._reserved()))
+        state = allocation_state((self.config or RobotConfig()).resources, free, running, active)
+        plan = plan_takeover(state.skills, free)
+        for skill_id, names in plan.items():
+            record = self.skills[skill_id]
+            started = []
+            for name in names:
+                try:
+                    await self.runtime.start(self.component_spec(record, name))
+                except (RuntimeFailure, ProtocolError) as exc:
+                    self.say(f"takeover: {skill_id}/{name} could not start on the robot: {exc}")
+                    continue
+                started.append(name)
+                record.statuses[name] = CS.RUNNING
+            if started:
+                self._takeover[skill_id] = started
+        count = sum(len(names) for names in self._takeover.values())
+        self.say(f"takeover: {count} cloud component(s) now run on the robot")
+
+    async def _revert_takeover(self) -> None:
+        """The cloud is back: hand its components back and stop the local duplicates."""
+        migrations, self._takeover = self._takeover, {}
+        for record in self.skills.values():
+            if record.supervisor is not None:
+                record.supervisor.context["cloud"] = "connected"
+        stopped = 0
+        for skill_id, names in migrations.items():
+            record = self.skills.get(skill_id)
+            for name in names:
+                await self.runtime.stop(skill_id, name)
+                stopped += 1
+                if record is not None and record.locations.get(name) == "cloud":
+                    await self._set_status(record, name, CS.RUNNING, "cloud")
+        self.say(f"cloud back: {stopped} local duplicate(s) stopped")
+
+    def takeover_components(self) -> dict[str, list[str]]:
+        """Return the cloud components running on the robot because the cloud is lost."""
+        return {skill: list(names) for skill, names in self._takeover.items()}
+
+
+# ---------------------------------------------------------------------- command handlers
+
+Handler = Callable[[RobotController, Envelope, Any], Any]
+HANDLERS: dict[str, Handler] = {}
+
+
+def handles(*events: Event) -> Callable[[Handler], Handler]:
+    """Register a handler of cloud frames; it returns (event, data) to reply, or None to ack."""
+
+    def register(function: Handler) -> Handler:
+        for event in events:
+            HANDLERS[event] = function
+        return function
+
+    return register
+
+
+def _not_before_config(controller: RobotController) -> None:
+    if not controller.config_from_cloud.is_set():
+        raise ProtocolError("no robot config from the cloud yet; skills wait for one", code="invalid_state")
+
+
+@handles(Event.ROBOT_CONFIG)
+async def on_robot_config(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    try:
+        config = parse_robot_config(dict(p.config))
+    except ValueError as exc:
+        raise ProtocolError(_first_error(exc), field="data.config", code="invalid_config") from None
+    controller.apply_config(config, source="cloud")
+    if envelope.reply_to is not None and envelope.reply_to in controller._waiters:
+        controller._waiters[envelope.reply_to].set_result(envelope)
+
+
+@handles(Event.ROBOT_CONFIG_UPDATE)
+async def on_robot_config_update(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    base = (controller.config or RobotConfig()).model_dump(mode="json")
+    try:
+        config = parse_robot_config(_merge(base, dict(p.changes)))
+    except ValueError as exc:
+        raise ProtocolError(_first_error(exc), field="data.changes", code="invalid_config") from None
+    controller.apply_config(config, source="cloud")
+
+
+@handles(Event.OFFLOADING)
+async def on_offloading(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    base = (controller.config or RobotConfig()).model_dump(mode="json")
+    controller.apply_config(parse_robot_config({**base, "offloading": str(p.mode)}), source="cloud")
+
+
+@handles(Event.OFFLOADING_GET)
+async def on_offloading_get(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    return Event.OFFLOADING, {"mode": (controller.config or RobotConfig()).offloading}
+
+
+@handles(Event.SKILL_START)
+async def on_skill_start(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    _not_before_config(controller)
+    if p.config is None:
+        record = controller._skill(p.skill)
+        config = record.config
+    else:
+        try:
+            config = parse_skill_config(dict(p.config))
+        except ValueError as exc:
+            raise ProtocolError(_first_error(exc), field="data.config", code="invalid_config") from None
+        if config.skill_id != p.skill:
+            raise ProtocolError(
+                f"config is for skill {config.skill_id!r}, not {p.skill!r}", field="data.config.skill_id"
+            )
+    # Accepted: ack now, launch in the background and report progress as statuses.
+    controller._spawn(controller.start_skill(config))
+
+
+@handles(Event.SKILL_STOP)
+async def on_skill_stop(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    controller._skill(p.skill)
+    controller._spawn(controller.stop_skill(p.skill))
+
+
+@handles(Event.SKILL_STATUS_GET)
+async def on_skill_status_get(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    return Event.SKILL_STATUS, {"skill": p.skill, "status": str(controller._skill(p.skill).status)}
+
+
+@handles(Event.SKILL_CONFIG)
+async def on_skill_config(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    waiter = controller._waiters.get(envelope.reply_to or "")
+    if waiter is not None and not waiter.done():
+        waiter.set_result(envelope)
+        return
+    record = controller.skills.get(p.skill)
+    if record is not None:
+        try:
+            record.config = parse_skill_config(dict(p.config))
+        except ValueError as exc:
+            raise ProtocolError(_first_error(exc), field="data.config", code="invalid_config") from None
+
+
+@handles(Event.COMPONENT_START)
+async def on_component_start(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    _not_before_config(controller)
+    record = controller._component(p.skill, p.component)
+    await controller.place_component(record, p.component, location=str(p.location))
+
+
+@handles(Event.COMPONENT_STOP)
+async def on_component_stop(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    record = controller._component(p.skill, p.component)
+    await controller.stop_component(record, p.component, only=str(p.location) if p.location else None)
+
+
+@handles(Event.COMPONENT_MIGRATE)
+async def on_component_migrate(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    _not_before_config(controller)
+    record = controller._component(p.skill, p.component)
+    await controller.migrate_component(record, p.component, str(p.location) if p.location else None)
+
+
+@handles(Event.COMPONENT_STATUS_GET)
+async def on_component_status_get(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    record = controller._component(p.skill, p.component)
+    data = {"skill": p.skill, "component": p.component, "status": str(record.statuses.get(p.component, CS.STOPPED))}
+    if record.locations.get(p.component):
+        data["location"] = record.locations[p.component]
+    return Event.COMPONENT_STATUS, data
+
+
+@handles(Event.ROBOT_STOP)
+async def on_robot_stop(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    for skill_id, record in list(controller.skills.items()):
+        if record.status in (SS.RUNNING, SS.STARTING):
+            controller._spawn(controller.stop_skill(skill_id))
+
+
+@handles(Event.ROBOT_START)
+async def on_robot_start(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    _not_before_config(controller)
+    for record in list(controller.skills.values()):
+        if record.status in (SS.STOPPED, SS.FAILED):
+            controller._spawn(controller.start_skill(record.config))
+
+
+@handles(Event.SHUTDOWN)
+async def on_shutdown(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    async def shut_down() -> None:
+        for skill_id in list(controller.skills):
+            with contextlib.suppress(Exception):
+                await controller.stop_skill(skill_id)
+        await controller.emit(Event.SHUTDOWN, {"reason": p.reason or "ordered by the cloud"})
+        await asyncio.sleep(0.5)  # let the report and its ack cross
+        controller.stop(0)
+
+    controller._spawn(shut_down())
+
+
+@handles(Event.CONNECTION_ESTABLISHED)
+async def on_connection_established(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    return None
+
+
+@handles(Event.METRICS_GET)
+async def on_metrics_get(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    latest = controller.monitor.latest
+    now = time.time()
+    values = latest.values if latest else {}
+    names = set(p.names) if p.names else None
+    points = [
+        {"name": name, "value": float(value), "ts": now}
+        for name, value in values.items()
+        if names is None or name in names
+    ]
+    return Event.METRICS, {"metrics": points[: p.limit or len(points)]}
+
+
+def _merge(base: dict[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = _merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _first_error(exc: ValueError) -> str:
+    errors = field_errors(exc) if isinstance(exc, ValidationError) else None
+    if errors:
+        path, messages = next(iter(errors.items()))
+        return f"{path}: {messages[0]}" if path else messages[0]
+    return str(exc).splitlines()[0]

@@ -1,0 +1,84 @@
+"""Own and restart the long-running tasks of one Skill (its Skill Manager and Skill Router)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+
+from bridgeos_agent.runtime.base import RestartBudget, RestartPolicy
+
+__all__ = ["SkillPlugin", "SkillSupervisor"]
+
+logger = logging.getLogger(__name__)
+
+# A plug-in is an async callable run for the life of a Skill, e.g. its manager or router.
+SkillPlugin = Callable[["SkillSupervisor"], Awaitable[None]]
+
+
+@dataclass
+class _Task:
+    name: str
+    plugin: SkillPlugin
+    budget: RestartBudget
+    task: asyncio.Task | None = None
+    restarts: int = 0
+    failed: bool = False
+
+
+@dataclass
+class SkillSupervisor:
+    """Run a Skill's plug-ins; a crashed plug-in restarts with backoff, not the agent."""
+
+    skill: str
+    policy: RestartPolicy = field(default_factory=RestartPolicy)
+    on_failure: Callable[[str, str], None] | None = None
+    context: dict[str, object] = field(default_factory=dict)
+    _tasks: dict[str, _Task] = field(default_factory=dict)
+    _closed: bool = False
+
+    def start(self, name: str, plugin: SkillPlugin) -> None:
+        """Run ``plugin`` under supervision as ``name``."""
+        if name in self._tasks:
+            raise ValueError(f"skill {self.skill}: a task named {name!r} runs already")
+        entry = _Task(name, plugin, RestartBudget(self.policy))
+        self._tasks[name] = entry
+        entry.task = asyncio.get_running_loop().create_task(self._run(entry), name=f"{self.skill}:{name}")
+
+    async def _run(self, entry: _Task) -> None:
+        while not self._closed:
+            try:
+                await entry.plugin(self)
+                return  # a plug-in that returns has finished its work
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:
+                delay = entry.budget.next_delay(time.monotonic())
+                if delay is None:
+                    entry.failed = True
+                    logger.error("skill %s: %s failed for good: %s", self.skill, entry.name, exc)
+                    if self.on_failure is not None:
+                        self.on_failure(entry.name, f"{entry.name} crashed too often: {exc}")
+                    return
+                entry.restarts += 1
+                logger.warning("skill %s: %s crashed (%s); restarting in %.1f s", self.skill, entry.name, exc, delay)
+                await asyncio.sleep(delay)
+
+    def restarts(self, name: str) -> int:
+        """Return how often a plug-in was restarted."""
+        return self._tasks[name].restarts
+
+    def running(self, name: str) -> bool:
+        """Tell whether a plug-in is still running."""
+        entry = self._tasks.get(name)
+        return entry is not None and entry.task is not None and not entry.task.done()
+
+    async def close(self) -> None:
+        """Cancel every plug-in and wait for them to end."""
+        self._closed = True
+        tasks = [entry.task for entry in self._tasks.values() if entry.task is not None]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)

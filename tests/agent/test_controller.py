@@ -1,0 +1,413 @@
+"""The Robot Controller against the real cloud (daphne, PostgreSQL, Redis) with the process runtime."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+
+import httpx
+import psutil
+import pytest
+from asgiref.sync import sync_to_async
+from django.conf import settings as django_settings
+
+from bridgeos_agent.controller import AgentSettings, RobotController
+from bridgeos_agent.monitor import SimulatedRobot
+from bridgeos_agent.protocol import ComponentStatusName as CS
+from bridgeos_agent.skillconfig import parse_skill_config
+from robots.models import Robot
+from robots.services import create_robot, issue_api_token, update_robot_config
+from skills.models import Component
+from skills.services import add_skill
+from tests.conftest import BIN, ROOT, free_port, service_env, wait_for_port
+
+pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(240)]
+
+SKILL = "workers"
+
+
+class Cloud:
+    """A daphne of the test's own on a fixed port, so the test can kill and restart the cloud."""
+
+    def __init__(self, log: Path) -> None:
+        self.port = free_port()
+        self.log = log
+        self.process: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}"
+
+    def start(self) -> None:
+        env = service_env(django_settings.DATABASES["default"]["NAME"])
+        with self.log.open("ab") as out:
+            self.process = subprocess.Popen(
+                [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(self.port)],
+                cwd=ROOT,
+                env={**env, "VIRTUAL_ENV": str(BIN.parent)},
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
+        wait_for_port(self.port, self.process)
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()  # a crash, not a polite shutdown
+            self.process.wait(10)
+
+
+@pytest.fixture
+def cloud(tmp_path) -> Cloud:
+    server = Cloud(tmp_path / "daphne.log")
+    server.start()
+    yield server
+    server.stop()
+
+
+def skill_config(*, location: str = "robot", count: int = 2, cpu: float = 0.1) -> dict:
+    """Return a Skill of `count` components that each sleep, runnable by the process runtime."""
+    spec = {"command": ["sleep", "600"]}
+    components = {
+        f"worker-{n}": {
+            "name": f"Worker {n}",
+            "location": location,
+            "ros": False,
+            "resources": {"cpu": cpu, "ram": 16},
+            "robot": spec,
+            **({"cloud": spec} if location != "robot" else {}),
+        }
+        for n in range(count)
+    }
+    return parse_skill_config({"skill": "Workers", "skill_id": SKILL, "components": components}).model_dump(mode="json")
+
+
+@sync_to_async
+def make_robot(robot_id: str, *, config: dict | None = None, skill: dict | None = None) -> tuple[str, str]:
+    """Create a robot (owner, optional config changes and Skill); return (robot token, API token)."""
+    from django.contrib.auth import get_user_model
+
+    owner = get_user_model().objects.create_user(f"owner-{robot_id}")
+    robot, token = create_robot(robot_id, owner)
+    if config:
+        update_robot_config(robot.id, config)
+    if skill:
+        add_skill(robot, skill)
+    return token, issue_api_token(owner)[0]
+
+
+def agent_settings(cloud: Cloud, robot: str, token: str, data_dir: Path, **kw) -> AgentSettings:
+    """Return settings for a simulated robot that samples fast and reports every sample."""
+    return AgentSettings(
+        master=cloud.ws_url,
+        robot=robot,
+        token=token,
+        data_dir=data_dir,
+        simulate=True,
+        simulated=SimulatedRobot(cpu=4, ram=4096, seed=1),
+        sample_interval=kw.pop("sample_interval", 0.2),
+        report_max_interval=0.0,
+        reconnect_initial=0.2,
+        reconnect_max=1.0,
+        **kw,
+    )
+
+
+@contextlib.asynccontextmanager
+async def running(controller: RobotController) -> AsyncIterator[RobotController]:
+    """Run a controller for the body of a with block, then stop it."""
+    task = asyncio.create_task(controller.run())
+    try:
+        yield controller
+    finally:
+        controller.stop()
+        await asyncio.wait_for(task, 30)
+
+
+async def eventually(check: Callable[[], object], timeout: float = 30.0, what: str = "condition") -> object:
+    """Poll an (async or sync) check until it returns something truthy."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = check()
+        if asyncio.iscoroutine(value):
+            value = await value
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.1)
+
+
+@sync_to_async
+def stored_metrics(robot_id: str) -> tuple[int, int]:
+    """Return (rows, rows beyond the first of each identical point) stored for a robot."""
+    from django.db import connection
+
+    with connection.cursor() as cursor:
+        cursor.execute(
+            "SELECT count(*), count(*) - count(DISTINCT (name, ts, coalesce(skill, ''), coalesce(component, '')))"
+            " FROM monitoring_metric WHERE robot_id = %s",
+            [robot_id],
+        )
+        return cursor.fetchone()
+
+
+async def metric_rows(robot_id: str) -> int:
+    return (await stored_metrics(robot_id))[0]
+
+
+@sync_to_async
+def component_rows(robot_id: str) -> dict[str, tuple[str, str | None]]:
+    return {
+        c.component_id: (c.status, c.active_location)
+        for c in Component.objects.filter(skill__robot_id=robot_id, skill__skill_id=SKILL)
+    }
+
+
+def running_workers(controller: RobotController) -> dict[str, int]:
+    """Return {component: pid} of the skill's components the runtime runs now."""
+    state = controller.runtime.get_state()
+    found = {}
+    for entry in state.get("components", []):
+        pid = entry.get("pid")
+        if entry.get("skill") == SKILL and pid and psutil.pid_exists(pid):
+            found[entry["component"]] = pid
+    return found
+
+
+async def test_connects_receives_its_config_and_reports_metrics(cloud, tmp_path):
+    token, _ = await make_robot("ctl-1", config={"offloading": "manual"})
+    controller = RobotController(agent_settings(cloud, "ctl-1", token, tmp_path / "agent"))
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        assert controller.config.offloading == "manual"
+        robot = await sync_to_async(Robot.objects.get)(id="ctl-1")
+        assert robot.connected
+        assert await eventually(lambda: metric_rows("ctl-1"), what="metrics stored") > 0
+    # The config from the cloud is kept on disk for the next start.
+    assert '"offloading": "manual"' in (tmp_path / "agent" / "state.json").read_text()
+
+
+async def test_a_skill_started_through_the_api_runs_on_the_robot(cloud, tmp_path):
+    token, api_token = await make_robot("ctl-2", skill=skill_config())
+    controller = RobotController(agent_settings(cloud, "ctl-2", token, tmp_path / "agent"))
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        async with httpx.AsyncClient(base_url=cloud.url, headers={"Authorization": f"Token {api_token}"}) as api:
+            response = await api.post(f"/api/robot/ctl-2/skill/{SKILL}/start", params={"wait": 10})
+        assert response.status_code == 200, response.text
+        assert response.json()["accepted"] is True
+        pids = await eventually(lambda: len(running_workers(controller)) == 2 and running_workers(controller))
+        rows = await eventually(
+            lambda: _all_running(component_rows("ctl-2")), what="components reported running on the robot"
+        )
+        assert rows == {"worker-0": ("running", "robot"), "worker-1": ("running", "robot")}
+        for pid in pids.values():
+            assert os.environ.get("BRIDGEOS_SKILL") is None  # the contract env is the child's, not ours
+            env = psutil.Process(pid).environ()
+            assert env["BRIDGEOS_SKILL"] == SKILL and env["BRIDGEOS_LOCATION"] == "robot"
+        # Stopping through the API stops the processes.
+        async with httpx.AsyncClient(base_url=cloud.url, headers={"Authorization": f"Token {api_token}"}) as api:
+            response = await api.post(f"/api/robot/ctl-2/skill/{SKILL}/stop", params={"wait": 10})
+        assert response.status_code == 200, response.text
+        await eventually(lambda: not running_workers(controller), what="workers stopped")
+        for pid in pids.values():
+            await eventually(lambda pid=pid: not psutil.pid_exists(pid), what=f"pid {pid} gone")
+
+
+async def _all_running(rows_coroutine) -> dict | None:
+    rows = await rows_coroutine
+    return rows if rows and all(status == "running" for status, _ in rows.values()) else None
+
+
+async def test_a_minute_without_the_cloud_loses_and_duplicates_no_metric(cloud, tmp_path):
+    outage = float(os.environ.get("BRIDGEOS_TEST_OUTAGE_S", "60"))
+    token, _ = await make_robot("ctl-3")
+    controller = RobotController(agent_settings(cloud, "ctl-3", token, tmp_path / "agent"))
+    async with running(controller):
+        await eventually(lambda: metric_rows("ctl-3"), what="metrics flowing")
+        cloud.stop()
+        await asyncio.sleep(outage)
+        held = controller.outbox.stats()
+        assert held.metric_frames >= outage / 0.2 * 0.8, held  # every sample was kept
+        cloud.start()
+        await eventually(lambda: len(controller.outbox) == 0, timeout=60, what="the backlog delivered")
+        sent = controller.metric_points_sent
+    rows, duplicates = await stored_metrics("ctl-3")
+    assert duplicates == 0
+    assert rows == sent, f"{sent} points sent, {rows} stored"
+
+
+async def test_a_restarted_agent_delivers_its_backlog_and_readopts_its_components(cloud, tmp_path):
+    token, api_token = await make_robot("ctl-4", skill=skill_config())
+    data_dir = tmp_path / "agent"
+    first = RobotController(agent_settings(cloud, "ctl-4", token, data_dir))
+    async with running(first):
+        await asyncio.wait_for(first.config_from_cloud.wait(), 15)
+        async with httpx.AsyncClient(base_url=cloud.url, headers={"Authorization": f"Token {api_token}"}) as api:
+            response = await api.post(f"/api/robot/ctl-4/skill/{SKILL}/start", params={"wait": 10})
+        assert response.status_code == 200, response.text
+        pids = await eventually(lambda: len(running_workers(first)) == 2 and running_workers(first))
+        cloud.stop()
+        await asyncio.sleep(3)
+        backlog = len(first.outbox)
+        sent_before = first.metric_points_sent
+        assert backlog > 0
+    # The agent is gone; its components and its backlog are not.
+    assert all(psutil.pid_exists(pid) for pid in pids.values())
+    cloud.start()
+    second = RobotController(agent_settings(cloud, "ctl-4", token, data_dir))
+    async with running(second):
+        adopted = await eventually(lambda: running_workers(second), what="components re-adopted")
+        assert adopted == pids, "the same processes are adopted, not new ones"
+        await eventually(lambda: len(second.outbox) == 0, timeout=60, what="the backlog delivered")
+        # The skill was running: once the cloud's config arrived it is running again, same pids.
+        await eventually(lambda: second.skills[SKILL].status == "running", what="skill running again")
+        assert running_workers(second) == pids
+        sent = sent_before + second.metric_points_sent
+        await second.stop_skill(SKILL)
+    rows, duplicates = await stored_metrics("ctl-4")
+    assert duplicates == 0
+    assert rows == sent
+
+
+async def test_takeover_runs_cloud_components_on_the_robot_and_reverts(cloud, tmp_path):
+    config = {"offloading": "cloud", "heartbeat_interval": 0.5, "connection_lost_after": 2.0}
+    token, api_token = await make_robot("ctl-5", config=config, skill=skill_config(location="either", count=3))
+    controller = RobotController(agent_settings(cloud, "ctl-5", token, tmp_path / "agent"))
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        async with httpx.AsyncClient(base_url=cloud.url, headers={"Authorization": f"Token {api_token}"}) as api:
+            response = await api.post(f"/api/robot/ctl-5/skill/{SKILL}/start", params={"wait": 10})
+        assert response.status_code == 200, response.text
+        # Offloading "cloud": every movable component is handed to the cloud, none runs here.
+        rows = await eventually(
+            lambda: _all_at(component_rows("ctl-5"), "cloud", 3), what="components placed in the cloud"
+        )
+        assert {status for status, _ in rows.values()} == {"pending"}
+        assert running_workers(controller) == {}
+        cloud.stop()
+        await eventually(lambda: len(running_workers(controller)) == 3, timeout=15, what="takeover")
+        assert controller.takeover_components() == {SKILL: ["worker-0", "worker-1", "worker-2"]}
+        cloud.start()
+        await eventually(lambda: not running_workers(controller), timeout=30, what="revert")
+        assert controller.takeover_components() == {}
+        assert set(controller.skills[SKILL].locations.values()) == {"cloud"}
+
+
+async def _all_at(rows_coroutine, location: str, count: int) -> dict | None:
+    rows = await rows_coroutine
+    if len(rows) == count and all(where == location for _, where in rows.values()):
+        return rows
+    return None
+
+
+async def test_a_component_that_does_not_fit_moves_a_movable_one_to_the_cloud(cloud, tmp_path):
+    # A 1-core robot runs a movable 0.8-core component; a robot-only 0.5-core one then asks for room.
+    config = {"resources": {"cpu": 1.0}, "threshold": 10.0, "offloading": "robot"}
+    either = skill_config(location="either", count=1, cpu=0.8)
+    either["components"]["worker-1"] = {**either["components"]["worker-0"], "name": "Pinned", "location": "robot"}
+    either["components"]["worker-1"]["resources"] = {"cpu": 0.5, "ram": 16}
+    del either["components"]["worker-1"]["cloud"]
+    token, _ = await make_robot("ctl-6", config=config, skill=either)
+    settings = agent_settings(cloud, "ctl-6", token, tmp_path / "agent")
+    settings.simulated = SimulatedRobot(cpu=1.0, ram=4096, seed=2)
+    controller = RobotController(settings)
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(either), starting=["worker-0"])
+        assert record.locations["worker-0"] == "robot"
+        where = await controller.place_component(record, "worker-1")
+        assert where == "robot"
+        assert record.locations == {"worker-0": "cloud", "worker-1": "robot"}
+        assert set(running_workers(controller)) == {"worker-1"}
+        assert record.statuses["worker-1"] == CS.RUNNING
+
+
+def test_run_with_a_wrong_token_exits_with_a_clear_message(daphne_server, tmp_path):
+    result = subprocess.run(
+        [
+            str(BIN / "bridgeos-agent"),
+            "run",
+            "--master",
+            daphne_server.ws_url,
+            "--robot",
+            "nobody",
+            "--token",
+            "brt_wrong",
+            "--data-dir",
+            str(tmp_path / "agent"),
+            "--simulate",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 3, result.stderr
+    assert "refused this robot" in result.stderr and "--token" in result.stderr
+
+
+def test_doctor_says_what_works_and_what_does_not(daphne_server, tmp_path):
+    _, token = create_robot("doc-1", _owner("doctor-owner"))
+    result = subprocess.run(
+        [str(BIN / "bridgeos-agent"), "doctor", "--master", daphne_server.ws_url, "--robot", "doc-1", "--token", token],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "ok    cloud reachable" in result.stdout
+    assert "ok    robot doc-1 is accepted" in result.stdout
+    wrong = subprocess.run(
+        [str(BIN / "bridgeos-agent"), "doctor", "--master", "ws://127.0.0.1:9", "--robot", "doc-1", "--token", "x"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert wrong.returncode == 1
+    assert "FAIL  cannot reach the cloud at ws://127.0.0.1:9" in wrong.stdout
+
+
+def _owner(name: str):
+    from django.contrib.auth import get_user_model
+
+    return get_user_model().objects.create_user(name)
+
+
+def test_the_agent_exits_cleanly_on_sigterm(daphne_server, tmp_path):
+    _, token = create_robot("sig-1", _owner("sig-owner"))
+    process = subprocess.Popen(
+        [
+            str(BIN / "bridgeos-agent"),
+            "run",
+            "--master",
+            daphne_server.ws_url,
+            "--robot",
+            "sig-1",
+            "--token",
+            token,
+            "--data-dir",
+            str(tmp_path / "agent"),
+            "--simulate",
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 30
+    while not Robot.objects.get(id="sig-1").connected:
+        assert time.monotonic() < deadline and process.poll() is None, "the agent did not connect"
+        time.sleep(0.1)
+    process.terminate()
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 0, err
+    assert "connected to the cloud" in err and "stopped" in err
+    assert sys.executable  # the agent ran from this venv's console script
