@@ -211,8 +211,9 @@ def main() -> int:
             f"(thesis {THESIS['parallel_init_s'][0]} +- {THESIS['parallel_init_s'][1]} s)"
         )
         goal = GOALS[runtime]
+        asked = args.max_process if runtime == "process" else args.max_docker
         print(
-            f"  {runtime:7s} skills running at once: {r['max']} (asked {args.max_process if runtime == 'process' else args.max_docker}, "
+            f"  {runtime:7s} skills running at once: {r['max']} (asked {asked}, "
             f"goal {goal}; thesis 110 at startup, 150 sequential), all up in {r['max_wall']:.1f} s; "
             f"agent memory per extra skill {r['mb_per_skill']:.3f} MB (goal <=2 MB; thesis ~66 MB)"
         )
