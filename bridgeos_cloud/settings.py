@@ -214,6 +214,8 @@ BRIDGEOS = {
     "API_TOKEN_TTL_S": env_float("BRIDGEOS_API_TOKEN_TTL_S", 24 * 3600.0),
     # How long a client's command waits for the robot's reply.
     "COMMAND_WAIT_S": env_float("BRIDGEOS_COMMAND_WAIT_S", 5.0),
+    # A ROS master the cloud runs for robots that have none (ws://... not; http://HOST:11311).
+    "CLOUD_ROS_MASTER": env_str("BRIDGEOS_CLOUD_ROS_MASTER", ""),
     # Robot state JSON kept per server process; every read revalidates it against the database.
     "STATE_CACHE_BYTES": env_int("BRIDGEOS_STATE_CACHE_BYTES", 64 * 1024 * 1024),
 }

@@ -119,11 +119,18 @@ class RobotConsumer(ProtocolConsumer):
             return False
         self.robot_id = robot.id
         self.dedup.load(await applied_ids().load(robot.id))
-        connected = await database_sync_to_async(services.mark_connected)(robot.id, self.channel_name)
+        connected = await database_sync_to_async(services.mark_connected)(
+            robot.id, self.channel_name, credentials.ros_master
+        )
         if connected["replaced_channel"]:
             await self.channel_layer.send(connected["replaced_channel"], {"type": "robot.replaced"})
         await self.send_envelope(
-            protocol.make(Event.AUTHENTICATION_SUCCESS, {"robot": robot.id}, reply_to=envelope.id, now=time.time())
+            protocol.make(
+                Event.AUTHENTICATION_SUCCESS,
+                {"robot": robot.id, "ros_master": connected["ros_master"]},
+                reply_to=envelope.id,
+                now=time.time(),
+            )
         )
         await self.send_reliably(protocol.make(Event.CONNECTION_ESTABLISHED, {"robot": robot.id}, now=time.time()))
         await self.send_reliably(protocol.make(Event.ROBOT_CONFIG, {"config": connected["config"]}, now=time.time()))

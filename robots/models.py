@@ -45,6 +45,8 @@ class Robot(models.Model):
     last_seen = models.DateTimeField(null=True, blank=True)
     # The consumer holding the live connection; commands go there, and only it may mark the robot offline.
     channel = models.CharField(max_length=200, blank=True, editable=False)
+    # The ROS master the robot's components use: the one it reported, or one the cloud runs.
+    ros_master = models.CharField(max_length=2048, blank=True, editable=False)
     config = models.JSONField(
         default=default_robot_config, help_text="Resources, heuristic, threshold, offloading mode, subnets."
     )

@@ -84,18 +84,20 @@ def authenticate_robot(robot_id: str, token: str) -> Robot | None:
     return robot if robot.check_token(token) else None
 
 
-def mark_connected(robot_id: str, channel: str) -> dict[str, Any]:
-    """Record that a robot connected on a channel and return the config to send it."""
+def mark_connected(robot_id: str, channel: str, ros_master: str | None = None) -> dict[str, Any]:
+    """Record that a robot connected on a channel; return its config and the ROS master to use."""
     now = timezone.now()
+    # A robot without a ROS master of its own gets the cloud's, when the cloud runs one.
+    master = ros_master or settings.BRIDGEOS["CLOUD_ROS_MASTER"] or ""
     with transaction.atomic():
         robot = Robot.objects.select_for_update().get(id=robot_id)
         replaced = robot.channel if robot.connected and robot.channel != channel else ""
         Robot.objects.filter(id=robot_id).update(
-            connected=True, channel=channel, last_seen=now, status=RobotStatus.RUNNING
+            connected=True, channel=channel, last_seen=now, status=RobotStatus.RUNNING, ros_master=master
         )
         record_event(f"Robot {robot_id} connected", robot_id=robot_id, kind=Event.CONNECTION_ESTABLISHED)
         publish_on_commit(robot_id, connection_frame(Event.CONNECTION_ESTABLISHED, robot_id))
-    return {"config": robot.config, "replaced_channel": replaced}
+    return {"config": robot.config, "replaced_channel": replaced, "ros_master": master or None}
 
 
 def mark_disconnected(robot_id: str, channel: str, reason: str) -> bool:
@@ -295,7 +297,9 @@ def fleet_state(robots: QuerySet[Robot]) -> list[dict[str, Any]]:
     from skills.models import Component, Skill
 
     robot_rows = list(
-        robots.order_by("id").values("id", "name", "owner__username", "status", "connected", "last_seen", "config")
+        robots.order_by("id").values(
+            "id", "name", "owner__username", "status", "connected", "last_seen", "ros_master", "config"
+        )
     )
     skill_rows = Skill.objects.filter(robot__in=robots).order_by("robot_id", "skill_id")
     component_rows = Component.objects.filter(skill__robot__in=robots).order_by("skill_id", "component_id")
@@ -334,7 +338,7 @@ ROBOTS_JSON_SQL = f"""
 SELECT ro.id, {ROBOT_VERSION_SQL}, row_to_json(r)::text
 FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
 CROSS JOIN LATERAL (
-  SELECT ro.id, ro.name, u.username AS owner, ro.status, ro.connected, ro.last_seen, ro.config,
+  SELECT ro.id, ro.name, u.username AS owner, ro.status, ro.connected, ro.last_seen, ro.ros_master, ro.config,
     coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
       SELECT sk.skill_id, sk.name, sk.status, sk.updated_at,
         coalesce((SELECT json_agg(c ORDER BY c.component_id) FROM (

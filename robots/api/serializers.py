@@ -27,7 +27,7 @@ class RobotSerializer(serializers.ModelSerializer):
 
     class Meta:
         model = Robot
-        fields = ["id", "name", "owner", "status", "connected", "last_seen", "config", "skills"]
+        fields = ["id", "name", "owner", "status", "connected", "last_seen", "ros_master", "config", "skills"]
         read_only_fields = fields
 
 

@@ -39,6 +39,7 @@ class Cloud:
         self.port = free_port()
         self.log = log
         self.process: subprocess.Popen | None = None
+        self.env: dict[str, str] = {}
 
     @property
     def url(self) -> str:
@@ -54,7 +55,7 @@ class Cloud:
             self.process = subprocess.Popen(
                 [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(self.port)],
                 cwd=ROOT,
-                env={**env, "VIRTUAL_ENV": str(BIN.parent)},
+                env={**env, "VIRTUAL_ENV": str(BIN.parent), **self.env},
                 stdout=out,
                 stderr=subprocess.STDOUT,
             )
@@ -331,6 +332,35 @@ async def test_a_component_that_does_not_fit_moves_a_movable_one_to_the_cloud(cl
         assert record.locations == {"worker-0": "cloud", "worker-1": "robot"}
         assert set(running_workers(controller)) == {"worker-1"}
         assert record.statuses["worker-1"] == CS.RUNNING
+
+
+async def test_the_robot_reports_its_ros_master_or_gets_the_clouds(cloud, tmp_path):
+    token, _ = await make_robot("ros-1")
+    controller = RobotController(agent_settings(cloud, "ros-1", token, tmp_path / "one"))
+    async with running(controller):
+        await asyncio.wait_for(controller.connected.wait(), 15)
+        # make test starts a roscore on the default port.
+        assert controller.local_ros_master == controller.ros_master == "http://127.0.0.1:11311"
+        robot = await sync_to_async(Robot.objects.get)(id="ros-1")
+        assert robot.ros_master == "http://127.0.0.1:11311"
+    cloud.stop()
+    cloud.env["BRIDGEOS_CLOUD_ROS_MASTER"] = "http://10.9.0.1:11311"
+    cloud.start()
+    token, _ = await make_robot("ros-2")
+    settings = agent_settings(cloud, "ros-2", token, tmp_path / "two", detect_ros_master=False)
+    controller = RobotController(settings)
+    async with running(controller):
+        await asyncio.wait_for(controller.connected.wait(), 15)
+        assert controller.local_ros_master is None
+        assert controller.ros_master == "http://10.9.0.1:11311"
+        spec = controller.component_spec(controller.skills.setdefault(SKILL, _record(skill_config())), "worker-0")
+        assert spec.env["ROS_MASTER_URI"] == "http://10.9.0.1:11311"
+
+
+def _record(config: dict):
+    from bridgeos_agent.controller import SkillRecord
+
+    return SkillRecord(config=parse_skill_config(config))
 
 
 def test_run_with_a_wrong_token_exits_with_a_clear_message(daphne_server, tmp_path):

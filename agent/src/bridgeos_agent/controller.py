@@ -79,6 +79,7 @@ class AgentSettings:
     reconnect_initial: float = 1.0
     reconnect_max: float = 30.0
     runtime_options: dict[str, Any] = field(default_factory=dict)
+    detect_ros_master: bool = True
     simulated: SimulatedRobot | None = None
 
 
@@ -130,7 +131,8 @@ class RobotController:
         self.config: RobotConfig | None = None
         self.config_from_cloud = asyncio.Event()
         self.skills: dict[str, SkillRecord] = {}
-        self.ros_master: str | None = None
+        self.ros_master: str | None = None  # the master components use
+        self.local_ros_master: str | None = None  # the master found on the robot, if any
         self.connected = asyncio.Event()
         self.stopped = asyncio.Event()
         self.exit_code = 0
@@ -161,8 +163,9 @@ class RobotController:
     async def run(self) -> int:
         """Run until stopped (signal, shutdown command or a refused token); return the exit code."""
         await self._restore()
-        self.ros_master = await asyncio.to_thread(find_ros_master)
-        self.say(f"ROS master: {self.ros_master or 'none found; asking the cloud for one'}")
+        if self.settings.detect_ros_master:
+            self.local_ros_master = self.ros_master = await asyncio.to_thread(find_ros_master)
+        self.say(f"ROS master: {self.ros_master or 'none found here; asking the cloud for one'}")
         loop = asyncio.get_running_loop()
         self._cloud_monitor = CloudMonitor(self._lost_after(), time.monotonic())
         for coroutine, name in (
@@ -289,12 +292,17 @@ class RobotController:
                 self._on_disconnect()
 
     async def _session(self, ws: Any) -> None:
-        credentials: dict[str, Any] = {"robot": self.settings.robot, "token": self.settings.token}
+        credentials: dict[str, Any] = {
+            "robot": self.settings.robot,
+            "token": self.settings.token,
+            "ros_master": self.local_ros_master,
+        }
         await ws.send(protocol.encode(protocol.make(Event.AUTHENTICATION_ROBOT, credentials, now=time.time())))
         answer = protocol.decode(await asyncio.wait_for(ws.recv(), 10), direction=protocol.Direction.CLOUD_TO_ROBOT)
         if answer.event != Event.AUTHENTICATION_SUCCESS:
             reason = getattr(protocol.parse_payload(answer), "reason", answer.event)
             raise AuthenticationRefused(reason)
+        self._use_ros_master(protocol.parse_payload(answer).ros_master)
         self.ws = ws
         self.connected.set()
         self.say("connected to the cloud")
@@ -309,6 +317,14 @@ class RobotController:
                 await self._send_direct(protocol.error_frame(exc, now=time.time()))
                 continue
             self._receive(envelope)
+
+    def _use_ros_master(self, offered: str | None) -> None:
+        """Take the ROS master the cloud named for this robot (ours, or one it runs)."""
+        if offered and offered != self.ros_master:
+            self.ros_master = offered
+            self.say(f"ROS master: using {offered} from the cloud")
+        elif not offered and not self.ros_master:
+            self.say("no ROS master here and none from the cloud: ROS routing is off until one is available")
 
     def _on_disconnect(self) -> None:
         if self.ws is not None:

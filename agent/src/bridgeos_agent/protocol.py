@@ -262,10 +262,11 @@ class AuthenticationClient(Payload):
 
 
 class AuthenticationRobot(Payload):
-    """Authenticate a robot with its id and token."""
+    """Authenticate a robot with its id and token, saying which ROS master it found (None: none)."""
 
     robot: Slug
     token: Token
+    ros_master: Url | None = None
 
 
 class AuthenticationSuccess(Payload):
@@ -274,6 +275,8 @@ class AuthenticationSuccess(Payload):
     robot: Slug | None = None
     user: UserName | None = None
     session: SessionId | None = None
+    # For a robot: the ROS master its components should use (its own, or one the cloud runs).
+    ros_master: Url | None = None
 
 
 class AuthenticationFailure(Payload):
