@@ -42,12 +42,16 @@ for _ in $(seq 1 100); do
   if $PY -c "import urllib.request; urllib.request.urlopen('http://$HOST:$PORT/api/health', timeout=1)" 2>/dev/null; then break; fi
   sleep 0.1
 done
+.venv/bin/python scripts/demo_fleet.py &
+pids+=($!)
+
 cat <<MSG
 
   bridgeOS Cloud is running.
     Dashboard: http://$HOST:$PORT/
     Admin:     http://$HOST:$PORT/admin/
     API docs:  http://$HOST:$PORT/api/docs/
+    Demo fleet: ${BRIDGEOS_DEMO_ROBOTS:-3} simulated robots (BRIDGEOS_DEMO_ROBOTS=0 for none)
     $login
   Press Ctrl-C to stop.
 

@@ -41,6 +41,7 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
         simulate=args.simulate,
         simulated=simulated,
         sample_interval=args.sample_interval,
+        stop_components_on_exit=args.stop_components_on_exit,
     )
 
 

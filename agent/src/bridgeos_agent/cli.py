@@ -170,6 +170,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="seconds between resource samples (default 1)",
     )
+    run.add_argument(
+        "--stop-components-on-exit",
+        action="store_true",
+        help="stop the robot's components when the agent stops (default: keep them for the next agent)",
+    )
     run.add_argument("-q", "--quiet", action="store_true", help="print warnings and errors only")
     run.set_defaults(run_parser=run)
 

@@ -80,6 +80,7 @@ class AgentSettings:
     reconnect_max: float = 30.0
     runtime_options: dict[str, Any] = field(default_factory=dict)
     detect_ros_master: bool = True
+    stop_components_on_exit: bool = False
     simulated: SimulatedRobot | None = None
 
 
@@ -197,8 +198,8 @@ class RobotController:
             if record.supervisor is not None:
                 await record.supervisor.close()
         self._save_now()
-        # Components keep running across an agent restart; the next agent re-adopts them.
-        await self.runtime.close(stop_components=False)
+        # By default components keep running across an agent restart; the next agent re-adopts them.
+        await self.runtime.close(stop_components=self.settings.stop_components_on_exit)
         if self.ws is not None:
             with contextlib.suppress(Exception):
                 await self.ws.close()

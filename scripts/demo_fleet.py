@@ -1,0 +1,88 @@
+"""`make run`'s demo fleet: simulated robots running the real agent, each with the demo Skill started."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = ROOT / ".venv" / "bin"
+
+
+def main() -> int:
+    count = int(os.environ.get("BRIDGEOS_DEMO_ROBOTS", "3"))
+    host, port = os.environ.get("BRIDGEOS_HOST", "127.0.0.1"), os.environ.get("BRIDGEOS_PORT", "8000")
+    owner = os.environ.get("DJANGO_SUPERUSER_USERNAME", "operator")
+    if count <= 0:
+        return 0
+    fleet = json.loads(
+        subprocess.run(
+            [str(BIN / "python"), "manage.py", "demo_fleet", "--count", str(count), "--owner", owner],
+            cwd=ROOT,
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout
+    )
+    data_root = Path(os.environ.get("BRIDGEOS_DATA_DIR", ROOT / ".data")) / "agents"
+    data_root.mkdir(parents=True, exist_ok=True)
+    agents = []
+    for robot in fleet["robots"]:
+        log = (data_root / f"{robot['id']}.log").open("ab")
+        env = {**os.environ, "BRIDGEOS_TOKEN": robot["token"]}  # through the env: not visible in `ps`
+        agents.append(
+            subprocess.Popen(
+                [
+                    str(BIN / "bridgeos-agent"),
+                    "run",
+                    "--master",
+                    f"ws://{host}:{port}",
+                    "--robot",
+                    robot["id"],
+                    "--data-dir",
+                    str(data_root / robot["id"]),
+                    "--simulate",
+                    "--sim-cpu",
+                    "2",
+                    "--sim-ram",
+                    "2048",
+                    "--stop-components-on-exit",
+                ],
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        )
+    print(f"== demo fleet: {len(agents)} simulated robots (logs in {data_root})", flush=True)
+    headers = {"Authorization": f"Token {fleet['api_token']}"}
+    for robot in fleet["robots"]:
+        url = f"http://{host}:{port}/api/robot/{robot['id']}/skill/{robot['skill']}/start?wait=10"
+        for _ in range(60):
+            try:
+                urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers), timeout=15)
+                break
+            except OSError:
+                time.sleep(0.5)  # the agent is still connecting (409) or the cloud still starting
+    signal.signal(signal.SIGTERM, lambda *_: stop(agents))
+    signal.signal(signal.SIGINT, lambda *_: stop(agents))
+    for agent in agents:
+        agent.wait()
+    return 0
+
+
+def stop(agents: list[subprocess.Popen]) -> None:
+    for agent in agents:
+        agent.terminate()
+    for agent in agents:
+        agent.wait(timeout=30)
+    sys.exit(0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
