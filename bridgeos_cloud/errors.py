@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+from django.conf import settings
+from django.core.exceptions import RequestDataTooBig
+from rest_framework.response import Response
+from rest_framework.views import exception_handler
+
 
 class NotFound(LookupError):
     """A robot, skill or component named in a request does not exist (or is not yours)."""
@@ -10,3 +17,11 @@ class NotFound(LookupError):
         super().__init__(message)
         self.message = message
         self.field = field
+
+
+def api_exception_handler(exc: Exception, context: dict[str, Any]) -> Response | None:
+    """Answer DRF's way, and an oversize body with 413 rather than Django's generic 400."""
+    if isinstance(exc, RequestDataTooBig):
+        limit = settings.DATA_UPLOAD_MAX_MEMORY_SIZE
+        return Response({"detail": f"Request body too large: the limit is {limit} bytes."}, status=413)
+    return exception_handler(exc, context)

@@ -507,7 +507,8 @@ def test_a_body_over_a_mebibyte_is_refused_and_nothing_written(daphne_server):
     with client(daphne_server, staff) as http:
         refused = http.post("/api/templates", json=huge)
         accepted = http.post("/api/templates", json=just_under)
-    assert 400 <= refused.status_code < 500, refused.status_code
+    assert refused.status_code == 413, refused.status_code
+    assert "limit is 1048576 bytes" in refused.json()["detail"]
     assert accepted.status_code == 201
     assert list(SkillTemplate.objects.values_list("name", flat=True)) == ["Just under"]
 
