@@ -122,3 +122,17 @@ async def test_a_crashing_plugin_restarts_with_backoff_then_gives_up():
         supervisor.start("manager", steady)
     await supervisor.close()
     assert not supervisor.running("manager")
+
+
+def test_the_real_machine_is_read_per_interface():
+    from bridgeos_agent.monitor import SystemRobot
+
+    robot = SystemRobot(cpu=2, ram=1024)
+    robot.sample(time.time(), {}, (0.0, 0.0))
+    time.sleep(0.05)
+    sample = robot.sample(time.time(), {"cpu": 0.5}, (10.0, 20.0))
+    assert 0 <= sample.values["cpu"] <= 100 and 0 < sample.values["ram"] < 100
+    assert sample.values["net_cloud_rx"] == 10.0 and sample.values["net_cloud_tx"] == 20.0
+    assert all(v >= 0 for k, v in sample.values.items() if k.startswith(("net_rx:", "net_tx:")))
+    assert not any(k.endswith(":lo") for k in sample.values)
+    assert sample.free["cpu"] <= 2 - 0.5

@@ -7,7 +7,8 @@ sent when it changed significantly since it was last sent, and at least every
 Robot metric names (the dashboard and the Skill Managers read these):
 ``cpu`` %, ``ram`` %, ``ram_used`` MiB, ``bandwidth`` Mbit/s in+out, ``net_rx``/``net_tx``
 bytes/s, ``net_cloud_rx``/``net_cloud_tx`` bytes/s exchanged with the cloud,
-``io_read``/``io_write`` bytes/s, ``battery`` %, ``bandwidth_available`` Mbit/s.
+``io_read``/``io_write`` bytes/s, ``battery`` %, ``bandwidth_available`` Mbit/s, and per
+network interface ``net_rx:IFACE``/``net_tx:IFACE`` bytes/s (loopback left out).
 Per component (with ``skill`` and ``component``): ``cpu`` % of one core, ``ram`` MiB.
 """
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import math
 import random
+import re
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -24,6 +26,8 @@ import psutil
 __all__ = ["Reporter", "ResourceMonitor", "Sample", "SimulatedRobot", "SystemRobot"]
 
 RESOURCES = ("cpu", "gpu", "ram", "bandwidth", "io")
+# Interface names that fit a metric name (veth pairs such as "veth1@if5" are left out).
+_NIC = re.compile(r"[A-Za-z0-9_.:-]{1,64}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,6 +115,7 @@ class SystemRobot:
     io: float = 100.0
     gpu: int = 0
     _net: tuple[float, int, int] | None = field(init=False, default=None)
+    _nics: dict[str, tuple[float, int, int]] = field(init=False, default_factory=dict)
     _disk: tuple[float, int, int] | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
@@ -120,8 +125,11 @@ class SystemRobot:
         """Return a reading of the machine; ``used`` is what the running components reserved."""
         cpu_pct = psutil.cpu_percent(None)
         memory = psutil.virtual_memory()
-        net = psutil.net_io_counters()
-        rx_rate, tx_rate = self._rates("_net", now, net.bytes_recv, net.bytes_sent)
+        # Loopback is not the robot's network: leave it out of the totals.
+        nics = {nic: c for nic, c in psutil.net_io_counters(pernic=True).items() if nic != "lo"}
+        received = sum(c.bytes_recv for c in nics.values())
+        sent = sum(c.bytes_sent for c in nics.values())
+        rx_rate, tx_rate = self._rates("_net", now, received, sent)
         try:
             disk = psutil.disk_io_counters()
             read_rate, write_rate = self._rates("_disk", now, disk.read_bytes, disk.write_bytes) if disk else (0, 0)
@@ -141,6 +149,16 @@ class SystemRobot:
             "io_read": round(read_rate, 1),
             "io_write": round(write_rate, 1),
         }
+        for nic, counters in nics.items():
+            # Containers' veth ends mirror their bridge; per-container traffic is the runtime's.
+            if nic.startswith("veth") or not _NIC.fullmatch(nic):
+                continue
+            last = self._nics.get(nic)
+            self._nics[nic] = (now, counters.bytes_recv, counters.bytes_sent)
+            if last is not None and now > last[0]:
+                span = now - last[0]
+                values[f"net_rx:{nic}"] = round(max(0, counters.bytes_recv - last[1]) / span, 1)
+                values[f"net_tx:{nic}"] = round(max(0, counters.bytes_sent - last[2]) / span, 1)
         battery = _battery_percent()
         if battery is not None:
             values["battery"] = battery
