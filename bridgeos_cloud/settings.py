@@ -50,6 +50,7 @@ INSTALLED_APPS = [
     "robots.apps.RobotsConfig",
     "skills.apps.SkillsConfig",
     "monitoring.apps.MonitoringConfig",
+    "dashboard.apps.DashboardConfig",
 ]
 
 MIDDLEWARE = [

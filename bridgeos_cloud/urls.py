@@ -9,10 +9,8 @@ from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
 
 from . import views
 
-dashboard_patterns = ([path("", views.index, name="index")], "dashboard")
-
 urlpatterns = [
-    path("", include(dashboard_patterns)),
+    path("", include("dashboard.urls")),
     path("accounts/login/", auth_views.LoginView.as_view(), name="login"),
     path("accounts/logout/", auth_views.LogoutView.as_view(), name="logout"),
     path("admin/", admin.site.urls),

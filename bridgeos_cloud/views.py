@@ -1,33 +1,14 @@
-"""Site-wide views: the operator dashboard's entry page and the health check."""
+"""Site-wide views: the health check."""
 
 from __future__ import annotations
 
 from django.conf import settings
-from django.contrib.auth.decorators import login_required
 from django.db import connection
-from django.db.models import Count
-from django.http import HttpRequest, HttpResponse
-from django.shortcuts import render
 from drf_spectacular.utils import OpenApiResponse, extend_schema
 from rest_framework.decorators import api_view, permission_classes
 from rest_framework.permissions import AllowAny
 from rest_framework.request import Request
 from rest_framework.response import Response
-
-from robots.models import Robot
-
-
-def visible_robots(user):
-    """Return the robots a user may see: their own, or all for staff."""
-    robots = Robot.objects.all()
-    return robots if user.is_staff else robots.filter(owner=user)
-
-
-@login_required
-def index(request: HttpRequest) -> HttpResponse:
-    """Show the fleet the user may see."""
-    robots = visible_robots(request.user).annotate(skill_count=Count("skills")).order_by("id")
-    return render(request, "dashboard/index.html", {"robots": robots})
 
 
 @extend_schema(

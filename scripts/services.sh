@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure the real services bridgeOS runs and tests against are up.
 #
-#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium
 #   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
 #
 # Idempotent: a part already up is left alone. Missing software is installed with apt
@@ -11,7 +11,9 @@
 set -euo pipefail
 
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-ALL_PARTS=(postgres redis docker swarm ros images)
+ALL_PARTS=(postgres redis docker swarm ros images chromium)
+# The dashboard's browser tests drive Debian's Chromium through Playwright (never Playwright's download).
+CHROMIUM=/usr/bin/chromium
 ROS_PACKAGES=(ros-core python3-rospy python3-rostopic python3-std-msgs python3-sensor-msgs
               python3-geometry-msgs python3-nav-msgs)
 DOCKERD_LOG=/var/log/bridgeos-dockerd.log
@@ -73,6 +75,7 @@ INSTALLED=" "
 wants docker && ! have dockerd && APT_NEEDED+=(docker.io)
 wants images && ! have debootstrap && APT_NEEDED+=(debootstrap)
 wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
+wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
 if ((${#APT_NEEDED[@]})); then
     t=$(now)
     if is_root && have apt-get; then
@@ -207,6 +210,17 @@ part_images() {
     else
         missing images "$t" "docker/build-images.sh failed (see its output above)"
     fi
+}
+
+part_chromium() {
+    local t; t=$(now)
+    if [[ ! -x $CHROMIUM ]]; then
+        missing chromium "$t" "$CHROMIUM not installed (browser tests will skip): sudo apt-get install chromium"; return
+    fi
+    local did="present"
+    [[ $INSTALLED == *" chromium "* ]] && did="installed"
+    # Debian's wrapper script prints a shell warning before the version on some systems; keep the version line.
+    report chromium "$t" "$did: $("$CHROMIUM" --version 2>/dev/null | grep -m1 -i chromium || echo "version unknown")"
 }
 
 for part in "${ALL_PARTS[@]}"; do

@@ -1,0 +1,166 @@
+"""What the dashboard's pages read: lean summaries of the fleet, built in a few queries."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable
+from datetime import datetime, timedelta
+from typing import Any
+
+from django.contrib.auth.models import AbstractBaseUser
+from django.db import connection
+from django.db.models import QuerySet
+from django.db.models.fields.json import KT
+from django.utils import timezone
+from pydantic import BaseModel
+from pydantic import ValidationError as PydanticValidationError
+
+from bridgeos_agent.errors import field_errors
+from bridgeos_agent.robotconfig import parse_robot_config, robot_config_json_schema
+from bridgeos_agent.skillconfig import parse_skill_config
+from monitoring.models import Metric
+from robots.models import Robot
+from robots.services import fleet_state_json, visible_robots
+from skills.models import Component, Skill, SkillTemplate
+
+# Robot-wide series the fleet overview shows (points with no skill and no component):
+# cpu, ram and battery in percent, bandwidth in Mbit/s. The robot page charts every series.
+ROBOT_METRICS = ("cpu", "ram", "bandwidth", "battery")
+# Older values are not "live" any more; the overview shows a dash instead.
+LATEST_METRIC_MAX_AGE = timedelta(hours=1)
+
+CONFIG_PARSERS: dict[str, Callable[[Any], BaseModel]] = {"skill": parse_skill_config, "robot": parse_robot_config}
+
+LATEST_SQL = """
+SELECT r.id, n.name, m.value, extract(epoch FROM m.ts)
+FROM unnest(%s::text[]) AS r(id)
+CROSS JOIN unnest(%s::text[]) AS n(name)
+CROSS JOIN LATERAL (
+  SELECT value, ts FROM monitoring_metric
+  WHERE robot_id = r.id AND name = n.name AND skill = '' AND component = '' AND ts >= %s
+  ORDER BY ts DESC LIMIT 1
+) m
+"""
+
+
+def fleet_summary(user: AbstractBaseUser) -> list[dict[str, Any]]:
+    """Return the robots a user may see, each with its skills' components and latest robot metrics."""
+    robots = visible_robots(user)
+    rows = list(
+        robots.order_by("id")
+        .annotate(offloading=KT("config__offloading"))
+        .values("id", "name", "status", "connected", "last_seen", "offloading")
+    )
+    skills: dict[str, list[dict[str, Any]]] = {}
+    by_pk: dict[int, dict[str, Any]] = {}
+    for pk, robot_id, skill_id, status in (
+        Skill.objects.filter(robot__in=robots)
+        .order_by("robot_id", "skill_id")
+        .values_list("pk", "robot_id", "skill_id", "status")
+    ):
+        skill = {"skill_id": skill_id, "status": status, "components": []}
+        by_pk[pk] = skill
+        skills.setdefault(robot_id, []).append(skill)
+    for skill_pk, component_id, location, active_location, status in (
+        Component.objects.filter(skill__robot__in=robots)
+        .order_by("skill_id", "component_id")
+        .values_list("skill_id", "component_id", "location", "active_location", "status")
+    ):
+        by_pk[skill_pk]["components"].append(
+            {"component_id": component_id, "location": location, "active_location": active_location, "status": status}
+        )
+    metrics = latest_robot_metrics([row["id"] for row in rows], ROBOT_METRICS)
+    for row in rows:
+        row["skills"] = skills.get(row["id"], [])
+        row["metrics"] = metrics.get(row["id"], {})
+    return rows
+
+
+def latest_robot_metrics(
+    robot_ids: list[str], names: Iterable[str], *, now: datetime | None = None
+) -> dict[str, dict[str, list[float]]]:
+    """Return the latest robot-wide value of each named series: {robot: {name: [value, ts]}}."""
+    names = list(names)
+    if not robot_ids or not names:
+        return {}
+    since = (now or timezone.now()) - LATEST_METRIC_MAX_AGE
+    latest: dict[str, dict[str, list[float]]] = {}
+    if connection.vendor == "postgresql":
+        # One index probe per (robot, name) on metric_robot_name_ts, however long the history.
+        with connection.cursor() as cursor:
+            cursor.execute(LATEST_SQL, [robot_ids, names, since])
+            for robot_id, name, value, ts in cursor.fetchall():
+                latest.setdefault(robot_id, {})[name] = [value, float(ts)]
+        return latest
+    points = Metric.objects.filter(robot_id__in=robot_ids, name__in=names, skill="", component="", ts__gte=since)
+    for robot_id, name, value, ts in points.order_by("-ts").values_list("robot_id", "name", "value", "ts")[:100_000]:
+        latest.setdefault(robot_id, {}).setdefault(name, [value, ts.timestamp()])
+    return latest
+
+
+def robot_state(user: AbstractBaseUser, robot_id: str) -> dict[str, Any] | None:
+    """Return one of the user's robots as the Robot API renders it, components named from their config."""
+    found = json.loads(fleet_state_json(visible_robots(user).filter(id=robot_id)))
+    if not found:
+        return None
+    state = found[0]
+    configs = dict(Skill.objects.filter(robot_id=robot_id).values_list("skill_id", "config"))
+    for skill in state["skills"]:
+        components = configs.get(skill["skill_id"], {}).get("components", {})
+        for component in skill["components"]:
+            component["name"] = components.get(component["component_id"], {}).get("name", "")
+    return state
+
+
+def robot_choices(user: AbstractBaseUser) -> QuerySet[Robot]:
+    """Return the ids and names of the robots a user may pick in a form."""
+    return visible_robots(user).order_by("id").only("id", "name")
+
+
+def skill_and_component_ids(user: AbstractBaseUser) -> tuple[list[str], list[str]]:
+    """Return the distinct skill ids and component ids on the user's robots, for filter suggestions."""
+    robots = visible_robots(user)
+    skill_ids = Skill.objects.filter(robot__in=robots).values_list("skill_id", flat=True).distinct()
+    component_ids = Component.objects.filter(skill__robot__in=robots).values_list("component_id", flat=True).distinct()
+    return sorted(skill_ids), sorted(component_ids)
+
+
+def catalog() -> list[dict[str, Any]]:
+    """Return the Skill templates with the components each brings and where they may run."""
+    templates = []
+    for template in SkillTemplate.objects.order_by("name"):
+        components = [
+            {"component_id": cid, "name": c.get("name") or cid, "location": c.get("location", "robot")}
+            for cid, c in template.config.get("components", {}).items()
+        ]
+        templates.append(
+            {
+                "id": template.pk,
+                "name": template.name,
+                "description": template.description,
+                "tags": template.tags,
+                "skill_id": template.config.get("skill_id", ""),
+                "policy": template.config.get("manager", {}).get("policy", ""),
+                "components": components,
+            }
+        )
+    return templates
+
+
+def validate_config(kind: str, data: Any) -> tuple[dict[str, Any] | None, dict[str, list[str]]]:
+    """Check a Skill or robot config against the shared schema.
+
+    Return the normalised config and no errors, or None and the messages of every
+    offending field keyed by its dotted path (``components.detector.resources.cpu``).
+    """
+    try:
+        model = CONFIG_PARSERS[kind](data)
+    except PydanticValidationError as exc:
+        return None, field_errors(exc)
+    return model.model_dump(mode="json"), {}
+
+
+def robot_config_choices() -> dict[str, list[str]]:
+    """Return the allowed values of the robot config's enumerated fields, from the shared schema."""
+    properties = robot_config_json_schema()["properties"]
+    return {name: list(properties[name]["enum"]) for name in ("heuristic", "offloading")}

@@ -1,0 +1,157 @@
+// Live time-series charts on the vendored uPlot (window.uPlot, see static/vendor/README.md).
+//
+// Points land in fixed time buckets (the last value of a bucket wins) inside a bounded window,
+// so however fast metrics arrive a chart holds at most window/bucket points per series. A chart
+// redraws at most once per REDRAW_MS, and only while it is on screen.
+
+import { el, fmtNumber } from "./util.js";
+
+const REDRAW_MS = 1000;
+const clock = new Intl.DateTimeFormat(undefined, { hour: "2-digit", minute: "2-digit" });
+const PALETTE = ["#2563eb", "#db2777", "#059669", "#d97706", "#7c3aed", "#0891b2", "#dc2626", "#4d7c0f"];
+
+function cssVar(name, fallback) {
+  return getComputedStyle(document.documentElement).getPropertyValue(name).trim() || fallback;
+}
+
+const onScreen = new WeakMap(); // chart element -> bool
+const observer =
+  "IntersectionObserver" in window
+    ? new IntersectionObserver((entries) => {
+        for (const entry of entries) {
+          onScreen.set(entry.target, entry.isIntersecting);
+          if (entry.isIntersecting) entry.target.chart?.redrawSoon();
+        }
+      })
+    : null;
+
+export class TimeChart {
+  /**
+   * @param {HTMLElement} parent where the chart goes
+   * @param {{title: string, unit?: string, windowS?: number, bucketS?: number, min?: number, max?: number}} options
+   */
+  constructor(parent, { title, unit = "", windowS = 600, bucketS = 1, min = null, max = null }) {
+    this.title = title;
+    this.unit = unit;
+    this.windowS = windowS;
+    this.bucketS = bucketS;
+    this.min = min;
+    this.max = max;
+    this.series = new Map(); // label -> Map(bucket seconds -> value)
+    this.plot = null;
+    this.plotLabels = [];
+    this.lastDraw = 0;
+    this.timer = null;
+    this.plotNode = el("div", { class: "plot" });
+    this.emptyNode = el("p", { class: "empty" }, "Waiting for values…");
+    this.node = el(
+      "figure",
+      { class: "chart", role: "group", "aria-label": `${title}${unit ? ` (${unit})` : ""}, last ${windowS / 60} minutes` },
+      el("h3", {}, title, unit ? el("span", { class: "muted" }, ` · ${unit}`) : null),
+      this.emptyNode,
+      this.plotNode,
+    );
+    this.node.chart = this;
+    parent.append(this.node);
+    observer?.observe(this.node);
+    if ("ResizeObserver" in window) {
+      new ResizeObserver(() => this.resize()).observe(this.plotNode);
+    }
+  }
+
+  /** Add one point (seconds since the epoch) to a series; the chart redraws soon. */
+  add(label, ts, value, { bucketS = this.bucketS } = {}) {
+    let points = this.series.get(label);
+    if (!points) {
+      points = new Map();
+      this.series.set(label, points);
+    }
+    points.set(Math.floor(ts / bucketS) * bucketS, value);
+    this.redrawSoon();
+  }
+
+  redrawSoon() {
+    if (this.timer) return;
+    const wait = Math.max(0, REDRAW_MS - (performance.now() - this.lastDraw));
+    this.timer = setTimeout(() => {
+      this.timer = null;
+      if (observer && onScreen.get(this.node) === false) return;
+      requestAnimationFrame(() => this.draw());
+    }, wait);
+  }
+
+  /** Align every series on the union of their buckets within the window, dropping older points. */
+  data() {
+    const oldest = Date.now() / 1000 - this.windowS;
+    const xs = new Set();
+    for (const points of this.series.values()) {
+      for (const x of points.keys()) {
+        if (x < oldest) points.delete(x);
+        else xs.add(x);
+      }
+    }
+    const sorted = Float64Array.from(xs).sort();
+    const labels = [...this.series.keys()].sort();
+    const columns = labels.map((label) => {
+      const points = this.series.get(label);
+      return Array.from(sorted, (x) => (points.has(x) ? points.get(x) : null));
+    });
+    return { labels, data: [Array.from(sorted), ...columns] };
+  }
+
+  draw() {
+    this.lastDraw = performance.now();
+    const { labels, data } = this.data();
+    this.emptyNode.hidden = data[0].length > 0;
+    if (!data[0].length) {
+      this.emptyNode.textContent = `No values in the last ${this.windowS / 60} minutes.`;
+      return;
+    }
+    if (!this.plot || labels.join("\u0000") !== this.plotLabels.join("\u0000")) {
+      this.plot?.destroy();
+      this.plotLabels = labels;
+      this.plot = new window.uPlot(this.options(labels), data, this.plotNode);
+    } else {
+      this.plot.setData(data);
+    }
+  }
+
+  options(labels) {
+    const axis = { stroke: cssVar("--muted", "#667"), grid: { stroke: cssVar("--line", "#ddd"), width: 1 }, ticks: { show: false } };
+    const unit = this.unit;
+    return {
+      width: Math.max(200, this.plotNode.clientWidth),
+      height: 150,
+      cursor: { drag: { x: false, y: false } },
+      legend: { show: true },
+      scales: {
+        x: { time: true },
+        y: {
+          range: (u, dataMin, dataMax) => [
+            this.min ?? Math.min(0, dataMin ?? 0),
+            this.max !== null ? Math.max(this.max, dataMax ?? 0) : Math.max(1, (dataMax ?? 1) * 1.15),
+          ],
+        },
+      },
+      axes: [
+        { ...axis, values: (u, ticks) => ticks.map((t) => clock.format(new Date(t * 1000))) },
+        { ...axis, size: 46, values: (u, ticks) => ticks.map((v) => fmtNumber(v)) },
+      ],
+      series: [
+        {},
+        ...labels.map((label, i) => ({
+          label,
+          stroke: PALETTE[i % PALETTE.length],
+          width: 1.6,
+          spanGaps: true,
+          points: { show: false },
+          value: (u, v) => (v === null || v === undefined ? "—" : `${fmtNumber(v)}${unit === "%" ? "%" : unit ? ` ${unit}` : ""}`),
+        })),
+      ],
+    };
+  }
+
+  resize() {
+    if (this.plot) this.plot.setSize({ width: Math.max(200, this.plotNode.clientWidth), height: 150 });
+  }
+}

@@ -1,0 +1,535 @@
+// Robot page: skills and components with their commands, live charts, offloading decisions, config.
+
+import { api, get, post, seg } from "./api.js";
+import { TimeChart } from "./charts.js";
+import { clearErrors, configErrors, parseJson, showFormErrors } from "./forms.js";
+import { startLive } from "./live.js";
+import {
+  ROBOT_METRICS,
+  debounce,
+  el,
+  errorText,
+  fmtAgo,
+  fmtMetric,
+  fmtNumber,
+  fmtTime,
+  isoSeconds,
+  pageData,
+  setClass,
+  setText,
+  toast,
+} from "./util.js";
+
+const DECISION_METRIC = "offloading.decision";
+const HISTORY_S = 600;
+const HISTORY_BUCKET_S = 5;
+const COMMAND_WAIT_S = 5;
+const ADVANCED_KEYS = ["energy", "costs", "subnets"];
+
+let robot = pageData("robot-data");
+const robotId = robot.id;
+const base = `/api/robot/${seg(robotId)}`;
+const live = startLive();
+
+// --------------------------------------------------------------------------- header and tiles
+
+const connection = document.getElementById("robot-connection");
+const statusNode = document.getElementById("robot-status");
+const offloadingNode = document.getElementById("robot-offloading");
+const seenNode = document.getElementById("robot-seen");
+let lastSeen = isoSeconds(robot.last_seen);
+
+function renderHeader() {
+  setText(connection, robot.connected ? "online" : "offline");
+  setClass(connection, "online", robot.connected);
+  setClass(connection, "offline", !robot.connected);
+  setText(statusNode, robot.status);
+  setText(offloadingNode, robot.config?.offloading ?? "—");
+  setText(seenNode, robot.connected ? "connected" : lastSeen ? `${fmtAgo(lastSeen)} (${fmtTime(lastSeen)})` : "never");
+}
+
+const tiles = {};
+for (const [name, meta] of Object.entries(ROBOT_METRICS)) {
+  const big = el("div", { class: "big" }, "—");
+  const when = el("div", { class: "when" }, "no value yet");
+  document.getElementById("tiles").append(el("div", { class: "tile" }, el("div", { class: "label" }, meta.label), big, when));
+  tiles[name] = { big, when };
+}
+
+function updateTile(name, value, ts) {
+  const tile = tiles[name];
+  setText(tile.big, fmtMetric(name, value));
+  setText(tile.when, `at ${fmtTime(ts)}`);
+}
+
+for (const button of document.querySelectorAll("[data-robot-command]")) {
+  const verb = button.dataset.robotCommand;
+  button.addEventListener("click", () => command(button, `${base}/${verb}`, undefined, `${verb} the robot`));
+}
+
+// --------------------------------------------------------------------------- skills and components
+
+const skillsNode = document.getElementById("skills");
+const skillsEmpty = document.getElementById("skills-empty");
+const componentRows = new Map(); // "skill/component" -> {cells}
+const outcomes = new Map(); // "skill/component" -> {text, kind}
+
+const ALLOWED = { robot: "robot only", cloud: "cloud only", either: "robot or cloud" };
+
+function findComponent(skillId, componentId) {
+  const skill = robot.skills.find((s) => s.skill_id === skillId);
+  return skill?.components.find((c) => c.component_id === componentId);
+}
+
+/** Run one command through the API and say what came of it, in place and in a toast. */
+async function command(button, url, body, what, key) {
+  button.setAttribute("aria-busy", "true");
+  button.disabled = true;
+  const answer = await post(`${url}?wait=${COMMAND_WAIT_S}`, body);
+  button.removeAttribute("aria-busy");
+  button.disabled = false;
+  let text;
+  let kind;
+  if (answer.ok && answer.data?.accepted) {
+    [text, kind] = [`${what}: accepted by the robot`, "ok"];
+  } else if (answer.ok) {
+    [text, kind] = [`${what}: refused by the robot (${answer.data?.reply?.data?.message ?? "no reason"})`, "error"];
+  } else if (answer.status === 409) {
+    [text, kind] = [`${what}: the robot is offline`, "error"];
+  } else if (answer.status === 504) {
+    [text, kind] = [`${what}: the robot did not answer within ${COMMAND_WAIT_S} s`, "error"];
+  } else {
+    [text, kind] = [`${what}: ${errorText(answer.data, answer.status)}`, "error"];
+  }
+  toast(text, kind);
+  if (key) {
+    outcomes.set(key, { text, kind });
+    updateComponent(...key.split("/"));
+  }
+  return answer;
+}
+
+function badge(text, cls) {
+  return el("span", { class: `badge ${cls}` }, text);
+}
+
+function renderSkills() {
+  componentRows.clear();
+  skillsEmpty.hidden = robot.skills.length > 0;
+  skillsNode.replaceChildren(...robot.skills.map(renderSkill));
+}
+
+function renderSkill(skill) {
+  const sid = skill.skill_id;
+  const skillUrl = `${base}/skill/${seg(sid)}`;
+  const status = badge(skill.status, `status-${skill.status}`);
+  status.dataset.skillStatus = sid;
+  const start = el("button", { type: "button", class: "small", "aria-label": `Start skill ${sid}` }, "Start");
+  const stop = el("button", { type: "button", class: "small secondary", "aria-label": `Stop skill ${sid}` }, "Stop");
+  const remove = el("button", { type: "button", class: "small danger", "aria-label": `Remove skill ${sid}` }, "Remove");
+  start.addEventListener("click", () => command(start, `${skillUrl}/start`, undefined, `Start ${sid}`));
+  stop.addEventListener("click", () => command(stop, `${skillUrl}/stop`, undefined, `Stop ${sid}`));
+  remove.addEventListener("click", () => removeSkill(remove, sid));
+  const rows = skill.components.map((component) => renderComponent(sid, component));
+  return el(
+    "article",
+    { class: "skill", "aria-labelledby": `skill-${sid}`, dataset: { skill: sid } },
+    el(
+      "div",
+      { class: "skill-head" },
+      el("h3", { id: `skill-${sid}` }, skill.name || sid, el("code", {}, sid), status),
+      el("div", { class: "actions", role: "group", "aria-label": `Commands for skill ${sid}` }, start, stop, remove),
+    ),
+    el(
+      "div",
+      { class: "table-wrap flush" },
+      el(
+        "table",
+        { class: "components" },
+        el(
+          "thead",
+          {},
+          el(
+            "tr",
+            {},
+            ["Component", "May run", "Location", "Status", "Commands"].map((h) => el("th", { scope: "col" }, h)),
+          ),
+        ),
+        el("tbody", {}, rows),
+      ),
+    ),
+  );
+}
+
+function renderComponent(sid, component) {
+  const cid = component.component_id;
+  const key = `${sid}/${cid}`;
+  const url = `${base}/skill/${seg(sid)}/component/${seg(cid)}`;
+  const location = el("span", { class: "badge", dataset: { location: key } });
+  const status = el("span", { class: "badge", dataset: { status: key } });
+  const allowed = component.location;
+  const where = el(
+    "select",
+    { "aria-label": `Where to start ${cid}` },
+    ["robot", "cloud"].filter((side) => allowed === "either" || allowed === side).map((side) => el("option", { value: side }, side)),
+  );
+  const start = el("button", { type: "button", class: "small", "aria-label": `Start ${cid}` }, "Start");
+  const stop = el("button", { type: "button", class: "small secondary", "aria-label": `Stop ${cid}` }, "Stop");
+  const migrate = el("button", { type: "button", class: "small secondary", dataset: { migrate: key } }, "Migrate");
+  start.addEventListener("click", () => command(start, `${url}/start`, { location: where.value }, `Start ${cid}`, key));
+  stop.addEventListener("click", () => command(stop, `${url}/stop`, {}, `Stop ${cid}`, key));
+  migrate.addEventListener("click", async () => {
+    const answer = await command(migrate, `${url}/migrate`, {}, `Migrate ${cid}`, key);
+    if (answer.ok && answer.data?.accepted) {
+      outcomes.set(key, { text: "migrating…", kind: "" });
+      updateComponent(sid, cid);
+    }
+  });
+  const outcome = el("span", { class: "outcome", role: "status" });
+  const row = el(
+    "tr",
+    { dataset: { component: key } },
+    el("th", { scope: "row" }, el("span", {}, cid), el("span", { class: "sub" }, component.name ?? "")),
+    el("td", { dataset: { label: "May run" } }, ALLOWED[allowed] ?? allowed),
+    el("td", { dataset: { label: "Location" } }, location),
+    el("td", { dataset: { label: "Status" } }, status),
+    el(
+      "td",
+      { class: "commands" },
+      el("div", { class: "actions" }, el("span", { class: "start-at" }, start, where), stop, migrate),
+      outcome,
+    ),
+  );
+  componentRows.set(key, { location, status, migrate, outcome, where });
+  updateComponent(sid, cid);
+  return row;
+}
+
+function updateComponent(sid, cid) {
+  const key = `${sid}/${cid}`;
+  const cells = componentRows.get(key);
+  const component = findComponent(sid, cid);
+  if (!cells || !component) return;
+  const active = component.active_location || "";
+  setText(cells.location, active || "not placed");
+  cells.location.className = `badge loc-${active || "none"}`;
+  setText(cells.status, component.status);
+  cells.status.className = `badge status-${component.status}`;
+  const movable = component.location === "either" && Boolean(active);
+  cells.migrate.disabled = !movable;
+  setText(cells.migrate, movable ? `Migrate to ${active === "robot" ? "cloud" : "robot"}` : "Migrate");
+  cells.migrate.setAttribute("aria-label", `${cells.migrate.textContent.replace("Migrate", `Migrate ${cid}`)}`);
+  cells.migrate.title = component.location === "either" ? "" : `${cid} may only run on the ${component.location}`;
+  const outcome = outcomes.get(key);
+  setText(cells.outcome, outcome?.text ?? "");
+  cells.outcome.className = `outcome ${outcome?.kind ?? ""}`;
+}
+
+async function removeSkill(button, sid) {
+  button.disabled = true;
+  const answer = await post(`${base}/skill/remove`, { skill: sid });
+  button.disabled = false;
+  if (answer.status === 204) {
+    toast(`Removed skill ${sid}`, "ok");
+    robot.skills = robot.skills.filter((s) => s.skill_id !== sid);
+    renderSkills();
+  } else {
+    toast(`Remove ${sid}: ${errorText(answer.data, answer.status)}`, "error");
+  }
+}
+
+/** Reload the robot's state (after a reconnect, or when its skills changed under us). */
+const reload = debounce(async () => {
+  const answer = await get(`${base}/info`);
+  if (!answer.ok) return;
+  robot = { ...answer.data, skills: withNames(answer.data.skills) };
+  lastSeen = isoSeconds(robot.last_seen);
+  renderHeader();
+  renderSkills();
+}, 200);
+
+/** The Robot API's robot state has no component names; keep those the page knows. */
+function withNames(skills) {
+  const names = new Map();
+  for (const skill of robot.skills) for (const c of skill.components) names.set(`${skill.skill_id}/${c.component_id}`, c.name);
+  return skills.map((skill) => ({
+    ...skill,
+    components: skill.components.map((c) => ({ ...c, name: names.get(`${skill.skill_id}/${c.component_id}`) ?? "" })),
+  }));
+}
+
+// --------------------------------------------------------------------------- charts
+
+const robotCharts = new Map();
+const componentCharts = new Map();
+const componentChartsNode = document.getElementById("component-charts");
+const componentChartsEmpty = document.getElementById("component-charts-empty");
+
+for (const [name, meta] of Object.entries(ROBOT_METRICS)) {
+  robotCharts.set(
+    name,
+    new TimeChart(document.getElementById("robot-charts"), {
+      title: meta.label,
+      unit: meta.unit,
+      windowS: HISTORY_S,
+      max: meta.max,
+    }),
+  );
+}
+
+function componentChart(name) {
+  let chart = componentCharts.get(name);
+  if (!chart) {
+    chart = new TimeChart(componentChartsNode, { title: name, windowS: HISTORY_S });
+    componentCharts.set(name, chart);
+    componentChartsEmpty.hidden = true;
+  }
+  return chart;
+}
+
+const multiSkill = () => robot.skills.length > 1;
+
+function plot(point, options) {
+  if (point.name === DECISION_METRIC) return;
+  if (!point.skill && !point.component) {
+    const chart = robotCharts.get(point.name);
+    if (chart) chart.add("robot", point.ts, point.value, options);
+    return;
+  }
+  const label = multiSkill() || !point.component ? `${point.skill ?? "—"}/${point.component ?? "skill"}` : point.component;
+  componentChart(point.name).add(label, point.ts, point.value, options);
+}
+
+async function loadHistory() {
+  const until = new Date(Date.now() + 60_000);
+  const since = new Date(Date.now() - HISTORY_S * 1000);
+  const answer = await post("/api/database/query", {
+    robots: [robotId],
+    since: since.toISOString(),
+    until: until.toISOString(),
+    aggregate: "avg",
+    bucket: HISTORY_BUCKET_S,
+    limit: 10000,
+  });
+  if (!answer.ok) return;
+  const latest = {};
+  for (const row of answer.data.results) {
+    const point = { name: row.name, skill: row.skill || null, component: row.component || null, value: row.value, ts: isoSeconds(row.bucket) };
+    plot(point, { bucketS: HISTORY_BUCKET_S });
+    if (!point.skill && !point.component && point.name in tiles && !(point.name in latest)) latest[point.name] = point;
+  }
+  for (const point of Object.values(latest)) updateTile(point.name, point.value, point.ts);
+}
+
+// --------------------------------------------------------------------------- offloading decisions
+
+const decisionsBody = document.querySelector("#decisions tbody");
+const decisionsEmpty = document.getElementById("decisions-empty");
+
+async function loadDecisions() {
+  let answer;
+  try {
+    answer = await live.request("metrics_get", {
+      robot: robotId,
+      names: [DECISION_METRIC],
+      since: Date.now() / 1000 - 86400,
+      limit: 12,
+    });
+  } catch {
+    return;
+  }
+  const points = answer.data.metrics.toSorted((a, b) => b.ts - a.ts);
+  decisionsEmpty.hidden = points.length > 0;
+  decisionsBody.replaceChildren(
+    ...points.map((point) => {
+      const labels = point.labels ?? {};
+      const costRobot = Number.parseFloat(labels.cost_robot);
+      const costCloud = Number.parseFloat(labels.cost_cloud);
+      const cheaper = costRobot < costCloud ? "robot" : costCloud < costRobot ? "cloud" : "";
+      const moved = labels.decision === "migrate";
+      return el(
+        "tr",
+        {},
+        el("td", {}, fmtTime(point.ts)),
+        el("td", {}, point.component ?? "—", labels.policy ? el("span", { class: "sub" }, `policy ${labels.policy}`) : null),
+        el("td", { class: `num ${cheaper === "robot" ? "better" : ""}` }, fmtNumber(costRobot, { digits: 3 })),
+        el("td", { class: `num ${cheaper === "cloud" ? "better" : ""}` }, fmtNumber(costCloud, { digits: 3 })),
+        el("td", { class: "num" }, fmtNumber(point.value, { digits: 3 })),
+        el(
+          "td",
+          {},
+          moved
+            ? el("span", { class: `badge loc-${labels.target ?? "none"}` }, `migrate → ${labels.target ?? "?"}`)
+            : el("span", { class: "badge" }, `stay on ${labels.location ?? "?"}`),
+        ),
+      );
+    }),
+  );
+}
+
+// Decisions arrive in the live feed without their labels: read them from the database shortly after.
+const decisionsSoon = debounce(loadDecisions, 1200);
+
+// --------------------------------------------------------------------------- config
+
+const form = document.getElementById("config-form");
+const advanced = document.getElementById("config-advanced");
+const configResult = document.getElementById("config-result");
+
+function fillAdvanced() {
+  const part = Object.fromEntries(ADVANCED_KEYS.filter((k) => k in robot.config).map((k) => [k, robot.config[k]]));
+  advanced.value = JSON.stringify(part, null, 2);
+  advanced.defaultValue = advanced.value;
+}
+
+function setPath(target, path, value) {
+  const parts = path.split(".");
+  let node = target;
+  for (const part of parts.slice(0, -1)) {
+    if (typeof node[part] !== "object" || node[part] === null) node[part] = {};
+    node = node[part];
+  }
+  node[parts.at(-1)] = value;
+}
+
+/** Build the config the form describes; null (with the error shown) when the JSON part is broken. */
+function formConfig() {
+  const config = structuredClone(robot.config);
+  for (const input of form.querySelectorAll("[data-path]:not(textarea)")) {
+    let value = input.value;
+    if (input.type === "number") {
+      value = value.trim() === "" ? (input.hasAttribute("data-optional") ? null : "") : Number(value);
+    }
+    setPath(config, input.dataset.path, value);
+  }
+  const parsed = parseJson(advanced.value || "{}");
+  if (parsed.error) return { errors: { "*": [parsed.error] } };
+  if (typeof parsed.value !== "object" || parsed.value === null || Array.isArray(parsed.value)) {
+    return { errors: { "*": ["must be a JSON object such as {\"energy\": {…}}"] } };
+  }
+  Object.assign(config, parsed.value);
+  return { config };
+}
+
+async function saveConfig(event) {
+  event.preventDefault();
+  clearErrors(form);
+  setText(configResult, "");
+  const built = formConfig();
+  if (built.errors) {
+    advanced.closest("details").open = true;
+    showFormErrors(form, built.errors, { prefix: "config" });
+    return;
+  }
+  const checked = await api("POST", "/validate/robot-config", built.config);
+  if (!checked.ok || !checked.data.valid) {
+    const errors = checked.data?.errors ?? { __all__: [errorText(checked.data, checked.status)] };
+    if (Object.keys(errors).some((path) => ADVANCED_KEYS.includes(path.split(".")[0]))) advanced.closest("details").open = true;
+    showFormErrors(form, errors, { prefix: "config" });
+    return;
+  }
+  const config = checked.data.config;
+  const changes = Object.fromEntries(
+    Object.entries(config).filter(([key, value]) => JSON.stringify(value) !== JSON.stringify(robot.config[key] ?? null)),
+  );
+  if (!Object.keys(changes).length) {
+    setText(configResult, "Nothing changed.");
+    return;
+  }
+  try {
+    await live.request("robot_config_update", { robot: robotId, changes });
+  } catch (error) {
+    const errors = error.field === "data.config" ? configErrors(error.message.split("; ")) : { __all__: [error.message] };
+    showFormErrors(form, errors, { prefix: "config" });
+    return;
+  }
+  robot.config = config;
+  renderHeader();
+  fillAdvanced();
+  for (const input of form.querySelectorAll("input[data-path]")) input.defaultValue = input.value;
+  for (const select of form.querySelectorAll("select")) for (const option of select.options) option.defaultSelected = option.selected;
+  const text = robot.connected ? "Saved; the robot received it." : "Saved; the robot receives it when it reconnects.";
+  configResult.className = "result ok";
+  setText(configResult, text);
+  toast(`Configuration of ${robotId}: ${text}`, "ok");
+}
+
+form.addEventListener("submit", saveConfig);
+form.addEventListener("reset", () => {
+  clearErrors(form);
+  setText(configResult, "");
+});
+
+// --------------------------------------------------------------------------- live frames
+
+function mine(frame) {
+  return frame.data?.robot === robotId;
+}
+
+live.on("metrics", (frame) => {
+  if (!mine(frame)) return;
+  for (const point of frame.data.metrics) {
+    if (point.name === DECISION_METRIC) {
+      decisionsSoon();
+      continue;
+    }
+    plot(point);
+    if (!point.skill && !point.component && point.name in tiles) updateTile(point.name, point.value, point.ts);
+  }
+});
+live.on("connection_established", (frame) => {
+  if (!mine(frame)) return;
+  robot.connected = true;
+  robot.status = "running";
+  renderHeader();
+});
+live.on("connection_lost", (frame) => {
+  if (!mine(frame)) return;
+  robot.connected = false;
+  lastSeen = frame.ts || Date.now() / 1000;
+  renderHeader();
+});
+live.on("skill_status", (frame) => {
+  if (!mine(frame)) return;
+  const skill = robot.skills.find((s) => s.skill_id === frame.data.skill);
+  if (!skill) return reload();
+  skill.status = frame.data.status;
+  const node = skillsNode.querySelector(`[data-skill-status="${CSS.escape(skill.skill_id)}"]`);
+  if (node) {
+    setText(node, skill.status);
+    node.className = `badge status-${skill.status}`;
+  }
+});
+for (const event of ["component_status", "component_location"]) {
+  live.on(event, (frame) => {
+    if (!mine(frame)) return;
+    const component = findComponent(frame.data.skill, frame.data.component);
+    if (!component) return reload();
+    if (frame.data.status) component.status = frame.data.status;
+    if (frame.data.location) component.active_location = frame.data.location;
+    const key = `${frame.data.skill}/${frame.data.component}`;
+    if (outcomes.get(key)?.text === "migrating…" && event === "component_location") {
+      outcomes.set(key, { text: `now runs on the ${frame.data.location}`, kind: "ok" });
+    }
+    updateComponent(frame.data.skill, frame.data.component);
+  });
+}
+live.on("skill_config", (frame) => mine(frame) && reload());
+live.on("offloading", (frame) => {
+  if (!mine(frame)) return;
+  robot.config.offloading = frame.data.mode;
+  renderHeader();
+});
+live.onResync(() => {
+  reload();
+  loadDecisions();
+});
+
+// --------------------------------------------------------------------------- start
+
+renderHeader();
+renderSkills();
+fillAdvanced();
+loadHistory();
+loadDecisions();
+setInterval(() => robot.connected || renderHeader(), 30000);

@@ -1,0 +1,353 @@
+"""The operator dashboard in a real Chromium against daphne, PostgreSQL, Redis and simulated robots."""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+
+import pytest
+from playwright.sync_api import expect
+
+from bridgeos_agent.skillconfig import load_sample_skill_config
+from monitoring.services import record_event
+from robots.models import Robot, default_robot_config
+from skills.models import Component, Skill
+from skills.services import create_template
+
+from .conftest import SKILL, make_robot, make_user, wait_until
+
+pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
+
+# Keeps every frame the page's WebSocket receives, to show what never reached it.
+RECORD_FRAMES = """
+window.__frames = [];
+const NativeWebSocket = window.WebSocket;
+window.WebSocket = class extends NativeWebSocket {
+  constructor(...args) {
+    super(...args);
+    this.addEventListener("message", (event) => window.__frames.push(event.data));
+  }
+};
+"""
+
+
+def row(page, robot_id: str):
+    return page.locator(f'tr[data-robot="{robot_id}"]')
+
+
+# --------------------------------------------------------------------------- login
+
+
+def test_an_operator_logs_in_and_out(browser):
+    make_user("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/")
+    expect(page).to_have_url(re.compile(r"/accounts/login/\?next=/$"))
+    page.get_by_label("Username").fill("alice")
+    page.get_by_label("Password").fill("not-her-password")
+    page.get_by_role("button", name="Log in").click()
+    expect(page.get_by_role("alert")).to_contain_text("didn't match")
+    expect(page.get_by_label("Password")).to_have_attribute("aria-invalid", "true")
+    browser.screenshot("login")
+
+    browser.login("alice")
+    expect(page.get_by_role("heading", name="Fleet")).to_be_visible()
+    expect(page.get_by_role("navigation", name="Main").get_by_role("link", name="Fleet")).to_have_attribute(
+        "aria-current", "page"
+    )
+    page.get_by_role("button", name="Log out").click()
+    expect(page).to_have_url(re.compile(r"/accounts/login/$"))
+    page.goto(browser.base_url + "/skills/")
+    expect(page).to_have_url(re.compile(r"/accounts/login/\?next=/skills/$"))
+
+
+# --------------------------------------------------------------------------- fleet overview
+
+
+def test_a_robot_appears_online_the_moment_it_connects_and_offline_when_it_drops(browser, simulated_robots):
+    alice = make_user("alice")
+    token = make_robot(alice, "alice-bot")
+    browser.login("alice")
+    page = browser.page
+    page.evaluate("window.__sameDocument = true")
+    expect(row(page, "alice-bot").locator(".c-conn .badge")).to_have_text("offline")
+    expect(row(page, "alice-bot").locator(".c-cpu .value")).to_have_text("—")
+
+    simulated_robots.start("alice-bot", token, wait=False)
+    expect(row(page, "alice-bot").locator(".c-conn .badge")).to_have_text("online")
+    # Live metrics and the Skill the robot started: three components running on the robot.
+    expect(row(page, "alice-bot").locator(".c-cpu .value")).to_have_text(re.compile(r"^\d+(\.\d)?%$"))
+    expect(row(page, "alice-bot").locator(".c-battery .value")).to_have_text(re.compile(r"%$"))
+    expect(row(page, "alice-bot").locator(".c-comp .loc.robot")).to_have_text("3")
+    expect(row(page, "alice-bot").locator(".c-comp .loc.cloud")).to_have_text("0")
+    expect(row(page, "alice-bot").locator(".c-mode")).to_have_text("auto")
+
+    # A robot added after the page loaded shows up as soon as it connects.
+    second = make_robot(alice, "alice-two", with_skill=False)
+    simulated_robots.start("alice-two", second, skills=())
+    expect(row(page, "alice-two").locator(".c-conn .badge")).to_have_text("online")
+    expect(page.locator("#fleet-summary")).to_contain_text("2 online")
+    expect(page.locator("#fleet")).to_have_attribute("aria-rowcount", "3")
+    browser.screenshot("fleet")
+
+    simulated_robots.stop("alice-two")
+    expect(row(page, "alice-two").locator(".c-conn .badge")).to_have_text("offline")
+    expect(page.locator("#fleet-summary")).to_contain_text("1 offline")
+    assert page.evaluate("window.__sameDocument") is True, "the page reloaded"
+
+
+def test_the_fleet_page_renders_only_the_rows_on_screen(browser):
+    ops = make_user("ops", staff=True)
+    config = default_robot_config()
+    robots = []
+    for i in range(300):
+        robot = Robot(id=f"fleet-{i:04d}", owner=ops, config=config)
+        robot.issue_token()
+        robots.append(robot)
+    Robot.objects.bulk_create(robots)
+    browser.login("ops")
+    page = browser.page
+    rows = page.locator("#fleet-rows tr[data-robot]")
+    expect(page.locator("#fleet")).to_have_attribute("aria-rowcount", "301")
+    expect(rows.first).to_have_attribute("data-robot", "fleet-0000")
+    assert 10 < rows.count() < 60
+
+    page.evaluate("window.scrollTo(0, document.body.scrollHeight)")
+    expect(row(page, "fleet-0299")).to_be_visible()
+    expect(row(page, "fleet-0299")).to_have_attribute("aria-rowindex", "301")
+    assert rows.count() < 60
+    assert row(page, "fleet-0000").count() == 0
+
+    page.get_by_label("Search").fill("fleet-012")
+    expect(rows).to_have_count(10)
+    page.get_by_role("button", name="Robot").click()  # sort by id, descending
+    expect(rows.first).to_have_attribute("data-robot", "fleet-0129")
+    expect(page.locator('th[data-sort="id"]')).to_have_attribute("aria-sort", "descending")
+
+    page.set_viewport_size({"width": 390, "height": 844})
+    page.get_by_label("Search").fill("")
+    page.evaluate("window.scrollTo(0, 0)")
+    expect(row(page, "fleet-0299")).to_be_visible()
+    browser.screenshot("fleet-phone", full_page=False)
+
+
+# --------------------------------------------------------------------------- robot page
+
+
+def test_migrating_a_component_changes_its_location_badge(browser, simulated_robots):
+    alice = make_user("alice")
+    token = make_robot(alice, "alice-bot")
+    simulated_robots.start("alice-bot", token)
+    browser.login("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/robots/alice-bot/")
+    browser.wait_live()
+    location = page.locator(f'[data-location="{SKILL}/sampler"]')
+    expect(location).to_have_text("robot")
+    expect(page.locator(f'[data-status="{SKILL}/sampler"]')).to_have_text("running")
+    expect(page.locator(f'[data-migrate="{SKILL}/pointcloud"]')).to_be_disabled()
+
+    page.locator(f'[data-migrate="{SKILL}/sampler"]').click()
+    expect(location).to_have_text("cloud")
+    expect(location).to_have_class(re.compile(r"\bloc-cloud\b"))
+    expect(page.locator(f'tr[data-component="{SKILL}/sampler"] .outcome')).to_have_text("now runs on the cloud")
+    wait_until(
+        lambda: Component.objects.get(component_id="sampler").active_location == "cloud",
+        what="the cloud to record the new location",
+    )
+    expect(page.locator(f'[data-migrate="{SKILL}/sampler"]')).to_have_text("Migrate to robot")
+
+    # Live charts of the robot and of each component, and the Skill Manager's decisions.
+    expect(page.locator("#robot-charts canvas").first).to_be_visible()
+    page.locator("#component-charts").scroll_into_view_if_needed()
+    expect(page.locator("#component-charts canvas").first).to_be_visible()
+    expect(page.locator("#decisions tbody tr").first).to_be_visible(timeout=20_000)
+    expect(page.locator("#decisions tbody tr").first).to_contain_text(re.compile(r"sampler|detector"))
+    page.set_viewport_size({"width": 1280, "height": 3200})
+    time.sleep(1.5)  # let charts that came on screen draw
+    browser.screenshot("robot")
+
+
+def test_a_command_to_an_offline_robot_says_so(browser):
+    alice = make_user("alice")
+    make_robot(alice, "alice-bot")
+    browser.login("alice")
+    browser.expect_http_error(409)
+    page = browser.page
+    page.goto(browser.base_url + f"/robots/alice-bot/#skill-{SKILL}")
+    page.get_by_role("button", name=f"Start skill {SKILL}").click()
+    expect(page.get_by_role("alert").filter(has_text="offline")).to_be_visible()
+
+
+def test_robot_config_edits_are_checked_field_by_field_then_stored(browser):
+    alice = make_user("alice")
+    make_robot(alice, "alice-bot")
+    browser.login("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/robots/alice-bot/")
+    browser.wait_live()
+    heartbeat = page.locator('input[data-path="heartbeat_interval"]')
+    heartbeat.fill("500")
+    page.locator('input[data-path="resources.cpu"]').fill("-1")
+    page.get_by_role("button", name="Save and send to the robot").click()
+    expect(page.locator('input[data-path="heartbeat_interval"] + .field-error')).to_contain_text(
+        "less than or equal to 300"
+    )
+    expect(page.locator('input[data-path="resources.cpu"] + .field-error')).to_contain_text(
+        "greater than or equal to 0"
+    )
+    expect(heartbeat).to_have_attribute("aria-invalid", "true")
+    expect(page.locator("#config-form .error-summary")).to_contain_text("2 problems")
+    browser.screenshot("robot-config-errors")
+    assert Robot.objects.get(id="alice-bot").config["heartbeat_interval"] == 5.0
+
+    heartbeat.fill("2")
+    page.locator('input[data-path="resources.cpu"]').fill("4")
+    page.locator('select[data-path="offloading"]').select_option("manual")
+    page.get_by_role("button", name="Save and send to the robot").click()
+    expect(page.locator("#config-result")).to_contain_text("Saved")
+    expect(page.locator(".field-error")).to_have_count(0)
+    expect(page.locator("#robot-offloading")).to_have_text("manual")
+    config = Robot.objects.get(id="alice-bot").config
+    assert (config["heartbeat_interval"], config["resources"]["cpu"], config["offloading"]) == (2.0, 4.0, "manual")
+
+
+# --------------------------------------------------------------------------- skill catalog
+
+
+def test_an_invalid_skill_config_upload_shows_each_error_at_its_field(browser, tmp_path):
+    alice = make_user("alice")
+    make_robot(alice, "alice-bot", with_skill=False)
+    config = load_sample_skill_config().model_dump(mode="json")
+    config["components"]["detector"]["resources"]["cpu"] = -2
+    del config["components"]["sampler"]["location"]
+    upload = tmp_path / "people.json"
+    upload.write_text(json.dumps(config, indent=2))
+    browser.login("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/skills/")
+    page.get_by_label("Config file").set_input_files(upload)
+
+    cpu = page.locator('[data-path="components.detector.resources.cpu"]')
+    expect(cpu).to_have_class(re.compile(r"\binvalid\b"))
+    expect(cpu.locator(".field-error")).to_contain_text("greater than or equal to 0")
+    expect(page.locator('[data-path="components.sampler.location"].missing .field-error')).to_contain_text(
+        "this field is required"
+    )
+    expect(page.locator("#upload-report .error-summary")).to_contain_text("2 problems")
+    expect(page.locator("#upload-actions")).to_be_hidden()
+    browser.screenshot("skills-upload-errors")
+
+    fixed = tmp_path / "people-fixed.json"
+    fixed.write_text(json.dumps(load_sample_skill_config().model_dump(mode="json")))
+    page.get_by_label("Config file").set_input_files(fixed)
+    expect(page.locator("#upload-result")).to_contain_text("Valid: People detection (people-detection)")
+    page.locator("#upload-add").get_by_role("button", name="Add to robot").click()
+    expect(page.locator("#upload-add .result")).to_contain_text("Added people-detection to alice-bot")
+    assert Skill.objects.filter(robot_id="alice-bot", skill_id=SKILL).exists()
+
+    # The same again: the cloud refuses a second skill with that id, and says why.
+    browser.expect_http_error(400)
+    page.locator("#upload-add").get_by_role("button", name="Add to robot").click()
+    expect(page.locator("#upload-add .result")).to_contain_text("already has a skill")
+
+
+def test_a_template_is_added_to_a_robot_from_the_catalog(browser):
+    alice = make_user("alice")
+    make_robot(alice, "alice-bot", with_skill=False)
+    template = create_template(
+        name="People detection", config=load_sample_skill_config().model_dump(mode="json"), tags=["vision"]
+    )
+    browser.login("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/skills/")
+    card = page.locator(f'[data-template="{template.pk}"]')
+    expect(card).to_contain_text("Detector · either")
+    card.get_by_role("button", name="Add").click()
+    expect(card.locator(".result")).to_contain_text("Added people-detection to alice-bot")
+    assert Skill.objects.get(robot_id="alice-bot").components.count() == 3
+    browser.screenshot("skills")
+
+
+# --------------------------------------------------------------------------- who sees what
+
+
+def test_another_user_sees_neither_the_robot_nor_its_live_frames(browser, simulated_robots):
+    alice = make_user("alice")
+    bob = make_user("bob")
+    token = make_robot(alice, "alice-bot")
+    make_robot(bob, "bob-bot", with_skill=False)
+    browser.page.add_init_script(RECORD_FRAMES)
+    browser.login("bob")
+    page = browser.page
+    expect(row(page, "bob-bot")).to_be_visible()
+
+    simulated_robots.start("alice-bot", token)
+    wait_until(
+        lambda: Component.objects.filter(skill__robot_id="alice-bot", status="running").count() == 3,
+        what="alice's robot to run its Skill",
+    )
+    time.sleep(1.0)  # a few rounds of the live feed
+    frames = page.evaluate("window.__frames")
+    assert any('"authentication_success"' in frame for frame in frames)
+    assert not [frame for frame in frames if "alice-bot" in frame]
+    assert row(page, "alice-bot").count() == 0
+    assert "alice-bot" not in page.content()
+    assert page.request.get(browser.base_url + "/robots/alice-bot/").status == 404
+    assert page.request.get(browser.base_url + "/api/robot/alice-bot").status == 404
+    browser.screenshot("fleet-other-user")
+
+
+# --------------------------------------------------------------------------- events and logs
+
+
+def test_the_event_log_filters_and_tails_live(browser, simulated_robots):
+    alice = make_user("alice")
+    token = make_robot(alice, "alice-bot")
+    make_robot(alice, "alice-two", with_skill=False)
+    record_event(
+        "Detector crashed", robot_id="alice-bot", level="error", skill=SKILL, component="detector", kind="test"
+    )
+    browser.login("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/events/")
+    rows = page.locator("#event-rows tr")
+    expect(rows.first).to_be_visible()
+    expect(page.locator("#event-rows")).to_contain_text("Robot alice-two created")
+
+    page.get_by_label("Level at least").select_option("error")
+    page.get_by_role("button", name="Apply filters").click()
+    expect(rows).to_have_count(1)
+    expect(rows.first).to_contain_text("Detector crashed")
+    expect(page).to_have_url(re.compile(r"level=error"))
+
+    page.get_by_label("Level at least").select_option("")
+    page.get_by_label("Robot", exact=True).select_option("alice-two")
+    page.get_by_role("button", name="Apply filters").click()
+    expect(rows).to_have_count(1)
+    expect(rows.first).to_contain_text("Robot alice-two created")
+
+    page.get_by_label("Robot", exact=True).select_option("alice-bot")
+    page.get_by_label("Component").fill("detector")
+    page.get_by_role("button", name="Apply filters").click()
+    expect(rows).to_have_count(1)
+    page.get_by_label("Component").fill("")
+    page.get_by_role("button", name="Apply filters").click()
+    expect(rows).to_have_count(3)
+    expect(page.locator("#event-rows")).to_contain_text("Skill people-detection added")
+
+    # Live tail: what the robot does appears on top, without a reload.
+    simulated_robots.start("alice-bot", token, wait=False)
+    expect(rows.first).to_contain_text("Skill people-detection is running")
+    expect(page.locator("#event-rows tr", has_text="Robot alice-bot connected")).to_have_count(1)
+    browser.screenshot("events")
+
+    # A time range: an hour long in 2001 holds nothing; the last ten minutes hold the robot's events.
+    page.get_by_label("Until").fill("2001-01-01T00:00:00")
+    page.get_by_role("button", name="Apply filters").click()
+    expect(page.locator("#event-count")).to_have_text("No event matches the filters.")
+    page.get_by_label("Until").fill("")
+    page.get_by_label("From").fill(time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(time.time() - 600)))
+    page.get_by_role("button", name="Apply filters").click()
+    expect(page.locator("#event-rows tr", has_text="Robot alice-bot connected")).to_have_count(1)
