@@ -8,6 +8,10 @@ import { el, fmtNumber } from "./util.js";
 
 const REDRAW_MS = 1000;
 const clock = new Intl.DateTimeFormat(undefined, { hour: "2-digit", minute: "2-digit" });
+const clockSeconds = new Intl.DateTimeFormat(undefined, { hour: "2-digit", minute: "2-digit", second: "2-digit" });
+const compact = new Intl.NumberFormat(undefined, { notation: "compact", maximumFractionDigits: 1 });
+// Large rates (bytes per second) read better as 1.2K, 3.4M.
+const axisNumber = (v) => (Math.abs(v) >= 10000 ? compact.format(v) : fmtNumber(v));
 const PALETTE = ["#2563eb", "#db2777", "#059669", "#d97706", "#7c3aed", "#0891b2", "#dc2626", "#4d7c0f"];
 
 function cssVar(name, fallback) {
@@ -134,8 +138,13 @@ export class TimeChart {
         },
       },
       axes: [
-        { ...axis, values: (u, ticks) => ticks.map((t) => clock.format(new Date(t * 1000))) },
-        { ...axis, size: 46, values: (u, ticks) => ticks.map((v) => fmtNumber(v)) },
+        {
+          ...axis,
+          // Ticks under a minute apart need their seconds, or two ticks read the same.
+          values: (u, ticks, axisIdx, space, incr) =>
+            ticks.map((t) => (incr < 60 ? clockSeconds : clock).format(new Date(t * 1000))),
+        },
+        { ...axis, size: 50, values: (u, ticks) => ticks.map(axisNumber) },
       ],
       series: [
         {},
@@ -145,7 +154,7 @@ export class TimeChart {
           width: 1.6,
           spanGaps: true,
           points: { show: false },
-          value: (u, v) => (v === null || v === undefined ? "—" : `${fmtNumber(v)}${unit === "%" ? "%" : unit ? ` ${unit}` : ""}`),
+          value: (u, v) => (v === null || v === undefined ? "—" : `${axisNumber(v)}${unit.startsWith("%") ? "%" : unit ? ` ${unit}` : ""}`),
         })),
       ],
     };

@@ -14,6 +14,7 @@ import {
   fmtNumber,
   fmtTime,
   isoSeconds,
+  unitOf,
   pageData,
   setClass,
   setText,
@@ -280,9 +281,23 @@ for (const [name, meta] of Object.entries(ROBOT_METRICS)) {
 function componentChart(name) {
   let chart = componentCharts.get(name);
   if (!chart) {
-    chart = new TimeChart(componentChartsNode, { title: name, windowS: HISTORY_S });
+    chart = new TimeChart(componentChartsNode, { title: name, unit: unitOf(name, { component: true }), windowS: HISTORY_S });
     componentCharts.set(name, chart);
     componentChartsEmpty.hidden = true;
+  }
+  return chart;
+}
+
+// Robot-wide series beyond the four above, folded away: a closed section costs no drawing.
+const moreCharts = new Map();
+const moreNode = document.getElementById("more-robot-metrics");
+
+function moreChart(base) {
+  let chart = moreCharts.get(base);
+  if (!chart) {
+    chart = new TimeChart(document.getElementById("more-robot-charts"), { title: base, unit: unitOf(base), windowS: HISTORY_S });
+    moreCharts.set(base, chart);
+    moreNode.hidden = false;
   }
   return chart;
 }
@@ -293,7 +308,13 @@ function plot(point, options) {
   if (point.name === DECISION_METRIC) return;
   if (!point.skill && !point.component) {
     const chart = robotCharts.get(point.name);
-    if (chart) chart.add("robot", point.ts, point.value, options);
+    if (chart) {
+      chart.add("robot", point.ts, point.value, options);
+    } else {
+      // "net_rx:eth0" is the eth0 line of the net_rx chart; plain "net_rx" its total.
+      const [base, part] = point.name.split(":");
+      moreChart(base).add(part ?? "total", point.ts, point.value, options);
+    }
     return;
   }
   const label = multiSkill() || !point.component ? `${point.skill ?? "—"}/${point.component ?? "skill"}` : point.component;

@@ -77,6 +77,26 @@ export const ROBOT_METRICS = {
   battery: { label: "Battery", unit: "%", max: 100 },
 };
 
+// Units of the other series robots report (bridgeos_agent.monitor); per interface as "net_rx:eth0".
+const OTHER_UNITS = {
+  ram_used: "MiB",
+  bandwidth_available: "Mbit/s",
+  net_rx: "B/s",
+  net_tx: "B/s",
+  net_cloud_rx: "B/s",
+  net_cloud_tx: "B/s",
+  io_read: "B/s",
+  io_write: "B/s",
+};
+const COMPONENT_UNITS = { cpu: "% of a core", ram: "MiB" };
+
+/** Return the unit of a metric, robot-wide or of a component ("" when unknown). */
+export function unitOf(name, { component = false } = {}) {
+  const base = name.split(":")[0];
+  if (component) return COMPONENT_UNITS[base] ?? OTHER_UNITS[base] ?? "";
+  return ROBOT_METRICS[base]?.unit ?? OTHER_UNITS[base] ?? "";
+}
+
 export function fmtMetric(name, value) {
   if (value === null || value === undefined) return "—";
   const unit = ROBOT_METRICS[name]?.unit ?? "";

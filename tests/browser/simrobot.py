@@ -171,6 +171,9 @@ class SimulatedRobot:
             {"name": "ram", "value": self.walk("ram", 10, 95, 3), "ts": now},
             {"name": "bandwidth", "value": self.walk("bandwidth", 0, 100, 5), "ts": now},
             {"name": "battery", "value": round(battery, 2), "ts": now},
+            {"name": "ram_used", "value": round(self.levels["ram"] * 20.48, 1), "ts": now},
+            {"name": "net_rx:eth0", "value": round(self.levels["bandwidth"] * 60_000, 1), "ts": now},
+            {"name": "net_tx:eth0", "value": round(self.levels["bandwidth"] * 40_000, 1), "ts": now},
         ]
         for skill_id, components in self.components.items():
             for component_id, state in components.items():

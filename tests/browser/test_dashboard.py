@@ -158,12 +158,25 @@ def test_migrating_a_component_changes_its_location_badge(browser, simulated_rob
     )
     expect(page.locator(f'[data-migrate="{SKILL}/sampler"]')).to_have_text("Migrate to robot")
 
+    # Stopping and starting the Skill: the robot's answer, then its statuses, show up in place.
+    page.get_by_role("button", name=f"Stop skill {SKILL}").click()
+    expect(page.get_by_role("status").filter(has_text=f"Stop {SKILL}: accepted by the robot")).to_be_visible()
+    expect(page.locator(f'[data-skill-status="{SKILL}"]')).to_have_text("stopped")
+    expect(page.locator(f'[data-status="{SKILL}/detector"]')).to_have_text("stopped")
+    page.get_by_role("button", name=f"Start skill {SKILL}").click()
+    expect(page.locator(f'[data-skill-status="{SKILL}"]')).to_have_text("running")
+    expect(page.locator(f'[data-status="{SKILL}/detector"]')).to_have_text("running")
+    expect(location).to_have_text("cloud")
+
     # Live charts of the robot and of each component, and the Skill Manager's decisions.
     expect(page.locator("#robot-charts canvas").first).to_be_visible()
     page.locator("#component-charts").scroll_into_view_if_needed()
     expect(page.locator("#component-charts canvas").first).to_be_visible()
     expect(page.locator("#decisions tbody tr").first).to_be_visible(timeout=20_000)
     expect(page.locator("#decisions tbody tr").first).to_contain_text(re.compile(r"sampler|detector"))
+    page.get_by_text("More robot metrics").click()
+    expect(page.locator("#more-robot-charts figure", has_text="net_rx")).to_be_visible()
+    expect(page.locator("#more-robot-charts canvas").first).to_be_visible()
     page.set_viewport_size({"width": 1280, "height": 3200})
     time.sleep(1.5)  # let charts that came on screen draw
     browser.screenshot("robot")
