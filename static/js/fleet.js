@@ -178,7 +178,17 @@ function wire(live) {
   // Frames may have been missed while reconnecting: reload the fleet's state.
   live.onResync(async () => {
     const answer = await get("/api/robot");
-    if (answer.ok) for (const raw of answer.data) upsert(raw);
+    if (!answer.ok) return;
+    const current = new Set(answer.data.map((raw) => raw.id));
+    for (const id of robots.keys()) {
+      if (!current.has(id)) {
+        robots.delete(id);
+        rows.delete(id);
+        orderDirty = true;
+      }
+    }
+    for (const raw of answer.data) upsert(raw);
+    schedule();
   });
 }
 

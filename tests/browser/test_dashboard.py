@@ -7,7 +7,6 @@ import re
 import time
 
 import pytest
-from playwright.sync_api import expect
 
 from bridgeos_agent.skillconfig import load_sample_skill_config
 from monitoring.services import record_event
@@ -18,6 +17,9 @@ from skills.services import create_template
 from .conftest import SKILL, make_robot, make_user, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
+expect = pytest.importorskip(
+    "playwright.sync_api", reason="playwright is not installed: pip install -e '.[test]'"
+).expect
 
 # Keeps every frame the page's WebSocket receives, to show what never reached it.
 RECORD_FRAMES = """
