@@ -2,7 +2,7 @@
 
 import { get, seg } from "./api.js";
 import { startLive } from "./live.js";
-import { debounce, el, errorText, fmtDateTime, fmtTime, isoSeconds } from "./util.js";
+import { coalesce, el, errorText, fmtDateTime, fmtTime, isoSeconds } from "./util.js";
 
 const PAGE = 100;
 const MAX_ROWS = 1000;
@@ -175,7 +175,7 @@ tailBox.addEventListener("change", () => {
 olderButton.addEventListener("click", older);
 
 // A state change of any robot (connect, status, location) usually comes with new events.
-const tailSoon = debounce(tail, 400);
+const tailSoon = coalesce(tail, 400);
 const live = startLive();
 live.on("*", tailSoon);
 live.onResync(tailSoon);

@@ -6,6 +6,7 @@ import { clearErrors, configErrors, parseJson, showFormErrors } from "./forms.js
 import { startLive } from "./live.js";
 import {
   ROBOT_METRICS,
+  coalesce,
   debounce,
   el,
   errorText,
@@ -14,11 +15,11 @@ import {
   fmtNumber,
   fmtTime,
   isoSeconds,
-  unitOf,
   pageData,
   setClass,
   setText,
   toast,
+  unitOf,
 } from "./util.js";
 
 const DECISION_METRIC = "offloading.decision";
@@ -54,18 +55,22 @@ for (const [name, meta] of Object.entries(ROBOT_METRICS)) {
   const big = el("div", { class: "big" }, "—");
   const when = el("div", { class: "when" }, "no value yet");
   document.getElementById("tiles").append(el("div", { class: "tile" }, el("div", { class: "label" }, meta.label), big, when));
-  tiles[name] = { big, when };
+  tiles[name] = { big, when, ts: 0 };
 }
 
 function updateTile(name, value, ts) {
   const tile = tiles[name];
+  // History arrives after the first live values: never let an older value replace a newer one.
+  if (ts < tile.ts) return;
+  tile.ts = ts;
   setText(tile.big, fmtMetric(name, value));
   setText(tile.when, `at ${fmtTime(ts)}`);
 }
 
 for (const button of document.querySelectorAll("[data-robot-command]")) {
   const verb = button.dataset.robotCommand;
-  button.addEventListener("click", () => command(button, `${base}/${verb}`, undefined, `${verb} the robot`));
+  const what = `${verb[0].toUpperCase()}${verb.slice(1)} the robot`;
+  button.addEventListener("click", () => command(button, `${base}/${verb}`, undefined, what));
 }
 
 // --------------------------------------------------------------------------- skills and components
@@ -180,9 +185,12 @@ function renderComponent(sid, component) {
   start.addEventListener("click", () => command(start, `${url}/start`, { location: where.value }, `Start ${cid}`, key));
   stop.addEventListener("click", () => command(stop, `${url}/stop`, {}, `Stop ${cid}`, key));
   migrate.addEventListener("click", async () => {
+    const before = findComponent(sid, cid)?.active_location;
     const answer = await command(migrate, `${url}/migrate`, {}, `Migrate ${cid}`, key);
     if (answer.ok && answer.data?.accepted) {
-      outcomes.set(key, { text: "migrating…", kind: "" });
+      // The robot may have reported the new location before its answer to the command arrived.
+      const now = findComponent(sid, cid)?.active_location;
+      outcomes.set(key, now !== before ? { text: `now runs on the ${now}`, kind: "ok" } : { text: "migrating…", kind: "" });
       updateComponent(sid, cid);
     }
   });
@@ -292,11 +300,11 @@ function componentChart(name) {
 const moreCharts = new Map();
 const moreNode = document.getElementById("more-robot-metrics");
 
-function moreChart(base) {
-  let chart = moreCharts.get(base);
+function moreChart(family) {
+  let chart = moreCharts.get(family);
   if (!chart) {
-    chart = new TimeChart(document.getElementById("more-robot-charts"), { title: base, unit: unitOf(base), windowS: HISTORY_S });
-    moreCharts.set(base, chart);
+    chart = new TimeChart(document.getElementById("more-robot-charts"), { title: family, unit: unitOf(family), windowS: HISTORY_S });
+    moreCharts.set(family, chart);
     moreNode.hidden = false;
   }
   return chart;
@@ -312,8 +320,8 @@ function plot(point, options) {
       chart.add("robot", point.ts, point.value, options);
     } else {
       // "net_rx:eth0" is the eth0 line of the net_rx chart; plain "net_rx" its total.
-      const [base, part] = point.name.split(":");
-      moreChart(base).add(part ?? "total", point.ts, point.value, options);
+      const [family, part] = point.name.split(":");
+      moreChart(family).add(part ?? "total", point.ts, point.value, options);
     }
     return;
   }
@@ -389,7 +397,7 @@ async function loadDecisions() {
 }
 
 // Decisions arrive in the live feed without their labels: read them from the database shortly after.
-const decisionsSoon = debounce(loadDecisions, 1200);
+const decisionsSoon = coalesce(loadDecisions, 1200);
 
 // --------------------------------------------------------------------------- config
 

@@ -52,6 +52,18 @@ export function frameBatcher(fn) {
   };
 }
 
+/** Call fn once, ms after the first of a burst of calls: a steady stream of calls cannot starve it. */
+export function coalesce(fn, ms) {
+  let timer = null;
+  return () => {
+    if (timer !== null) return;
+    timer = setTimeout(() => {
+      timer = null;
+      fn();
+    }, ms);
+  };
+}
+
 /** Call fn once, wait ms after the last of a burst of calls. */
 export function debounce(fn, ms) {
   let timer = null;
