@@ -348,6 +348,8 @@ async function loadHistory() {
     if (!point.skill && !point.component && point.name in tiles && !(point.name in latest)) latest[point.name] = point;
   }
   for (const point of Object.values(latest)) updateTile(point.name, point.value, point.ts);
+  // Charts with no history say so, instead of waiting.
+  for (const chart of robotCharts.values()) chart.redrawSoon();
 }
 
 // --------------------------------------------------------------------------- offloading decisions

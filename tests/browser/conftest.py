@@ -83,6 +83,9 @@ class Browser:
         """Save a screenshot as a test artifact and return its path."""
         if self.page.locator("#live-status:not([hidden])").count():
             self.wait_live()
+        if full_page:
+            # A sticky header would be drawn where the page happened to be scrolled.
+            self.page.evaluate("window.scrollTo(0, 0)")
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         path = ARTIFACTS / f"{name}.png"
         self.page.screenshot(path=str(path), full_page=full_page)
