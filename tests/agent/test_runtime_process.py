@@ -358,6 +358,8 @@ async def test_ids_that_are_not_slugs_are_refused(runtime: ProcessRuntime) -> No
         await runtime.start(make_spec("detector", SLEEP, skill="../etc"))
     with pytest.raises(ValueError, match="invalid component id"):
         await runtime.logs("people", "../../passwd")
+    with pytest.raises(ValueError, match="invalid volume name"):
+        await runtime.start(make_spec("detector", SLEEP, volumes=("maps/../../etc",)))
 
 
 async def test_stats_sum_cpu_and_memory_over_the_process_tree(runtime: ProcessRuntime) -> None:

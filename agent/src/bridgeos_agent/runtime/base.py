@@ -14,7 +14,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any, ClassVar
 
-from bridgeos_agent.skillconfig import SLUG_PATTERN, ComponentResources, LaunchSpec
+from bridgeos_agent.skillconfig import SLUG_PATTERN, VOLUME_PATTERN, ComponentResources, LaunchSpec
 
 __all__ = [
     "ComponentSpec",
@@ -35,6 +35,7 @@ logger = logging.getLogger(__name__)
 VOLUMES_ENV = "BRIDGEOS_VOLUMES"
 
 _SLUG = re.compile(SLUG_PATTERN)
+_VOLUME = re.compile(VOLUME_PATTERN)
 
 
 class RuntimeFailure(RuntimeError):
@@ -245,11 +246,14 @@ def absent(skill: str, component: str) -> ComponentState:
     return ComponentState(skill=skill, component=component, status=Status.ABSENT)
 
 
-def check_ids(skill: str, component: str) -> None:
+def check_ids(skill: str, component: str, volumes: tuple[str, ...] = ()) -> None:
     """Refuse ids that are not slugs: they become paths, container names and ROS namespaces."""
     for what, value in (("skill", skill), ("component", component)):
         if not _SLUG.fullmatch(value):
             raise ValueError(f"invalid {what} id {value!r}: expected a slug matching {SLUG_PATTERN}")
+    for volume in volumes:
+        if not _VOLUME.fullmatch(volume):
+            raise ValueError(f"invalid volume name {volume!r}: expected a Docker volume name matching {VOLUME_PATTERN}")
 
 
 def unrunnable(code: int | None, who: str, command: object = None) -> str | None:

@@ -228,7 +228,7 @@ class DockerRuntime(Runtime):
 
     async def start(self, spec: ComponentSpec) -> ComponentState:
         """Create and start a component's container, or return its state if it runs."""
-        check_ids(spec.skill, spec.component)
+        check_ids(spec.skill, spec.component, spec.volumes)
         key = spec.key
         rec = self._records.get(key)
         while rec is not None and rec.stop_done is not None and not rec.stop_done.done():

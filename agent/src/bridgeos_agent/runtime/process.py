@@ -262,7 +262,7 @@ class ProcessRuntime(Runtime):
 
     async def start(self, spec: ComponentSpec) -> ComponentState:
         """Launch a component, or return its state if it is already running."""
-        check_ids(spec.skill, spec.component)
+        check_ids(spec.skill, spec.component, spec.volumes)
         key = spec.key
         current = self._components.get(key)
         while current is not None and current.stop_done is not None and not current.stop_done.done():
@@ -380,7 +380,7 @@ class ProcessRuntime(Runtime):
             try:
                 spec = ComponentSpec.from_dict(entry["spec"])
                 pid, create_time = int(entry["pid"]), float(entry["create_time"])
-                check_ids(spec.skill, spec.component)
+                check_ids(spec.skill, spec.component, spec.volumes)
             except (KeyError, TypeError, ValueError, pydantic.ValidationError) as exc:
                 logger.warning("ignoring an unreadable saved component: %s", exc)
                 continue
