@@ -134,6 +134,8 @@ async def measure(runtime: str, args: argparse.Namespace, data_dir: Path) -> dic
     finally:
         await agent.runtime.close(stop_components=True)
         agent.outbox.close()
+        if runtime == "docker":
+            subprocess.run(["docker", "network", "rm", "bridgeos-bench-robot"], capture_output=True)
     return figures
 
 
