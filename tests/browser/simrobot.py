@@ -1,4 +1,10 @@
-"""Simulated robots for the dashboard's tests and benchmark: the reference Link playing a robot.
+"""Simulated robots for what the real agent does not do yet: the reference Link playing a robot.
+
+The browser tests play a robot with the real agent (`bridgeos-agent run --simulate`, started
+by `start_agent` in conftest.py) wherever it can. This simulator stays for two things: the
+Skill Manager's offloading decisions (the `offloading.decision` metric, which the agent does
+not send yet), and fleets of hundreds of robots in one process (benchmarks/dashboard.py),
+which would take an agent process (about 45 MB of memory) each.
 
 A simulated robot authenticates on /ws/robot/, runs the Skills it is told to (their configs
 come from the cloud with skill_config_get), reports statuses and locations the way a Robot
@@ -7,9 +13,6 @@ cpu, ram, bandwidth and battery, per-component cpu and ram, and offloading decis
 
 Run one:   python -m tests.browser.simrobot --master ws://127.0.0.1:8000 --robot r1 --token T --skill s1
 Run many:  python -m tests.browser.simrobot --master ws://127.0.0.1:8000 --fleet robots.txt   (lines: id token)
-
-`start_simulated_robot` is the one place tests start a robot from; it can become
-`bridgeos-agent run --simulate` once the agent's controller has that mode.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The operator dashboard in a real Chromium against daphne, PostgreSQL, Redis and simulated robots."""
+"""The operator dashboard in a real Chromium against daphne, PostgreSQL, Redis and robot agents."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from robots.models import Robot, default_robot_config
 from skills.models import Component, Skill
 from skills.services import create_template
 
-from .conftest import SKILL, make_robot, make_user, wait_until
+from .conftest import AGENT_SKILL, SKILL, make_robot, make_user, start_skill, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 expect = pytest.importorskip(
@@ -67,33 +67,34 @@ def test_an_operator_logs_in_and_out(browser):
 # --------------------------------------------------------------------------- fleet overview
 
 
-def test_a_robot_appears_online_the_moment_it_connects_and_offline_when_it_drops(browser, simulated_robots):
+def test_a_robot_appears_online_the_moment_its_agent_connects_and_offline_when_it_stops(browser, agents):
     alice = make_user("alice")
-    token = make_robot(alice, "alice-bot")
+    token = make_robot(alice, "alice-bot", sample="demo_telemetry")
     browser.login("alice")
     page = browser.page
     page.evaluate("window.__sameDocument = true")
     expect(row(page, "alice-bot").locator(".c-conn .badge")).to_have_text("offline")
     expect(row(page, "alice-bot").locator(".c-cpu .value")).to_have_text("—")
 
-    simulated_robots.start("alice-bot", token, wait=False)
+    agents.start("alice-bot", token, wait=False)
     expect(row(page, "alice-bot").locator(".c-conn .badge")).to_have_text("online")
-    # Live metrics and the Skill the robot started: three components running on the robot.
+    # Live metrics from the agent's monitor, and the Skill it starts: three components on the robot.
     expect(row(page, "alice-bot").locator(".c-cpu .value")).to_have_text(re.compile(r"^\d+(\.\d)?%$"))
     expect(row(page, "alice-bot").locator(".c-battery .value")).to_have_text(re.compile(r"%$"))
+    start_skill(browser.base_url, alice, "alice-bot", AGENT_SKILL)
     expect(row(page, "alice-bot").locator(".c-comp .loc.robot")).to_have_text("3")
     expect(row(page, "alice-bot").locator(".c-comp .loc.cloud")).to_have_text("0")
     expect(row(page, "alice-bot").locator(".c-mode")).to_have_text("auto")
 
-    # A robot added after the page loaded shows up as soon as it connects.
-    second = make_robot(alice, "alice-two", with_skill=False)
-    simulated_robots.start("alice-two", second, skills=())
+    # A robot added after the page loaded shows up as soon as its agent connects.
+    second = make_robot(alice, "alice-two", sample=None)
+    agents.start("alice-two", second)
     expect(row(page, "alice-two").locator(".c-conn .badge")).to_have_text("online")
     expect(page.locator("#fleet-summary")).to_contain_text("2 online")
     expect(page.locator("#fleet")).to_have_attribute("aria-rowcount", "3")
     browser.screenshot("fleet")
 
-    simulated_robots.stop("alice-two")
+    agents.stop("alice-two")
     expect(row(page, "alice-two").locator(".c-conn .badge")).to_have_text("offline")
     expect(page.locator("#fleet-summary")).to_contain_text("1 offline")
     assert page.evaluate("window.__sameDocument") is True, "the page reloaded"
@@ -137,7 +138,78 @@ def test_the_fleet_page_renders_only_the_rows_on_screen(browser):
 # --------------------------------------------------------------------------- robot page
 
 
-def test_migrating_a_component_changes_its_location_badge(browser, simulated_robots):
+def test_migrating_a_component_changes_its_location_badge(browser, agents):
+    alice = make_user("alice")
+    token = make_robot(alice, "alice-bot", sample="demo_telemetry")
+    agents.start("alice-bot", token)
+    browser.login("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/robots/alice-bot/")
+    browser.wait_live()
+    location = page.locator(f'[data-location="{AGENT_SKILL}/filter"]')
+    status = page.locator(f'[data-status="{AGENT_SKILL}/filter"]')
+    migrate = page.locator(f'[data-migrate="{AGENT_SKILL}/filter"]')
+    expect(location).to_have_text("not placed")
+
+    page.get_by_role("button", name=f"Start skill {AGENT_SKILL}").click()
+    expect(page.get_by_role("status").filter(has_text=f"Start {AGENT_SKILL}: accepted by the robot")).to_be_visible()
+    expect(page.locator(f'[data-skill-status="{AGENT_SKILL}"]')).to_have_text("running")
+    expect(location).to_have_text("robot")
+    expect(status).to_have_text("running")
+    expect(page.locator(f'[data-migrate="{AGENT_SKILL}/sensor"]')).to_be_disabled()
+    filter_process = f"{AGENT_SKILL}/filter"
+    wait_until(lambda: filter_process in agents.running("alice-bot"), what="the agent to run filter")
+
+    # To the cloud: the agent stops its copy and asks the cloud for one, which waits for the cloud runtime.
+    migrate.click()
+    expect(location).to_have_text("cloud")
+    expect(location).to_have_class(re.compile(r"\bloc-cloud\b"))
+    expect(status).to_have_text("pending")
+    expect(page.locator(f'tr[data-component="{AGENT_SKILL}/filter"] .outcome')).to_have_text("now runs on the cloud")
+    wait_until(
+        lambda: Component.objects.get(component_id="filter").active_location == "cloud",
+        what="the cloud to record the new location",
+    )
+    expect(migrate).to_have_text("Migrate to robot")
+    wait_until(lambda: filter_process not in agents.running("alice-bot"), what="the agent to stop its copy")
+
+    # And back: the robot runs it again before the cloud copy is stopped.
+    migrate.click()
+    expect(page.locator(f'tr[data-component="{AGENT_SKILL}/filter"] .outcome')).to_have_text("now runs on the robot")
+    wait_until(
+        lambda: Component.objects.get(component_id="filter").active_location == "robot",
+        what="the cloud to record the robot as the location again",
+    )
+    expect(location).to_have_text("robot")
+    expect(status).to_have_text("running")
+    expect(migrate).to_have_text("Migrate to cloud")
+    wait_until(lambda: filter_process in agents.running("alice-bot"), what="the agent to run filter again")
+
+    # Stopping and starting the Skill: the robot's answer, then its statuses, show up in place.
+    page.get_by_role("button", name=f"Stop skill {AGENT_SKILL}").click()
+    expect(page.get_by_role("status").filter(has_text=f"Stop {AGENT_SKILL}: accepted by the robot")).to_be_visible()
+    expect(page.locator(f'[data-skill-status="{AGENT_SKILL}"]')).to_have_text("stopped")
+    expect(page.locator(f'[data-status="{AGENT_SKILL}/planner"]')).to_have_text("stopped")
+    wait_until(lambda: not agents.running("alice-bot"), what="the agent to stop the Skill's processes")
+    page.get_by_role("button", name=f"Start skill {AGENT_SKILL}").click()
+    expect(page.locator(f'[data-skill-status="{AGENT_SKILL}"]')).to_have_text("running")
+    expect(page.locator(f'[data-status="{AGENT_SKILL}/planner"]')).to_have_text("running")
+    expect(location).to_have_text("robot")
+
+    # Live charts of the robot and of each component the agent measures.
+    expect(page.locator("#robot-charts canvas").first).to_be_visible()
+    page.locator("#component-charts").scroll_into_view_if_needed()
+    expect(page.locator("#component-charts canvas").first).to_be_visible()
+    page.get_by_text("More robot metrics").click()
+    expect(page.locator("#more-robot-charts figure", has_text="net_rx")).to_be_visible()
+    expect(page.locator("#more-robot-charts canvas").first).to_be_visible()
+    page.set_viewport_size({"width": 1280, "height": 3200})
+    time.sleep(1.5)  # let charts that came on screen draw
+    browser.screenshot("robot")
+
+
+def test_the_robot_page_lists_the_latest_offloading_decisions(browser, simulated_robots):
+    # The agent sends no offloading decisions before its Skill Manager exists; a simulated robot invents them.
     alice = make_user("alice")
     token = make_robot(alice, "alice-bot")
     simulated_robots.start("alice-bot", token)
@@ -145,43 +217,11 @@ def test_migrating_a_component_changes_its_location_badge(browser, simulated_rob
     page = browser.page
     page.goto(browser.base_url + "/robots/alice-bot/")
     browser.wait_live()
-    location = page.locator(f'[data-location="{SKILL}/sampler"]')
-    expect(location).to_have_text("robot")
-    expect(page.locator(f'[data-status="{SKILL}/sampler"]')).to_have_text("running")
-    expect(page.locator(f'[data-migrate="{SKILL}/pointcloud"]')).to_be_disabled()
-
-    page.locator(f'[data-migrate="{SKILL}/sampler"]').click()
-    expect(location).to_have_text("cloud")
-    expect(location).to_have_class(re.compile(r"\bloc-cloud\b"))
-    expect(page.locator(f'tr[data-component="{SKILL}/sampler"] .outcome')).to_have_text("now runs on the cloud")
-    wait_until(
-        lambda: Component.objects.get(component_id="sampler").active_location == "cloud",
-        what="the cloud to record the new location",
-    )
-    expect(page.locator(f'[data-migrate="{SKILL}/sampler"]')).to_have_text("Migrate to robot")
-
-    # Stopping and starting the Skill: the robot's answer, then its statuses, show up in place.
-    page.get_by_role("button", name=f"Stop skill {SKILL}").click()
-    expect(page.get_by_role("status").filter(has_text=f"Stop {SKILL}: accepted by the robot")).to_be_visible()
-    expect(page.locator(f'[data-skill-status="{SKILL}"]')).to_have_text("stopped")
-    expect(page.locator(f'[data-status="{SKILL}/detector"]')).to_have_text("stopped")
-    page.get_by_role("button", name=f"Start skill {SKILL}").click()
-    expect(page.locator(f'[data-skill-status="{SKILL}"]')).to_have_text("running")
-    expect(page.locator(f'[data-status="{SKILL}/detector"]')).to_have_text("running")
-    expect(location).to_have_text("cloud")
-
-    # Live charts of the robot and of each component, and the Skill Manager's decisions.
-    expect(page.locator("#robot-charts canvas").first).to_be_visible()
-    page.locator("#component-charts").scroll_into_view_if_needed()
-    expect(page.locator("#component-charts canvas").first).to_be_visible()
+    expect(page.locator(f'[data-location="{SKILL}/sampler"]')).to_have_text("robot")
     expect(page.locator("#decisions tbody tr").first).to_be_visible(timeout=20_000)
     expect(page.locator("#decisions tbody tr").first).to_contain_text(re.compile(r"sampler|detector"))
-    page.get_by_text("More robot metrics").click()
-    expect(page.locator("#more-robot-charts figure", has_text="net_rx")).to_be_visible()
-    expect(page.locator("#more-robot-charts canvas").first).to_be_visible()
-    page.set_viewport_size({"width": 1280, "height": 3200})
-    time.sleep(1.5)  # let charts that came on screen draw
-    browser.screenshot("robot")
+    page.locator("#decisions").scroll_into_view_if_needed()
+    browser.screenshot("robot-decisions", full_page=False)
 
 
 def test_a_command_to_an_offline_robot_says_so(browser):
@@ -233,7 +273,7 @@ def test_robot_config_edits_are_checked_field_by_field_then_stored(browser):
 
 def test_an_invalid_skill_config_upload_shows_each_error_at_its_field(browser, tmp_path):
     alice = make_user("alice")
-    make_robot(alice, "alice-bot", with_skill=False)
+    make_robot(alice, "alice-bot", sample=None)
     config = load_sample_skill_config().model_dump(mode="json")
     config["components"]["detector"]["resources"]["cpu"] = -2
     del config["components"]["sampler"]["location"]
@@ -270,7 +310,7 @@ def test_an_invalid_skill_config_upload_shows_each_error_at_its_field(browser, t
 
 def test_a_template_is_added_to_a_robot_from_the_catalog(browser):
     alice = make_user("alice")
-    make_robot(alice, "alice-bot", with_skill=False)
+    make_robot(alice, "alice-bot", sample=None)
     template = create_template(
         name="People detection", config=load_sample_skill_config().model_dump(mode="json"), tags=["vision"]
     )
@@ -288,17 +328,18 @@ def test_a_template_is_added_to_a_robot_from_the_catalog(browser):
 # --------------------------------------------------------------------------- who sees what
 
 
-def test_another_user_sees_neither_the_robot_nor_its_live_frames(browser, simulated_robots):
+def test_another_user_sees_neither_the_robot_nor_its_live_frames(browser, agents):
     alice = make_user("alice")
     bob = make_user("bob")
-    token = make_robot(alice, "alice-bot")
-    make_robot(bob, "bob-bot", with_skill=False)
+    token = make_robot(alice, "alice-bot", sample="demo_telemetry")
+    make_robot(bob, "bob-bot", sample=None)
     browser.page.add_init_script(RECORD_FRAMES)
     browser.login("bob")
     page = browser.page
     expect(row(page, "bob-bot")).to_be_visible()
 
-    simulated_robots.start("alice-bot", token)
+    agents.start("alice-bot", token)
+    start_skill(browser.base_url, alice, "alice-bot", AGENT_SKILL)
     wait_until(
         lambda: Component.objects.filter(skill__robot_id="alice-bot", status="running").count() == 3,
         what="alice's robot to run its Skill",
@@ -317,12 +358,12 @@ def test_another_user_sees_neither_the_robot_nor_its_live_frames(browser, simula
 # --------------------------------------------------------------------------- events and logs
 
 
-def test_the_event_log_filters_and_tails_live(browser, simulated_robots):
+def test_the_event_log_filters_and_tails_live(browser, agents):
     alice = make_user("alice")
-    token = make_robot(alice, "alice-bot")
-    make_robot(alice, "alice-two", with_skill=False)
+    token = make_robot(alice, "alice-bot", sample="demo_telemetry")
+    make_robot(alice, "alice-two", sample=None)
     record_event(
-        "Detector crashed", robot_id="alice-bot", level="error", skill=SKILL, component="detector", kind="test"
+        "Planner crashed", robot_id="alice-bot", level="error", skill=AGENT_SKILL, component="planner", kind="test"
     )
     browser.login("alice")
     page = browser.page
@@ -334,7 +375,7 @@ def test_the_event_log_filters_and_tails_live(browser, simulated_robots):
     page.get_by_label("Level at least").select_option("error")
     page.get_by_role("button", name="Apply filters").click()
     expect(rows).to_have_count(1)
-    expect(rows.first).to_contain_text("Detector crashed")
+    expect(rows.first).to_contain_text("Planner crashed")
     expect(page).to_have_url(re.compile(r"level=error"))
 
     page.get_by_label("Level at least").select_option("")
@@ -344,18 +385,19 @@ def test_the_event_log_filters_and_tails_live(browser, simulated_robots):
     expect(rows.first).to_contain_text("Robot alice-two created")
 
     page.get_by_label("Robot", exact=True).select_option("alice-bot")
-    page.get_by_label("Component").fill("detector")
+    page.get_by_label("Component").fill("planner")
     page.get_by_role("button", name="Apply filters").click()
     expect(rows).to_have_count(1)
     page.get_by_label("Component").fill("")
     page.get_by_role("button", name="Apply filters").click()
     expect(rows).to_have_count(3)
-    expect(page.locator("#event-rows")).to_contain_text("Skill people-detection added")
+    expect(page.locator("#event-rows")).to_contain_text(f"Skill {AGENT_SKILL} added")
 
     # Live tail: what the robot does appears on top, without a reload.
-    simulated_robots.start("alice-bot", token, wait=False)
-    expect(rows.first).to_contain_text("Skill people-detection is running")
+    agents.start("alice-bot", token, wait=False)
     expect(page.locator("#event-rows tr", has_text="Robot alice-bot connected")).to_have_count(1)
+    start_skill(browser.base_url, alice, "alice-bot", AGENT_SKILL)
+    expect(rows.first).to_contain_text(f"Skill {AGENT_SKILL} is running")
     browser.screenshot("events")
 
     # A time range: an hour long in 2001 holds nothing; the last ten minutes hold the robot's events.
