@@ -211,6 +211,9 @@ def request_cloud_component(robot_id: str, skill_id: str, component_id: str, act
             component.status = ComponentStatusName.PENDING
         elif component.active_location == Location.CLOUD:
             component.status = ComponentStatusName.STOPPED
+        else:
+            # Its cloud copy is being retired after a move to the robot: nothing here changes.
+            return
         component.save(update_fields=["status", "active_location", "updated_at"])
         record_event(
             f"Robot asks the cloud to {action} component {component_id}",

@@ -441,3 +441,25 @@ def test_the_agent_exits_cleanly_on_sigterm(daphne_server, tmp_path):
     assert process.returncode == 0, err
     assert "connected to the cloud" in err and "stopped" in err
     assert sys.executable  # the agent ran from this venv's console script
+
+
+async def test_a_migration_moves_the_component_and_back(cloud, tmp_path):
+    token, api_token = await make_robot("mig-1", skill=skill_config(location="either", count=1))
+    controller = RobotController(agent_settings(cloud, "mig-1", token, tmp_path / "agent"))
+    headers = {"Authorization": f"Token {api_token}"}
+    async with running(controller), httpx.AsyncClient(base_url=cloud.url, headers=headers) as api:
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        assert (await api.post(f"/api/robot/mig-1/skill/{SKILL}/start", params={"wait": 10})).status_code == 200
+        await eventually(lambda: running_workers(controller), what="worker on the robot")
+        # The API moves a component "to the other side" of where the cloud knows it runs.
+        await eventually(lambda: _all_at(component_rows("mig-1"), "robot", 1), what="the cloud knows where it runs")
+        path = f"/api/robot/mig-1/skill/{SKILL}/component/worker-0/migrate"
+        assert (await api.post(path, params={"wait": 10})).status_code == 200
+        rows = await eventually(lambda: _all_at(component_rows("mig-1"), "cloud", 1), what="moved to the cloud")
+        assert rows == {"worker-0": ("pending", "cloud")}
+        await eventually(lambda: not running_workers(controller), what="robot copy stopped")
+        assert (await api.post(path, params={"wait": 10})).status_code == 200
+        rows = await eventually(lambda: _all_at(component_rows("mig-1"), "robot", 1), what="back on the robot")
+        await eventually(lambda: running_workers(controller), what="robot copy running again")
+        await asyncio.sleep(0.5)  # the cloud copy's stop arrives after the move: it must not undo it
+        assert await component_rows("mig-1") == {"worker-0": ("running", "robot")}
