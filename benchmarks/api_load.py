@@ -115,6 +115,10 @@ def prepare(args: argparse.Namespace) -> dict:
     configs = skill_configs()
     tokens = make_fleet(owner, args.robots, PREFIX, configs)
     make_fleet(small, SMALL_FLEET, PREFIX + "small-", configs)
+    # Earlier runs left dead rows behind; measure a database as autovacuum would keep it.
+    with connection.cursor() as cursor:
+        for table in ("auth_user", "robots_robot", "robots_apitoken", "skills_skill", "skills_component"):
+            cursor.execute(f"VACUUM ANALYZE {table}")
     connection.close()
     log(
         f"created {args.robots} + {SMALL_FLEET} robots x {SKILLS} skills x {COMPONENTS} components "

@@ -135,7 +135,9 @@ async def measure(runtime: str, args: argparse.Namespace, data_dir: Path) -> dic
         await agent.runtime.close(stop_components=True)
         agent.outbox.close()
         if runtime == "docker":
-            subprocess.run(["docker", "network", "rm", "bridgeos-bench-robot"], capture_output=True)
+            await asyncio.to_thread(
+                subprocess.run, ["docker", "network", "rm", "bridgeos-bench-robot"], capture_output=True
+            )
     return figures
 
 

@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import gc
 import os
 
-from django.core.asgi import get_asgi_application
+import django
 
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "bridgeos_cloud.settings")
 # Django must be set up before anything imports models (the consumers do).
-django_asgi_app = get_asgi_application()
+django.setup(set_prefix=False)
+
+from django.conf import settings  # noqa: E402
+
+from bridgeos_cloud.handler import PooledASGIHandler  # noqa: E402
+
+django_asgi_app = PooledASGIHandler(threads=settings.BRIDGEOS["HTTP_THREADS"])
 
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
 
@@ -20,3 +27,7 @@ application = ProtocolTypeRouter(
         "websocket": BrowserOriginValidator(URLRouter(websocket_urlpatterns)),
     }
 )
+
+# Everything loaded so far lives as long as the process: move it out of the collector's
+# sight, so a full collection walks only what requests allocate (no 100 ms pauses).
+gc.freeze()
