@@ -299,8 +299,11 @@ async def test_takeover_runs_cloud_components_on_the_robot_and_reverts(cloud, tm
         cloud.stop()
         await eventually(lambda: len(running_workers(controller)) == 3, timeout=15, what="takeover")
         assert controller.takeover_components() == {SKILL: ["worker-0", "worker-1", "worker-2"]}
+        events = controller.skills[SKILL].supervisor.events
+        assert await asyncio.wait_for(events.get(), 1) == "connection_lost"
         cloud.start()
         await eventually(lambda: not running_workers(controller), timeout=30, what="revert")
+        assert await asyncio.wait_for(events.get(), 5) == "connection_established"
         assert controller.takeover_components() == {}
         assert set(controller.skills[SKILL].locations.values()) == {"cloud"}
 

@@ -309,6 +309,8 @@ class RobotController:
         self.say("connected to the cloud")
         self._contact()
         await self._replay_backlog()
+        # The cloud pushes the config on connect; asking as well makes the agent not depend on it.
+        await self._send_direct(protocol.make(Event.ROBOT_CONFIG_GET, {}, now=time.time()))
         async for raw in ws:
             self.cloud_bytes[0] += len(raw)
             self._contact()
@@ -859,6 +861,7 @@ class RobotController:
         for record in self.skills.values():
             if record.supervisor is not None:
                 record.supervisor.context["cloud"] = "lost"
+                record.supervisor.notify("connection_lost")
         active = {
             (skill, name): where
             for skill, record in self.skills.items()
@@ -892,6 +895,7 @@ class RobotController:
         for record in self.skills.values():
             if record.supervisor is not None:
                 record.supervisor.context["cloud"] = "connected"
+                record.supervisor.notify("connection_established")
         stopped = 0
         for skill_id, names in migrations.items():
             record = self.skills.get(skill_id)

@@ -36,6 +36,9 @@ class SkillSupervisor:
     policy: RestartPolicy = field(default_factory=RestartPolicy)
     on_failure: Callable[[str, str], None] | None = None
     context: dict[str, object] = field(default_factory=dict)
+    # What the controller tells the Skill (e.g. "connection_lost", "connection_established"),
+    # for its manager to read; bounded so a Skill that never reads cannot grow it.
+    events: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=100))
     _tasks: dict[str, _Task] = field(default_factory=dict)
     _closed: bool = False
 
@@ -65,6 +68,12 @@ class SkillSupervisor:
                 entry.restarts += 1
                 logger.warning("skill %s: %s crashed (%s); restarting in %.1f s", self.skill, entry.name, exc, delay)
                 await asyncio.sleep(delay)
+
+    def notify(self, event: str) -> None:
+        """Tell the Skill's plug-ins something; the oldest unread notice makes room if full."""
+        if self.events.full():
+            self.events.get_nowait()
+        self.events.put_nowait(event)
 
     def restarts(self, name: str) -> int:
         """Return how often a plug-in was restarted."""
