@@ -61,14 +61,28 @@ def main() -> int:
         )
     print(f"== demo fleet: {len(agents)} simulated robots (logs in {data_root})", flush=True)
     headers = {"Authorization": f"Token {fleet['api_token']}"}
+    base = f"http://{host}:{port}/api/robot"
     for robot in fleet["robots"]:
-        url = f"http://{host}:{port}/api/robot/{robot['id']}/skill/{robot['skill']}/start?wait=10"
-        for _ in range(60):
+        # Wait until the robot is online (its agent connected), then start its Skill.
+        for _ in range(120):
+            try:
+                info = urllib.request.urlopen(urllib.request.Request(f"{base}/{robot['id']}/info", headers=headers))
+                if json.loads(info.read())["connected"]:
+                    break
+            except OSError:
+                pass  # the cloud is still starting
+            time.sleep(0.25)
+        url = f"{base}/{robot['id']}/skill/{robot['skill']}/start?wait=5"
+        for attempt in range(5):
             try:
                 urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers), timeout=15)
                 break
-            except OSError:
-                time.sleep(0.5)  # the agent is still connecting (409) or the cloud still starting
+            except OSError as exc:
+                # "connected" may be left over from a cloud that was killed: the agent's new
+                # connection replaces it within moments, so try again.
+                if attempt == 4:
+                    print(f"== demo fleet: could not start the Skill of {robot['id']}: {exc}", flush=True)
+                time.sleep(1)
     signal.signal(signal.SIGTERM, lambda *_: stop(agents))
     signal.signal(signal.SIGINT, lambda *_: stop(agents))
     for agent in agents:
