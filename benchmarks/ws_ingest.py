@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import gc
 import json
 import math
 import multiprocessing as mp
@@ -220,6 +221,9 @@ class Fleet:
 
 def fleet_main(url, robots, counters, base, start_event, stop_event, result_queue, args) -> None:
     """Entry point of a worker process: run its robots until told to stop, then report."""
+    # The fork inherits the parent's objects; without this, the worker's own full collections
+    # would pause its robots and be counted as lag.
+    gc.freeze()
     start_event.wait()
     try:
         result = asyncio.run(Fleet(url, robots, counters, base, stop_event, args).run())
