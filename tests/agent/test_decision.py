@@ -1,0 +1,242 @@
+"""Test the per-component offloading decisions (thesis Algorithms 8 and 9) and their networks."""
+
+from __future__ import annotations
+
+import random
+import subprocess
+import sys
+
+import pytest
+
+from bridgeos_agent.decision import (
+    Decider,
+    DecisionInput,
+    DecisionModel,
+    Features,
+    decide_batch,
+    predict_many,
+    train_many,
+)
+from bridgeos_agent.skillconfig import ManagerConfig, NeuralNetworkConfig
+
+torch = pytest.importorskip("torch")
+
+
+def manager(trained_after: int = 20, threshold: float = 0.1, **network: object) -> ManagerConfig:
+    """Return a manager config with a small network that trusts itself early."""
+    return ManagerConfig(
+        threshold=threshold,
+        neural_network=NeuralNetworkConfig(trained_after=trained_after, **network),
+    )
+
+
+def at_robot(reward: float, **kwargs: object) -> DecisionInput:
+    """Return the input of a movable component running on the robot."""
+    return DecisionInput(location="robot", estimated_reward=reward, features=Features(cost_robot=1.0), **kwargs)
+
+
+def test_agent_package_imports_without_loading_torch() -> None:
+    code = "import sys, bridgeos_agent, bridgeos_agent.decision; assert 'torch' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_untrained_decider_follows_the_estimate() -> None:
+    decider = Decider("detector", manager(threshold=0.1), hysteresis=0.0)
+    high = decider.decide(at_robot(0.5), now=0.0)
+    decider.last_move = None
+    low = decider.decide(at_robot(0.05), now=1.0)
+    assert high.migrate and high.target == "cloud" and high.prediction is None and not high.trained
+    assert not low.migrate and low.target == "robot"
+    assert "estimate" in high.reason and "estimate" in low.reason
+
+
+def test_reward_exactly_at_threshold_migrates_and_just_below_stays() -> None:
+    decider = Decider("detector", manager(threshold=0.2), hysteresis=0.0, cooldown=0.0)
+    assert decider.decide(at_robot(0.2), now=0.0).migrate
+    assert not decider.decide(at_robot(0.1999), now=1.0).migrate
+
+
+def test_hysteresis_requires_a_margin_above_threshold() -> None:
+    decider = Decider("detector", manager(threshold=0.1), hysteresis=0.05, cooldown=0.0)
+    assert not decider.decide(at_robot(0.14), now=0.0).migrate
+    assert decider.decide(at_robot(0.151), now=1.0).migrate
+
+
+def test_network_becomes_trained_after_trained_after_samples_then_decides() -> None:
+    torch.manual_seed(1)
+    decider = Decider("detector", manager(trained_after=30), hysteresis=0.0, cooldown=0.0)
+    for second in range(30):
+        decision = decider.decide(at_robot(0.8), now=float(second))
+        assert decision.prediction is None
+    assert decider.model.trained and decider.model.samples_seen == 30
+    # Trained on a reward of 0.8, the network now outvotes an estimate that says stay.
+    for _ in range(200):
+        decider.model.train_step()
+    decision = decider.decide(at_robot(-1.0), now=100.0)
+    assert decision.trained and decision.prediction is not None
+    assert decision.prediction == pytest.approx(0.8, abs=0.1)
+    assert decision.migrate and "prediction" in decision.reason
+
+
+def test_default_network_is_trained_after_1000_samples() -> None:
+    model = DecisionModel(NeuralNetworkConfig())
+    sample = Features(cost_robot=0.3).vector()
+    for _ in range(999):
+        model.observe(sample, 0.3)
+    assert not model.trained
+    model.observe(sample, 0.3)
+    assert model.trained and model.steps == 1000
+
+
+def test_trained_network_retrains_every_train_every_samples() -> None:
+    model = DecisionModel(NeuralNetworkConfig(trained_after=5, train_every=4))
+    sample = Features().vector()
+    for _ in range(5):
+        model.observe(sample, 0.0)
+    assert model.steps == 5
+    assert [model.observe(sample, 0.0) is not None for _ in range(8)] == [False, False, False, True] * 2
+    assert model.steps == 7
+
+
+def test_unusable_prediction_falls_back_to_the_estimate() -> None:
+    decider = Decider("detector", manager(trained_after=1), hysteresis=0.0)
+    decider.decide(at_robot(0.0), now=0.0)
+    decider.model.params[-1].fill_(float("nan"))
+    decision = decider.decide(at_robot(0.9), now=1.0)
+    assert decision.migrate and "estimate" in decision.reason
+
+
+def test_manual_recommendation_wins_over_the_reward() -> None:
+    decider = Decider("detector", manager(), cooldown=3600.0)
+    decider.last_move = 0.0
+    assert decider.decide(at_robot(-5.0, recommendation=True), now=1.0).migrate
+    stay = decider.decide(at_robot(5.0, recommendation=False), now=2.0)
+    assert not stay.migrate and stay.reason == "recommendation"
+
+
+def test_manual_mode_moves_only_on_recommendation() -> None:
+    decider = Decider("detector", manager())
+    assert not decider.decide(at_robot(5.0, mode="manual"), now=0.0).migrate
+    assert decider.decide(at_robot(0.0, mode="manual", recommendation=True), now=1.0).migrate
+
+
+@pytest.mark.parametrize("location", ["robot", "cloud"])
+def test_fixed_location_never_moves(location: str) -> None:
+    decider = Decider("driver", manager(), cooldown=0.0)
+    for second in range(50):
+        decision = decider.decide(
+            DecisionInput(location=location, estimated_reward=9.0, required_location=location, recommendation=True),
+            now=float(second),
+        )
+        assert not decision.migrate and decision.reason == "fixed location"
+    assert decider._model is None  # never built, never needed torch
+
+
+@pytest.mark.parametrize(
+    ("mode", "location", "moves"),
+    [("robot", "cloud", True), ("robot", "robot", False), ("cloud", "robot", True), ("cloud", "cloud", False)],
+)
+def test_robot_and_cloud_modes_keep_components_on_their_side(mode: str, location: str, moves: bool) -> None:
+    decider = Decider("detector", manager())
+    decision = decider.decide(DecisionInput(location=location, estimated_reward=-9.0, mode=mode), now=0.0)
+    assert decision.migrate is moves
+    assert decision.target == mode
+
+
+def test_no_move_to_the_robot_without_free_resources() -> None:
+    decider = Decider("detector", manager())
+    decision = decider.decide(
+        DecisionInput(location="cloud", estimated_reward=9.0, resources_ok=False, recommendation=True), now=0.0
+    )
+    assert not decision.migrate and "resources" in decision.reason
+
+
+def moves_in_an_hour(decider: Decider, seed: int) -> int:
+    """Count migrations over an hour of 1 Hz decisions with a noisy reward around the threshold."""
+    rng = random.Random(seed)
+    location, moves = "robot", 0
+    for second in range(3600):
+        # The cloud is slightly better; the estimate is noisy and antisymmetric in location.
+        benefit = 0.12 if location == "robot" else -0.12
+        given = DecisionInput(location=location, estimated_reward=benefit + rng.gauss(0, 0.3))
+        if decider.decide(given, now=float(second)).migrate:
+            location = "cloud" if location == "robot" else "robot"
+            moves += 1
+    return moves
+
+
+def test_hysteresis_and_cooldown_stop_flapping_under_noise() -> None:
+    config = manager(trained_after=1_000_000)
+    naive = moves_in_an_hour(Decider("detector", config, hysteresis=0.0, cooldown=0.0), seed=7)
+    damped = moves_in_an_hour(Decider("detector", config, hysteresis=0.05, cooldown=120.0), seed=7)
+    assert naive > 500
+    assert damped <= 3600 / 120 + 1
+    assert damped >= 1
+
+
+def test_decision_record_is_plain_data_for_the_cloud() -> None:
+    record = Decider("detector", manager()).decide(at_robot(0.5), now=12.5).as_dict()
+    assert record["component"] == "detector" and record["at"] == 12.5
+    assert record["features"]["cost_robot"] == 1.0 and record["features"]["location"] == "robot"
+    assert {"estimated_reward", "prediction", "threshold", "hysteresis", "reason", "migrate", "target"} <= set(record)
+
+
+def test_batch_decisions_match_single_decisions() -> None:
+    torch.manual_seed(3)
+    deciders = [Decider(f"c{i}", manager(trained_after=3), hysteresis=0.0) for i in range(40)]
+    for d in deciders:
+        for _ in range(3):
+            d.model.observe(Features(cost_robot=random.random()).vector(), random.uniform(-1, 1))
+    inputs = [at_robot(random.uniform(-1, 1)) for _ in deciders]
+    expected = [d.model.predict(given.features.vector()) for d, given in zip(deciders, inputs, strict=True)]
+    decisions = decide_batch(deciders, inputs, now=0.0)
+    assert [d.component for d in decisions] == [d.component for d in deciders]
+    assert [d.prediction for d in decisions] == pytest.approx(expected, abs=1e-5)
+    assert [d.migrate for d in decisions] == [p >= 0.1 for p in expected]
+
+
+def test_batched_training_step_equals_a_single_step() -> None:
+    config = NeuralNetworkConfig(trained_after=100)
+    alone, batched, other = (DecisionModel(config) for _ in range(3))
+    for model in (alone, other):
+        for _ in range(10):
+            model.record([random.random() for _ in range(10)], random.random())
+    batched.load_state_dict(alone.state_dict())
+    torch.manual_seed(0)
+    train_many([alone])
+    torch.manual_seed(0)
+    train_many([batched, other])
+    probe = [[random.random() for _ in range(10)] for _ in range(5)]
+    assert predict_many([alone] * 5, probe) == pytest.approx(predict_many([batched] * 5, probe), abs=1e-5)
+
+
+def test_reloaded_model_predicts_identically(tmp_path) -> None:
+    config = NeuralNetworkConfig(trained_after=10, hidden_layers=[8, 4], activation="tanh")
+    model = DecisionModel(config)
+    for _ in range(25):
+        model.observe([random.random() for _ in range(10)], random.random())
+    model.save(tmp_path / "detector.pt")
+    again = DecisionModel.load(tmp_path / "detector.pt", config)
+    probe = [[random.random() for _ in range(10)] for _ in range(20)]
+    assert predict_many([again] * 20, probe) == predict_many([model] * 20, probe)
+    assert again.samples_seen == 25 and again.trained and again.steps == model.steps
+    assert again.buffer == model.buffer
+    # Training resumes from the same optimizer state.
+    torch.manual_seed(5)
+    model.train_step()
+    torch.manual_seed(5)
+    again.train_step()
+    assert predict_many([again] * 20, probe) == predict_many([model] * 20, probe)
+
+
+def test_model_saved_under_another_shape_is_refused() -> None:
+    data = DecisionModel(NeuralNetworkConfig(hidden_layers=[8])).to_bytes()
+    with pytest.raises(ValueError, match="does not match"):
+        DecisionModel.from_bytes(data, NeuralNetworkConfig(hidden_layers=[16, 16]))
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "sgd"])
+def test_default_model_fits_in_50_kb(optimizer: str) -> None:
+    model = DecisionModel(NeuralNetworkConfig(), optimizer=optimizer)
+    assert model.size_bytes() <= 50_000
+    assert len(model.to_bytes()) <= 50_000
