@@ -163,8 +163,8 @@ def test_unsafe_or_unknown_constructs_are_refused_with_a_reason(text: str, messa
 def test_errors_name_the_column() -> None:
     with pytest.raises(ExpressionError) as info:
         compile_expression("cpu + ram.real", NAMES)
-    assert info.value.column == 7
-    assert str(info.value) == "attribute access is not allowed at column 7"
+    assert info.value.column == 10
+    assert str(info.value) == "attribute access is not allowed at column 10"
 
 
 def test_errors_name_the_line_of_multiline_expressions() -> None:

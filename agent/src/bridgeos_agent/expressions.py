@@ -48,6 +48,9 @@ class ExpressionError(ValueError):
 
 def _at(node: ast.AST) -> dict[str, int]:
     """Return the 1-based position of a node for an error."""
+    if isinstance(node, ast.Attribute | ast.Subscript) and node.value.end_col_offset is not None:
+        # Point at the '.' or '[' rather than the start of the object it applies to.
+        return {"column": node.value.end_col_offset + 1, "line": node.value.end_lineno or 1}
     return {"column": getattr(node, "col_offset", 0) + 1, "line": getattr(node, "lineno", 1)}
 
 
