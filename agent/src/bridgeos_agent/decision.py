@@ -307,6 +307,11 @@ def predict_many(models: Sequence[DecisionModel], features: Sequence[Sequence[fl
     return out
 
 
+def _stack(tensors: Sequence[Any]) -> Any:
+    """Stack tensors on a new first dimension; a single one is a view, so in-place updates reach it."""
+    return tensors[0].unsqueeze(0) if len(tensors) == 1 else _load_torch().stack(tensors)
+
+
 def train_many(models: Sequence[DecisionModel]) -> list[float]:
     """Run one training step (mean squared error) on each model, batched per shape; return the losses.
 
@@ -322,9 +327,9 @@ def train_many(models: Sequence[DecisionModel]) -> list[float]:
         for model in group:
             ring = torch.frombuffer(model.buffer, dtype=torch.float32).view(model.buffer_size, model._row)
             rows.append(ring[torch.randint(max(model.buffered, 1), (model.batch_size,))])
-        batch = torch.stack(rows)
+        batch = _stack(rows)
         x, target = batch[..., :-1], batch[..., -1:]
-        params = [torch.stack(ps).requires_grad_() for ps in zip(*(m.params for m in group), strict=True)]
+        params = [_stack(ps).requires_grad_() for ps in zip(*(m.params for m in group), strict=True)]
         per_model = ((_forward(params, x, first.config.activation) - target) ** 2).mean(dim=(1, 2))
         # The models are independent, so the gradient of the sum is each model's own gradient.
         grads = torch.autograd.grad(per_model.sum(), params)
@@ -332,28 +337,29 @@ def train_many(models: Sequence[DecisionModel]) -> list[float]:
             model.steps += 1
             model.since_training = 0
         lr = torch.tensor([m.config.learning_rate for m in group])
+        adam = first.optimizer == "adam"
+        if adam:
+            beta1, beta2 = _ADAM_BETAS
+            steps = torch.tensor([float(m.steps) for m in group])
+            step_size = lr / (1 - beta1**steps)
+            bias2_sqrt = torch.sqrt(1 - beta2**steps)
         with torch.no_grad():
-            if first.optimizer == "adam":
-                beta1, beta2 = _ADAM_BETAS
-                steps = torch.tensor([float(m.steps) for m in group])
-                step_size = lr / (1 - beta1**steps)
-                bias2_sqrt = torch.sqrt(1 - beta2**steps)
-                for j, (param, grad) in enumerate(zip(params, grads, strict=True)):
-                    view = (-1,) + (1,) * (grad.dim() - 1)
-                    m1 = torch.stack([m.exp_avg[j] for m in group]).lerp_(grad, 1 - beta1)
-                    m2 = torch.stack([m.exp_avg_sq[j] for m in group]).mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            for j, (param, grad) in enumerate(zip(params, grads, strict=True)):
+                view = (-1,) + (1,) * (grad.dim() - 1)
+                weights = param.detach()
+                if adam:
+                    m1 = _stack([m.exp_avg[j] for m in group]).lerp_(grad, 1 - beta1)
+                    m2 = _stack([m.exp_avg_sq[j] for m in group]).mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
                     denom = (m2.sqrt() / bias2_sqrt.view(view)).add_(_ADAM_EPS)
-                    new = param.detach() - step_size.view(view) * m1 / denom
+                    weights.sub_(step_size.view(view) * m1 / denom)
+                else:
+                    weights.sub_(lr.view(view) * grad)
+                if len(group) > 1:  # a single model was updated in place through its views
                     for k, model in enumerate(group):
-                        model.params[j] = new[k].clone()
-                        model.exp_avg[j] = m1[k].clone()
-                        model.exp_avg_sq[j] = m2[k].clone()
-            else:
-                for j, (param, grad) in enumerate(zip(params, grads, strict=True)):
-                    view = (-1,) + (1,) * (grad.dim() - 1)
-                    new = param.detach() - lr.view(view) * grad
-                    for k, model in enumerate(group):
-                        model.params[j] = new[k].clone()
+                        model.params[j].copy_(weights[k])
+                        if adam:
+                            model.exp_avg[j].copy_(m1[k])
+                            model.exp_avg_sq[j].copy_(m2[k])
         for i, loss in zip(indices, per_model.tolist(), strict=True):
             losses[i] = loss
     return losses
