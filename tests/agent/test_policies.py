@@ -15,6 +15,7 @@ from bridgeos_agent.policies import (
     Metrics,
     PolicyCosts,
     PolicyEstimator,
+    cost_function_issues,
     cost_function_names,
     energy_cost,
     monetary_cost,
@@ -167,7 +168,7 @@ def test_new_policy_needs_both_locations() -> None:
 
 
 def test_unsafe_cost_function_is_refused_when_the_estimator_is_built() -> None:
-    with pytest.raises(ValueError, match=r"cost function 'robot': attribute access is not allowed at column 4"):
+    with pytest.raises(ValueError, match=r"^robot: attribute access is not allowed at column 4$"):
         PolicyEstimator(CONSTANTS, {"robot": "cpu.__class__", "cloud": "0"})
 
 
@@ -190,7 +191,24 @@ def test_custom_policy_without_functions_is_an_error() -> None:
 def test_constants_may_not_shadow_builtin_variables() -> None:
     constants = Constants(user=MappingProxyType({"cpu": 1.0, "latency": 2.0}))
     with pytest.raises(ValueError, match="constants 'cpu', 'latency' shadow"):
-        PolicyEstimator(constants)
+        PolicyEstimator(constants, {"energy_robot": "cpu"})
+
+
+def test_constants_are_free_when_no_cost_function_reads_them() -> None:
+    constants = Constants(user=MappingProxyType({"cpu": 1.0}))
+    assert PolicyEstimator(constants).policies == BUILTIN_POLICIES
+
+
+def test_cost_function_issues_lists_every_problem_by_key() -> None:
+    issues = cost_function_issues({"robot": "1 +", "energy_either": "1", "comfort_cloud": "cpu"}, ["weight"])
+    assert issues == [
+        ("robot", "invalid syntax"),
+        (
+            "energy_either",
+            "cost function key 'energy_either' must be 'robot', 'cloud', '<policy>_robot' or '<policy>_cloud'",
+        ),
+        ("comfort_cloud", "policy 'comfort' needs a cost function for 'robot' too"),
+    ]
 
 
 @pytest.mark.parametrize(

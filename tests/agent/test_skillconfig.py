@@ -232,6 +232,36 @@ def test_overlong_cost_function_is_reported(sample: dict[str, Any]) -> None:
     assert "manager.cost_functions.robot" in errors_of(sample)
 
 
+def test_unsafe_cost_function_is_reported_with_its_position(sample: dict[str, Any]) -> None:
+    sample["manager"]["cost_functions"] = {"robot": "cpu.__class__", "cloud": "__import__('os')"}
+    errors = errors_of(sample)
+    assert errors["manager.cost_functions.robot"] == ["attribute access is not allowed at column 4"]
+    assert "cannot call '__import__'" in errors["manager.cost_functions.cloud"][0]
+
+
+def test_cost_function_may_read_resources_metrics_and_constants(sample: dict[str, Any]) -> None:
+    sample["manager"]["policy"] = "custom"
+    sample["manager"]["cost_functions"] = {
+        "robot": "energy + latency * target_rate_hz",
+        "cloud": "monetary if ros else cpu",
+        "performance_cloud": "max(latency, 0.01)",
+    }
+    assert parse_skill_config(sample).manager.cost_functions["robot"].startswith("energy")
+
+
+def test_cost_function_with_unknown_variable_or_key_is_reported(sample: dict[str, Any]) -> None:
+    sample["manager"]["cost_functions"] = {"robot": "batery * 2", "energy_either": "1"}
+    errors = errors_of(sample)
+    assert errors["manager.cost_functions.robot"] == ["unknown name 'batery' at column 1"]
+    assert "manager.cost_functions.energy_either" in errors
+
+
+def test_constant_shadowing_a_cost_function_variable_is_reported(sample: dict[str, Any]) -> None:
+    sample["manager"]["constants"] = {"cpu": 1.0}
+    sample["manager"]["cost_functions"] = {"energy_robot": "cpu"}
+    assert errors_of(sample)["manager.cost_functions"] == ["constants 'cpu' shadow built-in cost function variables"]
+
+
 def test_neural_network_bounds_are_enforced(sample: dict[str, Any]) -> None:
     sample["manager"]["neural_network"]["hidden_layers"] = [0, 4096]
     sample["manager"]["neural_network"]["activation"] = "softmax"

@@ -192,7 +192,9 @@ def compile_expression(text: str, allowed_names: Iterable[str]) -> CompiledExpre
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except SyntaxError as exc:
-        raise ExpressionError(f"invalid syntax: {exc.msg}", exc.offset, exc.lineno or 1) from None
+        reason = "invalid syntax" if exc.msg == "invalid syntax" else f"invalid syntax: {exc.msg}"
+        # Python reports column 0 for errors at the end of the input, which points nowhere.
+        raise ExpressionError(reason, exc.offset or None, exc.lineno or 1) from None
     except (ValueError, RecursionError, MemoryError) as exc:
         raise ExpressionError(f"invalid expression: {exc}") from None
     compiler = _Compiler(frozenset(allowed_names))

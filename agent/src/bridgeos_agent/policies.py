@@ -38,6 +38,7 @@ __all__ = [
     "Metrics",
     "PolicyCosts",
     "PolicyEstimator",
+    "cost_function_issues",
     "cost_function_names",
     "energy_cost",
     "monetary_cost",
@@ -213,27 +214,43 @@ def cost_function_names(user_constants: Iterable[str] = ()) -> frozenset[str]:
     return frozenset((*RESOURCE_KINDS, *METRIC_NAMES, *PRICE_NAMES, *BUILTIN_POLICIES, *user_constants))
 
 
+def cost_function_issues(cost_functions: Mapping[str, str], constants: Iterable[str]) -> list[tuple[str | None, str]]:
+    """Report every malformed, unsafe or one-sided cost function, keyed by its name."""
+    if not cost_functions:
+        return []
+    issues: list[tuple[str | None, str]] = []
+    clash = sorted(set(constants) & cost_function_names())
+    if clash:
+        issues.append((None, f"constants {', '.join(map(repr, clash))} shadow built-in cost function variables"))
+    names = cost_function_names(constants)
+    keys: set[tuple[str, Site]] = set()
+    for key, text in cost_functions.items():
+        try:
+            keys.add(parse_cost_function_key(key))
+            compile_expression(text, names)
+        except ValueError as exc:
+            issues.append((key, str(exc)))
+    for policy, location in sorted(keys):
+        other: Site = "cloud" if location == "robot" else "robot"
+        # A built-in policy falls back to its own equation; 'custom' is checked where the policy is chosen.
+        if policy not in (*BUILTIN_POLICIES, "custom") and (policy, other) not in keys:
+            issues.append((f"{policy}_{location}", f"policy {policy!r} needs a cost function for {other!r} too"))
+    return issues
+
+
 class PolicyEstimator:
     """Compute each location's cost of a component under the built-in and user policies."""
 
     def __init__(self, constants: Constants, cost_functions: Mapping[str, str] | None = None) -> None:
-        self.constants = constants
+        cost_functions = cost_functions or {}
+        issues = cost_function_issues(cost_functions, constants.user)
+        if issues:
+            raise ValueError("; ".join(message if key is None else f"{key}: {message}" for key, message in issues))
         names = cost_function_names(constants.user)
-        clash = sorted(set(constants.user) & cost_function_names())
-        if clash:
-            raise ValueError(f"constants {', '.join(map(repr, clash))} shadow built-in cost function variables")
-        functions: dict[tuple[str, Site], CompiledExpression] = {}
-        for key, text in (cost_functions or {}).items():
-            policy, location = parse_cost_function_key(key)
-            try:
-                functions[policy, location] = compile_expression(text, names)
-            except ExpressionError as exc:
-                raise ValueError(f"cost function {key!r}: {exc}") from None
-        for policy, location in functions:
-            other: Site = "cloud" if location == "robot" else "robot"
-            if policy not in BUILTIN_POLICIES and (policy, other) not in functions:
-                raise ValueError(f"policy {policy!r} needs a cost function for {other!r} too")
-        self.functions: Mapping[tuple[str, Site], CompiledExpression] = MappingProxyType(functions)
+        self.constants = constants
+        self.functions: Mapping[tuple[str, Site], CompiledExpression] = MappingProxyType(
+            {parse_cost_function_key(key): compile_expression(text, names) for key, text in cost_functions.items()}
+        )
 
     @classmethod
     def of(cls, robot: RobotConfig, manager: ManagerConfig, cloud: Resources) -> PolicyEstimator:

@@ -19,6 +19,8 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from bridgeos_agent.policies import cost_function_issues
+
 __all__ = [
     "ComponentConfig",
     "ComponentResources",
@@ -188,13 +190,15 @@ class ManagerConfig(_Model):
     )
 
     @model_validator(mode="after")
-    def _custom_policy_has_cost_functions(self) -> ManagerConfig:
-        """Require a cost function per location when the policy is custom."""
+    def _cost_functions_are_usable(self) -> ManagerConfig:
+        """Require safe, well-keyed cost functions, and one per location when the policy is custom."""
+        issues: list[Issue] = []
         if self.policy == "custom":
             missing = [loc for loc in ("robot", "cloud") if loc not in self.cost_functions]
-            _raise_issues(
-                [(("cost_functions",), f"policy 'custom' needs a cost function for {loc!r}") for loc in missing]
-            )
+            issues += [(("cost_functions",), f"policy 'custom' needs a cost function for {loc!r}") for loc in missing]
+        for key, message in cost_function_issues(self.cost_functions, self.constants):
+            issues.append((("cost_functions",) if key is None else ("cost_functions", key), message))
+        _raise_issues(issues)
         return self
 
 
