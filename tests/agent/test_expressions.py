@@ -167,6 +167,22 @@ def test_errors_name_the_column() -> None:
     assert str(info.value) == "attribute access is not allowed at column 10"
 
 
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("  cpu.real", "attribute access is not allowed at column 6"),
+        ("\n  cpu + x", "unknown name 'x' at line 2, column 9"),
+        ("   1 1", "invalid syntax at column 6"),
+    ],
+)
+def test_positions_count_leading_whitespace(text: str, message: str) -> None:
+    assert error_of(text) == message
+
+
+def test_leading_and_trailing_whitespace_is_accepted() -> None:
+    assert value_of("  cpu * 2\n") == 1.0
+
+
 def test_errors_name_the_line_of_multiline_expressions() -> None:
     with pytest.raises(ExpressionError) as info:
         compile_expression("(cpu +\n x)", NAMES)

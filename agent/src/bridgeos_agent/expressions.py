@@ -46,14 +46,6 @@ class ExpressionError(ValueError):
         self.line = line
 
 
-def _at(node: ast.AST) -> dict[str, int]:
-    """Return the 1-based position of a node for an error."""
-    if isinstance(node, ast.Attribute | ast.Subscript) and node.value.end_col_offset is not None:
-        # Point at the '.' or '[' rather than the start of the object it applies to.
-        return {"column": node.value.end_col_offset + 1, "line": node.value.end_lineno or 1}
-    return {"column": getattr(node, "col_offset", 0) + 1, "line": getattr(node, "lineno", 1)}
-
-
 def _finite(value: float, what: str, where: dict[str, int]) -> float:
     """Refuse an infinite or NaN result, which no cost comparison could use."""
     if not math.isfinite(value):
@@ -187,17 +179,23 @@ def compile_expression(text: str, allowed_names: Iterable[str]) -> CompiledExpre
         raise ExpressionError(f"expression must be a string, not {type(text).__name__}")
     if len(text) > MAX_LENGTH:
         raise ExpressionError(f"expression is {len(text)} characters long, longer than {MAX_LENGTH}")
-    if not text.strip():
+    stripped = text.strip()
+    if not stripped:
         raise ExpressionError("expression is empty")
+    # Leading whitespace is an "unexpected indent" to the parser, yet harmless in a config.
+    skipped = text[: len(text) - len(text.lstrip())]
     try:
-        tree = ast.parse(text.strip(), mode="eval")
+        tree = ast.parse(stripped, mode="eval")
     except SyntaxError as exc:
         reason = "invalid syntax" if exc.msg == "invalid syntax" else f"invalid syntax: {exc.msg}"
         # Python reports column 0 for errors at the end of the input, which points nowhere.
-        raise ExpressionError(reason, exc.offset or None, exc.lineno or 1) from None
+        line, column = exc.lineno or 1, exc.offset or None
+        if column is not None and line == 1:
+            column += len(skipped) - (skipped.rfind("\n") + 1)
+        raise ExpressionError(reason, column, line + skipped.count("\n")) from None
     except (ValueError, RecursionError, MemoryError) as exc:
         raise ExpressionError(f"invalid expression: {exc}") from None
-    compiler = _Compiler(frozenset(allowed_names))
+    compiler = _Compiler(frozenset(allowed_names), skipped)
     root = compiler.compile(tree.body, 1)
     return CompiledExpression(text, frozenset(compiler.used), root)
 
@@ -205,41 +203,55 @@ def compile_expression(text: str, allowed_names: Iterable[str]) -> CompiledExpre
 class _Compiler:
     """Turn a parsed expression into closures, refusing anything outside the grammar."""
 
-    def __init__(self, allowed: frozenset[str]) -> None:
+    def __init__(self, allowed: frozenset[str], skipped: str = "") -> None:
         self.allowed = allowed
         self.used: set[str] = set()
+        # The parser saw the text without its leading whitespace; report positions in the original.
+        self.line_shift = skipped.count("\n")
+        self.column_shift = len(skipped) - (skipped.rfind("\n") + 1)
+
+    def at(self, node: ast.AST) -> dict[str, int]:
+        """Return the 1-based position of a node in the original text, for an error."""
+        if isinstance(node, ast.Attribute | ast.Subscript) and node.value.end_col_offset is not None:
+            # Point at the '.' or '[' rather than the start of the object it applies to.
+            line, column = node.value.end_lineno or 1, node.value.end_col_offset + 1
+        else:
+            line, column = getattr(node, "lineno", 1), getattr(node, "col_offset", 0) + 1
+        if line == 1:
+            column += self.column_shift
+        return {"column": column, "line": line + self.line_shift}
 
     def compile(self, node: ast.AST, depth: int) -> Node:
         """Compile one node and its children, no deeper than MAX_DEPTH."""
         if depth > MAX_DEPTH:
-            raise ExpressionError(f"expression is nested deeper than {MAX_DEPTH} levels", **_at(node))
+            raise ExpressionError(f"expression is nested deeper than {MAX_DEPTH} levels", **self.at(node))
         if type(node) in _NOT_ALLOWED:
-            raise ExpressionError(_NOT_ALLOWED[type(node)], **_at(node))
+            raise ExpressionError(_NOT_ALLOWED[type(node)], **self.at(node))
         method = getattr(self, f"_{type(node).__name__.lower()}", None)
         if method is None:
-            raise ExpressionError(f"{type(node).__name__} is not allowed", **_at(node))
+            raise ExpressionError(f"{type(node).__name__} is not allowed", **self.at(node))
         return method(node, depth + 1)
 
     def _constant(self, node: ast.Constant, depth: int) -> Node:
         value = node.value
         if isinstance(value, str | bytes):
-            raise ExpressionError("strings are not allowed", **_at(node))
+            raise ExpressionError("strings are not allowed", **self.at(node))
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ExpressionError(f"constant {value!r} is not a number", **_at(node))
+            raise ExpressionError(f"constant {value!r} is not a number", **self.at(node))
         try:
-            number = _finite(float(value), "number", _at(node))
+            number = _finite(float(value), "number", self.at(node))
         except OverflowError:
-            raise ExpressionError("number is too large", **_at(node)) from None
+            raise ExpressionError("number is too large", **self.at(node)) from None
         return lambda variables: number
 
     def _name(self, node: ast.Name, depth: int) -> Node:
         name = node.id
         if name.startswith("__"):
-            raise ExpressionError(f"name {name!r} is not allowed", **_at(node))
+            raise ExpressionError(f"name {name!r} is not allowed", **self.at(node))
         if name in FUNCTIONS:
-            raise ExpressionError(f"function {name!r} must be called", **_at(node))
+            raise ExpressionError(f"function {name!r} must be called", **self.at(node))
         if name not in self.allowed:
-            raise ExpressionError(f"unknown name {name!r}", **_at(node))
+            raise ExpressionError(f"unknown name {name!r}", **self.at(node))
         self.used.add(name)
         return lambda variables: variables[name]
 
@@ -251,15 +263,15 @@ class _Compiler:
             return operand
         if isinstance(node.op, ast.Not):
             return lambda variables: float(not operand(variables))
-        raise ExpressionError(f"operator {_OPERATOR_SYMBOLS[type(node.op)]!r} is not allowed", **_at(node))
+        raise ExpressionError(f"operator {_OPERATOR_SYMBOLS[type(node.op)]!r} is not allowed", **self.at(node))
 
     def _binop(self, node: ast.BinOp, depth: int) -> Node:
         op = type(node.op)
         if op in _OPERATOR_SYMBOLS:
-            raise ExpressionError(f"operator {_OPERATOR_SYMBOLS[op]!r} is not allowed", **_at(node))
+            raise ExpressionError(f"operator {_OPERATOR_SYMBOLS[op]!r} is not allowed", **self.at(node))
         left = self.compile(node.left, depth)
         right = self.compile(node.right, depth)
-        where = _at(node)
+        where = self.at(node)
         isfinite = math.isfinite
 
         def overflow() -> ExpressionError:
@@ -341,7 +353,7 @@ class _Compiler:
     def _compare(self, node: ast.Compare, depth: int) -> Node:
         for op in node.ops:
             if type(op) not in _COMPARISONS:
-                raise ExpressionError(f"operator {_OPERATOR_SYMBOLS[type(op)]!r} is not allowed", **_at(node))
+                raise ExpressionError(f"operator {_OPERATOR_SYMBOLS[type(op)]!r} is not allowed", **self.at(node))
         first = self.compile(node.left, depth)
         pairs = [
             (_COMPARISONS[type(op)], self.compile(comparator, depth))
@@ -373,19 +385,19 @@ class _Compiler:
         if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
             callee = node.func.id if isinstance(node.func, ast.Name) else ast.unparse(node.func)
             raise ExpressionError(
-                f"cannot call {callee!r}; allowed functions are {', '.join(sorted(FUNCTIONS))}", **_at(node)
+                f"cannot call {callee!r}; allowed functions are {', '.join(sorted(FUNCTIONS))}", **self.at(node)
             )
         name = node.func.id
         if node.keywords:
-            raise ExpressionError(f"keyword arguments are not allowed in {name}()", **_at(node.keywords[0]))
+            raise ExpressionError(f"keyword arguments are not allowed in {name}()", **self.at(node.keywords[0]))
         lowest, highest, function = FUNCTIONS[name]
         count = len(node.args)
         # Refuse what an argument is made of before how many there are: it is the worse mistake.
         args = [self.compile(arg, depth) for arg in node.args]
         if count < lowest or (highest is not None and count > highest):
             wanted = f"{lowest}" if lowest == highest else f"{lowest} to {highest}" if highest else f"{lowest} or more"
-            raise ExpressionError(f"{name}() takes {wanted} arguments, not {count}", **_at(node))
-        where = _at(node)
+            raise ExpressionError(f"{name}() takes {wanted} arguments, not {count}", **self.at(node))
+        where = self.at(node)
         if count == 1:
             (only,) = args
             return lambda variables: function(only(variables), where=where)
