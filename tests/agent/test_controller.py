@@ -15,7 +15,6 @@ import httpx
 import psutil
 import pytest
 from asgiref.sync import sync_to_async
-from django.conf import settings as django_settings
 
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.monitor import SimulatedRobot
@@ -25,54 +24,12 @@ from robots.models import Robot
 from robots.services import create_robot, issue_api_token, update_robot_config
 from skills.models import Component
 from skills.services import add_skill
-from tests.conftest import BIN, ROOT, free_port, service_env, wait_for_port
+from tests.agent.conftest import Cloud
+from tests.conftest import BIN
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(240)]
 
 SKILL = "workers"
-
-
-class Cloud:
-    """A daphne of the test's own on a fixed port, so the test can kill and restart the cloud."""
-
-    def __init__(self, log: Path) -> None:
-        self.port = free_port()
-        self.log = log
-        self.process: subprocess.Popen | None = None
-        self.env: dict[str, str] = {}
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    @property
-    def ws_url(self) -> str:
-        return f"ws://127.0.0.1:{self.port}"
-
-    def start(self) -> None:
-        env = service_env(django_settings.DATABASES["default"]["NAME"])
-        with self.log.open("ab") as out:
-            self.process = subprocess.Popen(
-                [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(self.port)],
-                cwd=ROOT,
-                env={**env, "VIRTUAL_ENV": str(BIN.parent), **self.env},
-                stdout=out,
-                stderr=subprocess.STDOUT,
-            )
-        wait_for_port(self.port, self.process)
-
-    def stop(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.kill()  # a crash, not a polite shutdown
-            self.process.wait(10)
-
-
-@pytest.fixture
-def cloud(tmp_path) -> Cloud:
-    server = Cloud(tmp_path / "daphne.log")
-    server.start()
-    yield server
-    server.stop()
 
 
 def skill_config(*, location: str = "robot", count: int = 2, cpu: float = 0.1) -> dict:

@@ -128,7 +128,11 @@ class RobotController:
         )
         if runtime is not None and runtime.on_status is None:
             runtime.on_status = self._on_runtime_status
-        self.plugins = dict(plugins or {})
+        if plugins is None:
+            from bridgeos_agent.manager import skill_manager_plugin
+
+            plugins = {"manager": skill_manager_plugin}
+        self.plugins = dict(plugins)
         self.config: RobotConfig | None = None
         self.config_from_cloud = asyncio.Event()
         self.skills: dict[str, SkillRecord] = {}
@@ -556,6 +560,7 @@ class RobotController:
             record.supervisor = SkillSupervisor(
                 config.skill_id, on_failure=functools.partial(self._plugin_failed, record)
             )
+            record.supervisor.context["controller"] = self
             for name, plugin in self.plugins.items():
                 record.supervisor.start(name, plugin)
         names = list(starting if starting is not None else config.components)

@@ -1,0 +1,207 @@
+"""The Skill Manager (thesis §3.4.1): decides, while a Skill runs, where each movable component lives.
+
+One manager per active Skill, run by the Skill's supervisor. Every ``decision_interval`` it
+costs each movable component at both locations under the Skill's policy (equations
+4.1-4.6, ``policies``), asks each component's decision module (Algorithms 8-9,
+``decision``) and moves the components whose decision says so through the controller
+(Algorithm 1 for a move to the robot). Each decision is sent to the cloud as an
+``offloading.decision`` metric point; decision models are kept on disk between launches.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import TYPE_CHECKING, Any
+
+from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, decide_batch
+from bridgeos_agent.heuristics import Resources
+from bridgeos_agent.policies import Metrics, PolicyEstimator
+from bridgeos_agent.protocol import Event
+from bridgeos_agent.robotconfig import RobotConfig
+
+if TYPE_CHECKING:
+    from bridgeos_agent.controller import RobotController, SkillRecord
+    from bridgeos_agent.supervisor import SkillSupervisor
+
+__all__ = ["SkillManager", "skill_manager_plugin"]
+
+logger = logging.getLogger(__name__)
+
+DECISION_METRIC = "offloading.decision"
+
+
+class SkillManager:
+    """Decide and act on the locations of one Skill's movable components."""
+
+    def __init__(self, controller: RobotController, skill_id: str, *, clock: Any = time.monotonic) -> None:
+        self.controller = controller
+        self.skill_id = skill_id
+        self.clock = clock
+        self.deciders: dict[str, Decider] = {}
+        self.recommendations: dict[str, str] = {}  # component -> location a component or operator asked for
+        self.last: dict[str, Decision] = {}
+        self.model_dir = controller.data_dir / "models" / skill_id
+
+    @property
+    def record(self) -> SkillRecord:
+        """Return the controller's record of this Skill."""
+        return self.controller.skills[self.skill_id]
+
+    def recommend(self, component: str, location: str) -> None:
+        """Take a manual offloading recommendation; it wins at the next decision."""
+        config = self.record.config.components.get(component)
+        if config is None:
+            raise ValueError(f"skill {self.skill_id!r} has no component {component!r}")
+        if config.location != "either":
+            raise ValueError(f"component {component!r} may only run on the {config.location}")
+        if location not in ("robot", "cloud"):
+            raise ValueError(f"location must be 'robot' or 'cloud', not {location!r}")
+        self.recommendations[component] = location
+
+    def movable(self) -> list[str]:
+        """Return the components the manager may move: movable and running somewhere."""
+        record = self.record
+        return [
+            name
+            for name, config in record.config.components.items()
+            if config.location == "either" and record.locations.get(name) in ("robot", "cloud")
+        ]
+
+    def _decider(self, name: str) -> Decider:
+        decider = self.deciders.get(name)
+        if decider is None:
+            manager_config = self.record.config.manager
+            model = None
+            path = self.model_dir / f"{name}.pt"
+            if path.exists():
+                try:
+                    model = DecisionModel.load(path, manager_config.neural_network)
+                except (ValueError, OSError, KeyError) as exc:
+                    logger.warning("skill %s: ignoring the saved model of %s: %s", self.skill_id, name, exc)
+            decider = self.deciders[name] = Decider(name, manager_config, model=model)
+        return decider
+
+    def _inputs(self, names: list[str]) -> tuple[list[DecisionInput], dict[str, Any]]:
+        """Build each component's decision input from the controller's measurements."""
+        controller, record = self.controller, self.record
+        robot_config = controller.config or RobotConfig()
+        capacity = Resources.of(robot_config.resources)
+        estimator = PolicyEstimator.of(robot_config, record.config.manager, capacity)
+        policy = record.config.manager.policy
+        sample = controller.monitor.latest
+        values = sample.values if sample else {}
+        free = sample.free if sample else {}
+        inputs, costs = [], {}
+        for name in names:
+            config = record.config.components[name]
+            location = record.locations[name]
+            measured = controller._usage.get((self.skill_id, name))
+            usage = Resources(cpu=measured.cpu, ram=measured.ram) if measured else Resources.of(config.resources)
+            estimate = estimator.estimate(policy, location, usage, Metrics(), config.ros)
+            costs[name] = estimate
+            needs = Resources.of(config.resources)
+            # A move to the robot needs room there; unknown (no sample yet) counts as room.
+            resources_ok = location == "robot" or not free or needs.fits(Resources(**free))
+            features = Features(
+                cpu_available=_share(free.get("cpu"), capacity.cpu),
+                ram_available=_share(free.get("ram"), capacity.ram),
+                bandwidth_available=_share(values.get("bandwidth_available"), capacity.bandwidth),
+                battery=(values["battery"] / 100) if "battery" in values else 1.0,
+                location=location,
+                cost_robot=estimate.cost_robot,
+                cost_cloud=estimate.cost_cloud,
+            )
+            wanted = self.recommendations.pop(name, None)
+            inputs.append(
+                DecisionInput(
+                    location=location,
+                    estimated_reward=estimate.reward,
+                    features=features,
+                    required_location=config.location,
+                    mode=robot_config.offloading,
+                    resources_ok=resources_ok,
+                    recommendation=None if wanted is None else wanted != location,
+                )
+            )
+        return inputs, costs
+
+    async def step(self) -> list[Decision]:
+        """Decide once for every movable component and carry out the moves."""
+        supervisor = self.record.supervisor
+        if supervisor is not None and supervisor.context.get("cloud") == "lost":
+            return []  # the controller has taken over the cloud's role: nothing moves meanwhile
+        names = self.movable()
+        if not names:
+            return []
+        inputs, costs = self._inputs(names)
+        decisions = decide_batch([self._decider(name) for name in names], inputs, self.clock())
+        now = time.time()
+        points = []
+        for decision in decisions:
+            self.last[decision.component] = decision
+            estimate = costs[decision.component]
+            points.append(
+                {
+                    "name": DECISION_METRIC,
+                    "value": round(float(decision.estimated_reward), 6),
+                    "ts": now,
+                    "skill": self.skill_id,
+                    "component": decision.component,
+                    "labels": {
+                        "decision": "migrate" if decision.migrate else "stay",
+                        "location": decision.location,
+                        "target": decision.target,
+                        "cost_robot": f"{estimate.cost_robot:.6g}",
+                        "cost_cloud": f"{estimate.cost_cloud:.6g}",
+                        "policy": estimate.policy,
+                        "reason": decision.reason[:256],
+                    },
+                }
+            )
+        await self.controller.emit(Event.METRICS, {"metrics": points})
+        for decision in decisions:
+            if decision.migrate:
+                await self._move(decision)
+        return decisions
+
+    async def _move(self, decision: Decision) -> None:
+        record = self.record
+        try:
+            await self.controller.migrate_component(record, decision.component, decision.target)
+        except Exception as exc:  # e.g. no room on the robot: the next decision tries again
+            logger.warning(
+                "skill %s: moving %s to the %s failed: %s", self.skill_id, decision.component, decision.target, exc
+            )
+
+    def save_models(self) -> None:
+        """Keep the decision models that have learnt something for the next launch."""
+        for name, decider in self.deciders.items():
+            model = decider._model
+            if model is not None and model.samples_seen:
+                self.model_dir.mkdir(parents=True, exist_ok=True)
+                model.save(self.model_dir / f"{name}.pt")
+
+    async def run(self, supervisor: SkillSupervisor) -> None:
+        """Decide every ``decision_interval`` seconds until the Skill stops."""
+        try:
+            while True:
+                await asyncio.sleep(self.record.config.manager.decision_interval)
+                await self.step()
+        finally:
+            self.save_models()
+
+
+def _share(free: float | None, capacity: float) -> float:
+    if free is None or capacity <= 0:
+        return 1.0
+    return max(0.0, min(1.0, free / capacity))
+
+
+async def skill_manager_plugin(supervisor: SkillSupervisor) -> None:
+    """Run a Skill's manager as a supervisor plug-in (the controller is in the supervisor's context)."""
+    controller = supervisor.context["controller"]
+    manager = SkillManager(controller, supervisor.skill)
+    supervisor.context["manager"] = manager
+    await manager.run(supervisor)
