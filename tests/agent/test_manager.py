@@ -109,3 +109,49 @@ async def test_the_manager_runs_by_itself_and_keeps_its_models_for_the_next_laun
     assert saved.exists()
     again = SkillManager(controller, SKILL)
     assert again._decider("worker-0").model.samples_seen >= 2
+
+
+COMPONENT_SCRIPT = """
+import json, os, time, urllib.request
+url, me = os.environ["BRIDGEOS_MANAGER_URL"], os.environ["BRIDGEOS_COMPONENT"]
+def post(path, body):
+    request = urllib.request.Request(url + path, data=json.dumps(body).encode(), method="POST",
+                                     headers={"Content-Type": "application/json"})
+    return urllib.request.urlopen(request).status
+peers = json.load(urllib.request.urlopen(url + "/components"))["components"]
+post("/metrics", {"metrics": [{"name": "peers_seen", "value": len(peers), "component": me}]})
+if me == "worker-1":
+    post(f"/components/{me}/location", {"location": "cloud"})
+time.sleep(600)
+"""
+
+
+async def test_components_reach_their_manager_and_a_recommendation_moves_one(cloud, tmp_path):
+    import sys
+
+    config = movable_skill(interval=0.3, threshold=1e6)
+    for component in config["components"].values():
+        component["robot"] = {"command": [sys.executable, "-c", COMPONENT_SCRIPT]}
+        component["cloud"] = {"command": ["sleep", "600"]}
+    token, _ = await make_robot("man-5", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-5", token, tmp_path / "agent"))
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config))
+        manager = record.supervisor.context["manager"]
+        assert manager.api is not None and manager.api.base_url.startswith("http://127.0.0.1:")
+        # Each component found the other through the Components API and said so.
+        seen = await eventually(lambda: len(manager.store.latest(["peers_seen"])) == 2 and manager.store.latest())
+        assert {p["value"] for p in seen if p["name"] == "peers_seen"} == {2.0}
+        # worker-1 asked to run in the cloud: the manager's next decision moves it.
+        await eventually(lambda: record.locations["worker-1"] == "cloud", what="worker-1 moved")
+        assert record.locations["worker-0"] == "robot"
+        stored = await eventually(lambda: _published("man-5"), what="published metric in the cloud")
+        assert {m.component for m in stored} == {"worker-0", "worker-1"}
+        await controller.stop_skill(SKILL)
+
+
+@sync_to_async
+def _published(robot_id: str) -> list[Metric]:
+    rows = list(Metric.objects.filter(robot_id=robot_id, name="peers_seen", skill=SKILL))
+    return rows if len(rows) == 2 else []

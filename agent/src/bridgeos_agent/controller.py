@@ -563,6 +563,10 @@ class RobotController:
             record.supervisor.context["controller"] = self
             for name, plugin in self.plugins.items():
                 record.supervisor.start(name, plugin)
+            # The manager's Components API must listen before components get its URL.
+            late = await record.supervisor.wait_ready(timeout=10.0)
+            if late:
+                self.say(f"skill {config.skill_id}: {', '.join(late)} not ready after 10 s; starting anyway")
         names = list(starting if starting is not None else config.components)
         results = await asyncio.gather(*(self.place_component(record, name) for name in names), return_exceptions=True)
         failures = [

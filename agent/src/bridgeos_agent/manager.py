@@ -15,6 +15,7 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any
 
+from bridgeos_agent.componentsapi import ComponentsAPI, MetricStore
 from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, decide_batch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.policies import Metrics, PolicyEstimator
@@ -43,6 +44,58 @@ class SkillManager:
         self.recommendations: dict[str, str] = {}  # component -> location a component or operator asked for
         self.last: dict[str, Decision] = {}
         self.model_dir = controller.data_dir / "models" / skill_id
+        self.store = MetricStore()
+        self.api: ComponentsAPI | None = None
+
+    # ------------------------------------------------------------------ the Components API's view
+
+    def components(self) -> list[dict[str, Any]]:
+        """Describe every component of the Skill (Components API)."""
+        return [self.component(name) for name in self.record.config.components]
+
+    def component(self, component_id: str) -> dict[str, Any]:
+        """Describe one component; KeyError if the Skill has none of that id."""
+        record = self.record
+        config = record.config.components[component_id]
+        status = record.statuses.get(component_id)
+        return {
+            "id": component_id,
+            "name": config.name,
+            "location": config.location,
+            "active_location": record.locations.get(component_id),
+            "status": str(status) if status else "stopped",
+        }
+
+    def locations(self) -> dict[str, str | None]:
+        """Map each component to where it runs now."""
+        record = self.record
+        return {name: record.locations.get(name) for name in record.config.components}
+
+    def latest_metrics(self, names: Any, component: str | None) -> list[dict[str, Any]]:
+        """Return the latest published or measured values."""
+        return self.store.latest(names, component)
+
+    def publish(self, points: list[dict[str, Any]]) -> int:
+        """Keep metrics a component published and share them with the cloud."""
+        applied = self.store.publish(points)
+        shared = [{**point, "skill": self.skill_id} for point in points]
+        self.controller._spawn(self.controller.emit(Event.METRICS, {"metrics": shared}))
+        return applied
+
+    async def start_api(self) -> str:
+        """Serve the Components API, on the same port as last launch when it is free."""
+        port_file = self.model_dir / "api.port"
+        saved = int(port_file.read_text()) if port_file.exists() else 0
+        for port in dict.fromkeys((saved, 0)):
+            self.api = ComponentsAPI(self, port=port)
+            try:
+                url = await self.api.start()
+                break
+            except OSError:
+                continue
+        self.model_dir.mkdir(parents=True, exist_ok=True)
+        port_file.write_text(str(self.api.port))
+        return url
 
     @property
     def record(self) -> SkillRecord:
@@ -184,13 +237,31 @@ class SkillManager:
                 model.save(self.model_dir / f"{name}.pt")
 
     async def run(self, supervisor: SkillSupervisor) -> None:
-        """Decide every ``decision_interval`` seconds until the Skill stops."""
+        """Serve the Components API and decide every ``decision_interval`` seconds until the Skill stops."""
+        url = await self.start_api()
+        supervisor.context.setdefault("env", {})["BRIDGEOS_MANAGER_URL"] = url
+        supervisor.mark_ready("manager")
         try:
             while True:
                 await asyncio.sleep(self.record.config.manager.decision_interval)
+                self._share_usage()
                 await self.step()
         finally:
             self.save_models()
+            if self.api is not None:
+                await self.api.stop()
+
+    def _share_usage(self) -> None:
+        """Offer components the runtime's measurements of each other (cpu %, ram MiB)."""
+        now = time.time()
+        points = [
+            {"name": name, "value": value, "ts": now, "component": component}
+            for (skill, component), usage in self.controller._usage.items()
+            if skill == self.skill_id
+            for name, value in (("cpu", round(100 * usage.cpu, 2)), ("ram", round(usage.ram, 1)))
+        ]
+        if points:
+            self.store.publish(points)
 
 
 def _share(free: float | None, capacity: float) -> float:
@@ -202,6 +273,7 @@ def _share(free: float | None, capacity: float) -> float:
 async def skill_manager_plugin(supervisor: SkillSupervisor) -> None:
     """Run a Skill's manager as a supervisor plug-in (the controller is in the supervisor's context)."""
     controller = supervisor.context["controller"]
-    manager = SkillManager(controller, supervisor.skill)
-    supervisor.context["manager"] = manager
+    manager = supervisor.context.get("manager")
+    if manager is None:  # a restart after a crash keeps the manager's state
+        manager = supervisor.context["manager"] = SkillManager(controller, supervisor.skill)
     await manager.run(supervisor)

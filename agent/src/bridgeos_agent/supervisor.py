@@ -40,6 +40,7 @@ class SkillSupervisor:
     # for its manager to read; bounded so a Skill that never reads cannot grow it.
     events: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=100))
     _tasks: dict[str, _Task] = field(default_factory=dict)
+    _ready: dict[str, asyncio.Event] = field(default_factory=dict)
     _closed: bool = False
 
     def start(self, name: str, plugin: SkillPlugin) -> None:
@@ -48,9 +49,29 @@ class SkillSupervisor:
             raise ValueError(f"skill {self.skill}: a task named {name!r} runs already")
         entry = _Task(name, plugin, RestartBudget(self.policy))
         self._tasks[name] = entry
+        self._ready[name] = asyncio.Event()
         entry.task = asyncio.get_running_loop().create_task(self._run(entry), name=f"{self.skill}:{name}")
 
+    def mark_ready(self, name: str) -> None:
+        """Say a plug-in is ready for the Skill's components (e.g. its API listens)."""
+        self._ready[name].set()
+
+    async def wait_ready(self, timeout: float) -> list[str]:
+        """Wait until every plug-in is ready (or has ended); return those still not ready."""
+        waits = [asyncio.ensure_future(event.wait()) for event in self._ready.values()]
+        if waits:
+            _, pending = await asyncio.wait(waits, timeout=timeout)
+            for wait in pending:
+                wait.cancel()
+        return [name for name, event in self._ready.items() if not event.is_set()]
+
     async def _run(self, entry: _Task) -> None:
+        try:
+            await self._supervise(entry)
+        finally:
+            self._ready[entry.name].set()  # an ended plug-in holds nobody back
+
+    async def _supervise(self, entry: _Task) -> None:
         while not self._closed:
             try:
                 await entry.plugin(self)
