@@ -155,3 +155,32 @@ async def test_components_reach_their_manager_and_a_recommendation_moves_one(clo
 def _published(robot_id: str) -> list[Metric]:
     rows = list(Metric.objects.filter(robot_id=robot_id, name="peers_seen", skill=SKILL))
     return rows if len(rows) == 2 else []
+
+
+async def test_a_new_launch_starts_components_where_the_last_one_left_them(cloud, tmp_path):
+    config = movable_skill(threshold=1e6)
+    token, _ = await make_robot("man-6", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-6", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config))
+        manager = SkillManager(controller, SKILL)
+        manager.recommend("worker-1", "cloud")
+        await manager.step()
+        assert record.locations == {"worker-0": "robot", "worker-1": "cloud"}
+        await controller.stop_skill(SKILL)
+        assert set(record.locations.values()) == {None}
+        record = await controller.start_skill(parse_skill_config(config))
+        assert record.locations == {"worker-0": "robot", "worker-1": "cloud"}
+        assert set(running_workers(controller)) == {"worker-0"}
+
+
+def test_a_damaged_placement_file_means_no_previous_placement(tmp_path):
+    from bridgeos_agent.controller import previous_placement
+
+    folder = tmp_path / "models" / "s"
+    folder.mkdir(parents=True)
+    assert previous_placement(tmp_path, "s") == {}
+    for text in ("{not json", "[1, 2]", '{"a": "mars", "b": "cloud"}'):
+        (folder / "placement.json").write_text(text)
+        assert previous_placement(tmp_path, "s") == ({"b": "cloud"} if "mars" in text else {})

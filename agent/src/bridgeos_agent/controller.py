@@ -594,7 +594,7 @@ class RobotController:
     async def place_component(self, record: SkillRecord, name: str, *, location: str | None = None) -> str:
         """Start a component where it should run; return that location."""
         component = record.config.components[name]
-        target = location or self._preferred_location(component.location)
+        target = location or self._preferred_location(component.location, record.config.skill_id, name)
         if target == "cloud":
             if component.location == "robot":
                 raise ProtocolError(f"component {name!r} may only run on the robot", field="data.location")
@@ -626,10 +626,14 @@ class RobotController:
             await self._start_on_robot(record, name)
         return "robot"
 
-    def _preferred_location(self, required: str) -> str:
+    def _preferred_location(self, required: str, skill_id: str, name: str) -> str:
         if required in ("robot", "cloud"):
             return required
         mode = self.config.offloading if self.config else "auto"
+        if mode == "auto":
+            # Previous launches are the backbone of the first placement (thesis §3.4.1):
+            # start where the manager last settled the component.
+            return previous_placement(self.data_dir, skill_id).get(name, "robot")
         return "cloud" if mode == "cloud" else "robot"
 
     def allocate(self, skill_id: str, component_id: str) -> Decision:
@@ -1092,6 +1096,17 @@ async def on_metrics_get(controller: RobotController, envelope: Envelope, p: Any
         if names is None or name in names
     ]
     return Event.METRICS, {"metrics": points[: p.limit or len(points)]}
+
+
+def previous_placement(data_dir: Path, skill_id: str) -> dict[str, str]:
+    """Return where each movable component of a Skill ran when its manager last stopped."""
+    try:
+        saved = json.loads((data_dir / "models" / skill_id / "placement.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(saved, dict):
+        return {}
+    return {name: where for name, where in saved.items() if where in ("robot", "cloud")}
 
 
 def _merge(base: dict[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:

@@ -11,6 +11,7 @@ costs each movable component at both locations under the Skill's policy (equatio
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import time
 from typing import TYPE_CHECKING, Any
@@ -147,12 +148,17 @@ class SkillManager:
         values = sample.values if sample else {}
         free = sample.free if sample else {}
         inputs, costs = [], {}
+        # Latency: a component on the robot answers locally; one in the cloud is a link round
+        # trip away, measured by the WebSocket keepalive. (Loss rates come with the router.)
+        ws = controller.ws
+        rtt = float(getattr(ws, "latency", 0.0) or 0.0) if ws is not None else 0.0
+        metrics = Metrics(latency_robot=0.0, latency_cloud=rtt)
         for name in names:
             config = record.config.components[name]
             location = record.locations[name]
             measured = controller._usage.get((self.skill_id, name))
             usage = Resources(cpu=measured.cpu, ram=measured.ram) if measured else Resources.of(config.resources)
-            estimate = estimator.estimate(policy, location, usage, Metrics(), config.ros)
+            estimate = estimator.estimate(policy, location, usage, metrics, config.ros)
             costs[name] = estimate
             needs = Resources.of(config.resources)
             # A move to the robot needs room there; unknown (no sample yet) counts as room.
@@ -162,6 +168,7 @@ class SkillManager:
                 ram_available=_share(free.get("ram"), capacity.ram),
                 bandwidth_available=_share(values.get("bandwidth_available"), capacity.bandwidth),
                 battery=(values["battery"] / 100) if "battery" in values else 1.0,
+                latency=rtt,
                 location=location,
                 cost_robot=estimate.cost_robot,
                 cost_cloud=estimate.cost_cloud,
@@ -223,10 +230,25 @@ class SkillManager:
         record = self.record
         try:
             await self.controller.migrate_component(record, decision.component, decision.target)
+            self.save_placement()
         except Exception as exc:  # e.g. no room on the robot: the next decision tries again
             logger.warning(
                 "skill %s: moving %s to the %s failed: %s", self.skill_id, decision.component, decision.target, exc
             )
+
+    def save_placement(self) -> None:
+        """Remember where the movable components run, for the Skill's next first placement."""
+        record = self.record
+        placement = {
+            name: record.locations.get(name)
+            for name, config in record.config.components.items()
+            if config.location == "either" and record.locations.get(name) in ("robot", "cloud")
+        }
+        if placement:
+            self.model_dir.mkdir(parents=True, exist_ok=True)
+            tmp = self.model_dir / "placement.json.tmp"
+            tmp.write_text(json.dumps(placement))
+            tmp.replace(self.model_dir / "placement.json")
 
     def save_models(self) -> None:
         """Keep the decision models that have learnt something for the next launch."""
@@ -247,6 +269,7 @@ class SkillManager:
                 self._share_usage()
                 await self.step()
         finally:
+            self.save_placement()
             self.save_models()
             if self.api is not None:
                 await self.api.stop()
