@@ -143,6 +143,9 @@ async def test_components_reach_their_manager_and_a_recommendation_moves_one(clo
         # Each component found the other through the Components API and said so.
         seen = await eventually(lambda: len(manager.store.latest(["peers_seen"])) == 2 and manager.store.latest())
         assert {p["value"] for p in seen if p["name"] == "peers_seen"} == {2.0}
+        # The robot's own metrics are offered to components too (no component: the robot's).
+        robot_cpu = await eventually(lambda: manager.store.latest(["cpu"], None), what="robot metrics offered")
+        assert any(point.get("component") is None for point in robot_cpu)
         # worker-1 asked to run in the cloud: the manager's next decision moves it.
         await eventually(lambda: record.locations["worker-1"] == "cloud", what="worker-1 moved")
         assert record.locations["worker-0"] == "robot"

@@ -275,7 +275,7 @@ class SkillManager:
                 await self.api.stop()
 
     def _share_usage(self) -> None:
-        """Offer components the runtime's measurements of each other (cpu %, ram MiB)."""
+        """Offer components the robot's metrics and the runtime's measurements of each of them."""
         now = time.time()
         points = [
             {"name": name, "value": value, "ts": now, "component": component}
@@ -283,6 +283,9 @@ class SkillManager:
             if skill == self.skill_id
             for name, value in (("cpu", round(100 * usage.cpu, 2)), ("ram", round(usage.ram, 1)))
         ]
+        sample = self.controller.monitor.latest
+        if sample is not None:
+            points.extend({"name": name, "value": float(value), "ts": now} for name, value in sample.values.items())
         if points:
             self.store.publish(points)
 
