@@ -64,7 +64,8 @@ def make_robot(robot_id: str, *, config: dict | None = None, skill: dict | None 
 
 
 def agent_settings(cloud: Cloud, robot: str, token: str, data_dir: Path, **kw) -> AgentSettings:
-    """Return settings for a simulated robot that samples fast and reports every sample."""
+    """Return settings for a simulated robot that samples fast, reports every sample and cleans up."""
+    kw.setdefault("stop_components_on_exit", True)
     return AgentSettings(
         master=cloud.ws_url,
         robot=robot,
@@ -208,7 +209,8 @@ async def test_a_minute_without_the_cloud_loses_and_duplicates_no_metric(cloud, 
 async def test_a_restarted_agent_delivers_its_backlog_and_readopts_its_components(cloud, tmp_path):
     token, api_token = await make_robot("ctl-4", skill=skill_config())
     data_dir = tmp_path / "agent"
-    first = RobotController(agent_settings(cloud, "ctl-4", token, data_dir))
+    # This agent leaves its components running, as a real agent does, for the next to adopt.
+    first = RobotController(agent_settings(cloud, "ctl-4", token, data_dir, stop_components_on_exit=False))
     async with running(first):
         await asyncio.wait_for(first.config_from_cloud.wait(), 15)
         async with httpx.AsyncClient(base_url=cloud.url, headers={"Authorization": f"Token {api_token}"}) as api:
