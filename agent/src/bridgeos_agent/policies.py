@@ -155,7 +155,8 @@ def network_cost(location: Site, usage: Resources, metrics: Metrics) -> float:
     if metrics.gb_total <= 0:
         return 0.0
     opposite = metrics.gb_cloud if location == "robot" else metrics.gb_local
-    return usage.bandwidth * opposite / metrics.gb_total
+    # The share first: bandwidth * opposite could underflow for tiny traffic (5e-324 GB).
+    return usage.bandwidth * (opposite / metrics.gb_total)
 
 
 def energy_cost(location: Site, usage: Resources, metrics: Metrics, constants: Constants) -> float:
