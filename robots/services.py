@@ -22,6 +22,7 @@ from django.utils import timezone
 
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
+from bridgeos_agent.robotconfig import merge_config_changes
 from monitoring.choices import Level
 from monitoring.live import publish_on_commit
 from monitoring.services import record_event
@@ -151,23 +152,12 @@ def update_robot_config(robot_id: str, changes: dict[str, Any]) -> dict[str, Any
     """Apply a partial config change, validated as a whole, and return the new config."""
     with transaction.atomic():
         robot = Robot.objects.select_for_update().get(id=robot_id)
-        robot.config = _merged(robot.config, changes)
+        robot.config = merge_config_changes(robot.config, changes)
         robot.save(update_fields=["config"])
         record_event(
             f"Config of robot {robot_id} updated", robot_id=robot_id, kind=Event.ROBOT_CONFIG_UPDATE, data=changes
         )
     return robot.config
-
-
-def _merged(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
-    """Merge changes into a config, recursing into nested objects."""
-    merged = dict(base)
-    for key, value in changes.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = _merged(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
 
 
 def client_frame(event: Event, data: dict[str, Any]) -> dict[str, Any]:

@@ -43,7 +43,7 @@ from bridgeos_agent.outbox import Outbox
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
-from bridgeos_agent.robotconfig import RobotConfig, parse_robot_config
+from bridgeos_agent.robotconfig import RobotConfig, merge_config_changes, parse_robot_config
 from bridgeos_agent.rosmaster import find_ros_master
 from bridgeos_agent.runtime import ComponentSpec, ComponentState, Runtime, RuntimeFailure, Status, create_runtime
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
@@ -961,7 +961,7 @@ async def on_robot_config(controller: RobotController, envelope: Envelope, p: An
 async def on_robot_config_update(controller: RobotController, envelope: Envelope, p: Any) -> None:
     base = (controller.config or RobotConfig()).model_dump(mode="json")
     try:
-        config = parse_robot_config(_merge(base, dict(p.changes)))
+        config = parse_robot_config(merge_config_changes(base, p.changes))
     except ValueError as exc:
         raise ProtocolError(_first_error(exc), field="data.changes", code="invalid_config") from None
     controller.apply_config(config, source="cloud")
@@ -1107,16 +1107,6 @@ def previous_placement(data_dir: Path, skill_id: str) -> dict[str, str]:
     if not isinstance(saved, dict):
         return {}
     return {name: where for name, where in saved.items() if where in ("robot", "cloud")}
-
-
-def _merge(base: dict[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:
-    merged = dict(base)
-    for key, value in changes.items():
-        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
-            merged[key] = _merge(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
 
 
 def _first_error(exc: ValueError) -> str:

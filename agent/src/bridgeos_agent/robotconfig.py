@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator, model_validator
@@ -18,6 +19,7 @@ __all__ = [
     "RobotConfig",
     "RobotResources",
     "Subnets",
+    "merge_config_changes",
     "parse_robot_config",
     "robot_config_json_schema",
 ]
@@ -192,3 +194,14 @@ def parse_robot_config(data: dict[str, Any] | str | bytes) -> RobotConfig:
     if isinstance(data, str | bytes | bytearray):
         return RobotConfig.model_validate_json(data)
     return RobotConfig.model_validate(data)
+
+
+def merge_config_changes(base: Mapping[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:
+    """Apply a partial change (robot_config_update) to a config, recursing into nested objects."""
+    merged = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = merge_config_changes(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
