@@ -49,6 +49,7 @@ from bridgeos_agent.runtime import ComponentSpec, ComponentState, Runtime, Runti
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 from bridgeos_agent.supervisor import SkillPlugin, SkillSupervisor
 from bridgeos_agent.takeover import CloudMonitor, plan_takeover
+from bridgeos_agent.volumesync import VolumeSync
 
 __all__ = ["AgentSettings", "AuthenticationRefused", "RobotController"]
 
@@ -82,6 +83,10 @@ class AgentSettings:
     detect_ros_master: bool = True
     stop_components_on_exit: bool = False
     simulated: SimulatedRobot | None = None
+    # How long a move to the cloud waits for the cloud to report its copy running.
+    cloud_start_timeout: float = 90.0
+    # How often Skill volumes are scanned for changes to send to the cloud (0: never).
+    volume_sync_interval: float = 1.0
 
 
 @dataclass
@@ -93,6 +98,8 @@ class SkillRecord:
     locations: dict[str, str | None] = field(default_factory=dict)  # component -> robot|cloud|None
     statuses: dict[str, CS] = field(default_factory=dict)
     supervisor: SkillSupervisor | None = None
+    # What the cloud reported of each cloud copy: {"runtime", "id", "address", "ports": {"<port>": <port>}}.
+    cloud_containers: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """Return what survives an agent restart."""
@@ -158,6 +165,8 @@ class RobotController:
         self._cloud_monitor: CloudMonitor | None = None
         self._startup_done = False
         self._lock = asyncio.Lock()  # serialises placement decisions so two never claim the same headroom
+        self._cloud_waiters: dict[tuple[str, str], asyncio.Future[tuple[str, str | None]]] = {}
+        self.volumes = VolumeSync(self)
         if settings.simulate:
             self.monitor = ResourceMonitor(settings.simulated or SimulatedRobot())
         else:
@@ -179,6 +188,7 @@ class RobotController:
             (self._monitor_loop(), "monitor"),
             (self._takeover_loop(), "takeover"),
             (self._startup(), "startup"),
+            (self.volumes.run(), "volumes"),
         ):
             self._tasks.append(loop.create_task(coroutine, name=name))
         await self.stopped.wait()
@@ -717,14 +727,46 @@ class RobotController:
         )
         self._save_soon()
 
-    async def _start_in_cloud(self, record: SkillRecord, name: str) -> None:
-        """Forward a cloud-side launch to the cloud (thesis: the controller only forwards those)."""
+    async def _start_in_cloud(self, record: SkillRecord, name: str, *, wait: float | None = None) -> None:
+        """Forward a cloud-side launch to the cloud; with ``wait``, return once it runs there, raise if not."""
+        data = {"skill": record.config.skill_id, "component": name, "location": "cloud"}
+        if wait is None:
+            record.locations[name] = "cloud"
+            await self._set_status(record, name, CS.STARTING, "cloud")
+            await self.emit(Event.COMPONENT_START, data)
+            self._save_soon()
+            return
+        key = (record.config.skill_id, name)
+        reported = self._cloud_waiters[key] = asyncio.get_running_loop().create_future()
+        try:
+            await self.emit(Event.COMPONENT_START, data)
+            status, message = await asyncio.wait_for(asyncio.shield(reported), wait)
+        except TimeoutError:
+            await self.emit(Event.COMPONENT_STOP, data)  # a copy that comes up later must not linger
+            raise ProtocolError(f"the cloud did not run {name!r} within {wait:g} s", code="cloud_timeout") from None
+        finally:
+            if self._cloud_waiters.get(key) is reported:
+                del self._cloud_waiters[key]
+        if status != CS.RUNNING:
+            raise ProtocolError(f"the cloud could not run {name!r}: {message or status}", code="launch_failed")
         record.locations[name] = "cloud"
-        await self._set_status(record, name, CS.STARTING, "cloud")
-        await self.emit(
-            Event.COMPONENT_START, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
-        )
         self._save_soon()
+
+    def on_cloud_report(self, skill_id: str, name: str, status: str, message: str | None) -> None:
+        """Take in what the cloud says of a component's cloud copy (running, restarting, failed)."""
+        waiter = self._cloud_waiters.get((skill_id, name))
+        if waiter is not None:
+            if not waiter.done() and status in (CS.RUNNING, CS.FAILED):
+                waiter.set_result((status, message))
+            return
+        record = self.skills.get(skill_id)
+        if record is None or record.locations.get(name) != "cloud":
+            return  # a copy being retired, or a move still deciding: nothing changes here
+        record.statuses[name] = CS(status)
+        if status == CS.FAILED:
+            record.locations[name] = None
+            self.say(f"{skill_id}/{name}: its cloud copy failed: {message or 'no reason given'}")
+            self._save_soon()
 
     async def stop_component(self, record: SkillRecord, name: str, *, only: str | None = None) -> None:
         """Stop a component where it runs (or only at ``only``)."""
@@ -752,21 +794,29 @@ class RobotController:
         if target == current:
             return target
         await self._set_status(record, name, CS.MIGRATING, current)
-        if target == "robot":
-            # The cloud copy keeps serving until the robot copy runs (no downtime window).
-            await self.place_component(record, name, location="robot")
-            if current == "cloud":
-                await self.emit(
-                    Event.COMPONENT_STOP, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
-                )
-        else:
-            await self._start_in_cloud(record, name)
-            if current == "robot":
-                await self.runtime.stop(record.config.skill_id, name)
-                self._usage.pop((record.config.skill_id, name), None)
+        try:
+            if target == "robot":
+                # The cloud copy keeps serving until the robot copy runs (no downtime window).
+                await self.place_component(record, name, location="robot")
+            else:
+                # Switch only once the cloud reports its copy running; the robot copy serves meanwhile.
+                await self._start_in_cloud(record, name, wait=self.settings.cloud_start_timeout)
+        except Exception as exc:
+            # Rolled back: the component keeps running where it was, and the cloud hears why.
+            await self._set_status(record, name, CS.RUNNING if current else CS.STOPPED, current, f"not moved: {exc}")
+            raise
+        if target == "robot" and current == "cloud":
+            await self.emit(
+                Event.COMPONENT_STOP, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
+            )
+        elif target == "cloud" and current == "robot":
+            await self.runtime.stop(record.config.skill_id, name)
+            self._usage.pop((record.config.skill_id, name), None)
         await self.emit(
             Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": target}
         )
+        if target == "cloud":
+            await self._set_status(record, name, CS.RUNNING, "cloud")
         return target
 
     async def _set_status(
@@ -1040,6 +1090,55 @@ async def on_component_migrate(controller: RobotController, envelope: Envelope, 
     _not_before_config(controller)
     record = controller._component(p.skill, p.component)
     await controller.migrate_component(record, p.component, str(p.location) if p.location else None)
+
+
+@handles(Event.COMPONENT_STATUS)
+async def on_component_status(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # The cloud reports its copy of a component (started, restarting after a crash, failed).
+    if p.location == "cloud" and p.skill in controller.skills:
+        controller.on_cloud_report(p.skill, p.component, str(p.status), p.message)
+
+
+@handles(Event.COMPONENT_INFORMATION)
+async def on_component_information(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # Where the cloud copy is reached: the Skill Router routes HTTP to its address and published ports.
+    record = controller.skills.get(p.skill)
+    if p.location == "cloud" and record is not None:
+        record.cloud_containers[p.component] = p.container.model_dump(mode="json", exclude_none=True)
+        if record.supervisor is not None:
+            record.supervisor.notify("component_information")
+
+
+@handles(Event.METRICS)
+async def on_cloud_metrics(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # The cloud's measurements of this robot's cloud copies, for each Skill's manager.
+    by_skill: dict[str, list[dict[str, Any]]] = {}
+    for point in p.metrics:
+        if point.skill and point.component:
+            by_skill.setdefault(point.skill, []).append(point.model_dump(mode="json", exclude_none=True))
+    for skill_id, points in by_skill.items():
+        record = controller.skills.get(skill_id)
+        manager = record.supervisor.context.get("manager") if record and record.supervisor else None
+        store = getattr(manager, "store", None)
+        if store is not None:
+            store.publish(points)
+
+
+@handles(Event.VOLUME_CHANGES)
+async def on_volume_changes(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    await controller.volumes.receive(p)
+
+
+@handles(Event.VOLUME_CHUNKS_GET)
+async def on_volume_chunks_get(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    return Event.VOLUME_CHUNKS, await controller.volumes.chunks(p)
+
+
+@handles(Event.VOLUME_CHUNKS)
+async def on_volume_chunks(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    waiter = controller._waiters.get(envelope.reply_to or "")
+    if waiter is not None and not waiter.done():
+        waiter.set_result(envelope)
 
 
 @handles(Event.COMPONENT_STATUS_GET)
