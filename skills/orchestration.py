@@ -86,11 +86,11 @@ class LaunchFailed(Exception):
 # --------------------------------------------------------------------------- running the runtime
 
 
-def with_runtime(robot_id: str, operation: Callable[[CloudRuntime], Awaitable[T]]) -> T:
+def with_runtime(robot_id: str, operation: Callable[[CloudRuntime], Awaitable[T]], *, name: str | None = None) -> T:
     """Run an async operation on a fresh cloud runtime for a robot, from synchronous code."""
 
     async def main() -> T:
-        runtime = create_cloud_runtime(robot_id)
+        runtime = create_cloud_runtime(robot_id, name)
         try:
             return await operation(runtime)
         finally:

@@ -1105,8 +1105,6 @@ async def on_component_information(controller: RobotController, envelope: Envelo
     record = controller.skills.get(p.skill)
     if p.location == "cloud" and record is not None:
         record.cloud_containers[p.component] = p.container.model_dump(mode="json", exclude_none=True)
-        if record.supervisor is not None:
-            record.supervisor.notify("component_information")
 
 
 @handles(Event.METRICS)
