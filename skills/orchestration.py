@@ -231,7 +231,9 @@ def _stop(instance: CloudInstance) -> str:
         CloudInstance.objects.filter(pk=instance.pk).update(
             status=CS.STOPPED, container={}, restart_at=None, updated_at=timezone.now()
         )
-        component = Component.objects.select_for_update().get(pk=instance.component_id)
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is None:
+            return "gone"  # deleted meanwhile (its Skill or robot was removed)
         if "cloud" in component.container:
             component.container = {k: v for k, v in component.container.items() if k != "cloud"}
             component.save(update_fields=["container", "updated_at"])
@@ -312,8 +314,8 @@ def _set_status(instance: CloudInstance, status: str, message: str = "") -> None
     with transaction.atomic():
         CloudInstance.objects.filter(pk=instance.pk).update(status=status, message=message, updated_at=timezone.now())
         instance.status, instance.message = status, message
-        component = Component.objects.select_for_update().get(pk=instance.component_id)
-        if _cloud_is_active(component):
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is not None and _cloud_is_active(component):
             component.status = status
             component.save(update_fields=["status", "updated_at"])
             _announce(
@@ -335,7 +337,9 @@ def _record_running(instance: CloudInstance, endpoint: dict[str, Any]) -> None:
             status=CS.RUNNING, container=endpoint, message="", restart_at=None, updated_at=timezone.now()
         )
         instance.status, instance.container = CS.RUNNING, endpoint
-        component = Component.objects.select_for_update().get(pk=instance.component_id)
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is None:
+            return
         component.container = {**component.container, "cloud": endpoint}
         fields = ["container", "updated_at"]
         active = _cloud_is_active(component)
@@ -377,7 +381,9 @@ def _fail(instance: CloudInstance, reason: str, *, logs: list[str] | None = None
         CloudInstance.objects.filter(pk=instance.pk).update(
             status=CS.FAILED, desired=STOPPED, message=reason, container={}, restart_at=None, updated_at=timezone.now()
         )
-        component = Component.objects.select_for_update().get(pk=instance.component_id)
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is None:
+            return
         if _cloud_is_active(component):
             component.status = CS.FAILED
             component.save(update_fields=["status", "updated_at"])
@@ -576,6 +582,9 @@ def _reconcile(now: float) -> dict[str, int]:
             continue  # a task is working on it right now
         except (TryAgain, RuntimeFailure) as exc:
             logger.warning("reconcile %s/%s/%s: %s", robot_id, skill_id, component_id, exc)
+        except Exception:
+            # One copy the reconciler cannot handle must not keep it from the others.
+            logger.exception("reconcile %s/%s/%s failed", robot_id, skill_id, component_id)
     for key, item in by_key.items():
         if key not in wanted:
             done["removed"] += _remove_orphan(item)
@@ -638,7 +647,9 @@ def _on_crash(instance: CloudInstance, seen: Observed | None, now: float) -> str
             message=f"crashed: {why}",
             updated_at=timezone.now(),
         )
-        component = Component.objects.select_for_update().get(pk=instance.component_id)
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is None:
+            return "crashed"
         status = {
             "skill": skill_id,
             "component": component_id,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import math
 import os
 import time
 from collections.abc import Callable, Mapping
@@ -274,12 +275,15 @@ class SwarmRuntime(CloudRuntime):
         service = await self._service(name)
         if service is None:
             return await self.start(spec)
+        template = dict(service["Spec"]["TaskTemplate"])
+        # A new ForceUpdate value makes Swarm replace the task even though the spec is unchanged.
+        template["ForceUpdate"] = int(template.get("ForceUpdate") or 0) + 1
         try:
             await self._call(
                 api.update_service,
                 service["ID"],
                 version=service["Version"]["Index"],
-                force_update=True,
+                task_template=template,
                 fetch_current_spec=True,
             )
         except docker.errors.APIError as exc:
@@ -479,12 +483,15 @@ class SwarmRuntime(CloudRuntime):
         except docker.errors.APIError as exc:
             raise RuntimeFailure(f"Swarm could not remove {name}: {exc.explanation}") from None
         # Removal is asynchronous: wait for the task's container to be gone, so the copy is stopped.
+        # Its containers on this engine are stopped right away rather than at Swarm's next pass.
+        label = {"label": f"com.docker.swarm.service.id={service['ID']}"}
+        local = await self._call(api.containers, filters=label)
+        await asyncio.gather(
+            *(self._call(api.stop, c["Id"], timeout=math.ceil(timeout)) for c in local), return_exceptions=True
+        )
         deadline = time.monotonic() + timeout + 5
         while time.monotonic() < deadline:
-            left = await self._call(
-                api.containers, all=True, filters={"label": f"com.docker.swarm.service.id={service['ID']}"}
-            )
-            if not left:
+            if not await self._call(api.containers, all=True, filters=label):
                 return
             await asyncio.sleep(0.1)
         logger.warning("containers of %s still there %.0f s after its removal", name, timeout + 5)

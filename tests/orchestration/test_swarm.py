@@ -1,0 +1,321 @@
+"""Cloud copies on Docker Swarm, driven by a real Celery worker, for a real agent over real sockets.
+
+A robot (the agent's RobotController, process runtime) asks its cloud for copies; the cloud's
+worker runs them as Swarm services from the local ROS image. Nothing here is mocked: the
+worker is killed with SIGKILL, containers with `docker kill`, and ROS nodes on both sides
+talk through the robot's own ROS master, which the cloud runs as a Swarm service too.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import urllib.request
+
+import pytest
+from asgiref.sync import sync_to_async
+
+import docker
+from bridgeos_agent.controller import RobotController
+from bridgeos_agent.skillconfig import parse_skill_config
+from monitoring.models import Event
+from skills.cloudruntime import KIND_ROS_MASTER, object_name
+from skills.models import CloudInstance, Component, RobotCloud
+from tests.agent.test_controller import agent_settings, eventually, make_robot, running
+
+from .conftest import make_stack, observe_async
+
+pytestmark = [
+    pytest.mark.django_db(transaction=True),
+    pytest.mark.docker,
+    pytest.mark.ros,
+    pytest.mark.timeout(240),
+    pytest.mark.usefixtures("robots_disconnect_before_flush"),
+]
+
+SKILL = "cloudy"
+IMAGE = "bridgeos/ros:noetic"
+HOST_PYTHON = "/usr/bin/python3"
+
+# In the cloud: answers every ping from the robot on its own (namespaced) "pong" topic.
+ECHO = """
+import rospy
+from std_msgs.msg import String
+rospy.init_node("echo")
+pong = rospy.Publisher("pong", String, queue_size=10)
+rospy.Subscriber("/wtcloud_ping", String, lambda m: pong.publish(String(data="pong:" + m.data)))
+rospy.spin()
+"""
+
+# On the robot: pings the cloud node and prints each answer it gets back.
+CALLER = """
+import rospy
+from std_msgs.msg import String
+rospy.init_node("caller")
+rospy.Subscriber("/bridgeos/cloudy/echo/cloud/pong", String, lambda m: print("got", m.data, flush=True))
+ping = rospy.Publisher("/wtcloud_ping", String, queue_size=10)
+n = 0
+rate = rospy.Rate(5)
+while not rospy.is_shutdown():
+    ping.publish(String(data="ping %d" % n))
+    n += 1
+    rate.sleep()
+"""
+
+TICKER = "echo started; i=0; while true; do i=$((i+1)); echo tick $i; sleep 1; done"
+
+
+@pytest.fixture(scope="module")
+def stack(django_db_setup, django_db_blocker, tmp_path_factory):
+    yield from make_stack("swarm", tmp_path_factory.mktemp("swarm"), django_db_blocker)
+
+
+def skill(**components: dict) -> dict:
+    return parse_skill_config({"skill": "Cloudy", "skill_id": SKILL, "components": components}).model_dump(mode="json")
+
+
+def web_component() -> dict:
+    return {
+        "name": "Web",
+        "location": "cloud",
+        "ros": False,
+        "resources": {"cpu": 0.2, "ram": 64},
+        "cloud": {"image": IMAGE, "command": ["python3", "-m", "http.server", "8080"], "ports": [8080]},
+    }
+
+
+def ticker_component() -> dict:
+    return {
+        "name": "Ticker",
+        "location": "cloud",
+        "ros": False,
+        "cloud": {"image": IMAGE, "command": ["sh", "-c", TICKER]},
+    }
+
+
+@sync_to_async
+def instance_of(robot_id: str, component: str) -> CloudInstance | None:
+    return CloudInstance.objects.filter(component__skill__robot_id=robot_id, component__component_id=component).first()
+
+
+@sync_to_async
+def component_row(robot_id: str, component: str) -> Component:
+    return Component.objects.get(skill__robot_id=robot_id, component_id=component)
+
+
+@sync_to_async
+def events_of(robot_id: str, kind: str) -> list[Event]:
+    return list(Event.objects.filter(robot_id=robot_id, kind=kind).order_by("ts"))
+
+
+async def running_instance(robot_id: str, component: str) -> CloudInstance | None:
+    instance = await instance_of(robot_id, component)
+    return instance if instance is not None and instance.status == "running" else None
+
+
+def service_tasks(client: docker.DockerClient, name: str) -> list[dict]:
+    try:
+        return client.services.get(name).tasks()
+    except docker.errors.NotFound:
+        return []
+
+
+async def test_a_cloud_component_runs_as_a_swarm_service_with_its_env_and_network(stack, tmp_path):
+    token, _ = await make_robot("swarm-1", skill=skill(web=web_component()))
+    settings = agent_settings(stack.server, "swarm-1", token, tmp_path / "agent", detect_ros_master=False)
+    controller = RobotController(settings, plugins={})
+    client = docker.from_env()
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        # No ROS master on this robot: the cloud runs one of its own for it and says where.
+        assert controller.ros_master is not None and controller.ros_master.startswith("http://127.0.0.1:")
+        record = await controller.start_skill(parse_skill_config(skill(web=web_component())))
+        assert record.locations == {"web": "cloud"}
+        instance = await eventually(lambda: running_instance("swarm-1", "web"), timeout=90, what="web running")
+
+        service = client.services.get(object_name("swarm-1", SKILL, "web"))
+        spec = service.attrs["Spec"]
+        assert spec["EndpointSpec"]["Mode"] == "dnsrr"
+        assert spec["EndpointSpec"]["Ports"] == [{"Protocol": "tcp", "TargetPort": 8080, "PublishMode": "host"}]
+        container = spec["TaskTemplate"]["ContainerSpec"]
+        assert container["Init"] is True
+        env = dict(item.split("=", 1) for item in container["Env"])
+        assert env["BRIDGEOS_ROBOT"] == "swarm-1" and env["BRIDGEOS_SKILL"] == SKILL
+        assert env["BRIDGEOS_COMPONENT"] == "web" and env["BRIDGEOS_LOCATION"] == "cloud"
+        assert env["ROS_MASTER_URI"] == controller.ros_master
+        limits = spec["TaskTemplate"]["Resources"]["Limits"]
+        assert limits == {"NanoCPUs": 200_000_000, "MemoryBytes": 64 * 1024 * 1024}
+        assert spec["Labels"]["io.bridgeos.cloud"] == stack.cloud_id
+        # On the robot's own attachable overlay network.
+        network = client.networks.get(object_name("swarm-1", kind="network"))
+        assert network.attrs["Driver"] == "overlay" and network.attrs["Attachable"] is True
+        assert [n["Target"] for n in spec["TaskTemplate"]["Networks"]] == [network.id]
+
+        # The robot heard where to reach it: the cloud host and the port Swarm published in host mode.
+        info = await eventually(lambda: record.cloud_containers.get("web"), what="component_information")
+        assert info["runtime"] == "swarm" and info["address"] == "127.0.0.1"
+        published = info["ports"]["8080"]
+        assert info == instance.container
+        body = await asyncio.to_thread(
+            lambda: urllib.request.urlopen(f"http://127.0.0.1:{published}/", timeout=10).read()
+        )
+        assert b"Directory listing" in body
+        row = await component_row("swarm-1", "web")
+        assert (row.status, row.active_location, row.container["cloud"]) == ("running", "cloud", info)
+
+        await controller.stop_skill(SKILL)
+        await eventually(lambda: _no_service(client, "swarm-1", "web"), timeout=60, what="service removed")
+        await eventually(lambda: _status_is("swarm-1", "web", "stopped"), what="the copy recorded stopped")
+
+
+async def _status_is(robot_id: str, component: str, status: str) -> bool:
+    instance = await instance_of(robot_id, component)
+    return instance is not None and instance.status == status
+
+
+async def _no_service(client: docker.DockerClient, robot: str, component: str) -> bool:
+    try:
+        await asyncio.to_thread(client.services.get, object_name(robot, SKILL, component))
+    except docker.errors.NotFound:
+        return True
+    return False
+
+
+async def test_a_robot_without_a_ros_master_gets_one_and_its_nodes_talk_to_cloud_nodes(stack, tmp_path):
+    components = {
+        "echo": {"name": "Echo", "location": "cloud", "cloud": {"image": IMAGE, "command": ["python3", "-c", ECHO]}},
+        "caller": {
+            "name": "Caller",
+            "location": "robot",
+            "robot": {"command": [HOST_PYTHON, "-c", CALLER], "env": {"ROS_IP": "127.0.0.1"}},
+        },
+    }
+    token, _ = await make_robot("swarm-2", skill=skill(**components))
+    settings = agent_settings(stack.server, "swarm-2", token, tmp_path / "agent", detect_ros_master=False)
+    controller = RobotController(settings, plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        master = controller.ros_master
+        port = int(master.rsplit(":", 1)[1])
+        low, high = (int(p) for p in stack.env["BRIDGEOS_CLOUD_ROS_MASTER_PORTS"].split("-"))
+        assert low <= port <= high
+        await eventually(
+            lambda: _master_running(stack.runtime, "swarm-2"), timeout=90, what="the robot's ROS master service"
+        )
+        cloud = await eventually(lambda: _master_recorded("swarm-2"), what="the master recorded running")
+        assert cloud.ros_master_port == port
+
+        await controller.start_skill(parse_skill_config(skill(**components)))
+        await eventually(lambda: running_instance("swarm-2", "echo"), timeout=90, what="echo running in the cloud")
+        # A ping from the robot's node reached the cloud node, whose answer came back.
+        answered = await eventually(lambda: _caller_got_pong(controller), timeout=90, what="a pong from the cloud node")
+        assert answered.startswith("got pong:ping ")
+        service = docker.from_env().services.get(object_name("swarm-2", SKILL, "echo"))
+        env = dict(item.split("=", 1) for item in service.attrs["Spec"]["TaskTemplate"]["ContainerSpec"]["Env"])
+        assert env["ROS_NAMESPACE"] == f"/bridgeos/{SKILL}/echo/cloud"
+        assert env["ROS_MASTER_URI"] == master and env["ROS_IP"] == "127.0.0.1"
+        await controller.stop_skill(SKILL)
+
+
+@sync_to_async
+def _master_recorded(robot_id: str) -> RobotCloud | None:
+    return RobotCloud.objects.filter(robot_id=robot_id, ros_master_status="running").first()
+
+
+async def _master_running(runtime: str, robot_id: str) -> bool:
+    return any(
+        o.kind == KIND_ROS_MASTER and o.robot == robot_id and o.status == "running"
+        for o in await observe_async(runtime)
+    )
+
+
+async def _caller_got_pong(controller: RobotController) -> str | None:
+    lines = await controller.runtime.logs(SKILL, "caller", 50)
+    return next((line for line in lines if line.startswith("got pong:")), None)
+
+
+async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(stack, tmp_path):
+    token, _ = await make_robot("swarm-3", skill=skill(ticker=ticker_component()))
+    controller = RobotController(agent_settings(stack.server, "swarm-3", token, tmp_path / "agent"), plugins={})
+    client = docker.from_env()
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(skill(ticker=ticker_component())))
+        first = await eventually(lambda: running_instance("swarm-3", "ticker"), timeout=90, what="ticker running")
+        await eventually(lambda: record.cloud_containers.get("ticker"), what="the robot told where it runs")
+        old_id = first.container["id"]
+        await asyncio.to_thread(lambda: client.containers.get(old_id).kill())
+
+        # The reconciler sees the dead copy, logs it with its last output and restarts it with backoff.
+        async def restarted() -> CloudInstance | None:
+            await asyncio.to_thread(stack.reconcile)
+            instance = await instance_of("swarm-3", "ticker")
+            return instance if instance.status == "running" and instance.container.get("id") != old_id else None
+
+        again = await eventually(restarted, timeout=90, what="the copy restarted")
+        crashes = await events_of("swarm-3", "cloud_component_crashed")
+        assert len(crashes) == 1 and crashes[0].level == "error"
+        assert "started" in crashes[0].data["logs"] and crashes[0].data["exit_code"] == 137
+        assert again.crashes and again.restarts == 1
+        tasks = await asyncio.to_thread(service_tasks, client, object_name("swarm-3", SKILL, "ticker"))
+        assert sum(t["Status"]["State"] == "running" for t in tasks) == 1
+        # The robot heard of the crash and of the copy running again, at its new container.
+        await eventually(
+            lambda: record.cloud_containers["ticker"].get("id") == again.container["id"], what="new container told"
+        )
+        assert record.statuses["ticker"] == "running"
+        await controller.stop_skill(SKILL)
+
+
+async def test_a_worker_killed_mid_start_leaves_exactly_one_copy(stack, tmp_path):
+    token, _ = await make_robot("swarm-4", skill=skill(ticker=ticker_component()))
+    controller = RobotController(agent_settings(stack.server, "swarm-4", token, tmp_path / "agent"), plugins={})
+    client = docker.from_env()
+    name = object_name("swarm-4", SKILL, "ticker")
+    try:
+        async with running(controller):
+            await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+            await controller.start_skill(parse_skill_config(skill(ticker=ticker_component())))
+            # Kill the worker (its whole process group) the moment the service exists: mid-task.
+            await eventually(lambda: not _sync_no_service(client, name), timeout=60, what="the service created")
+            stack.kill_worker()
+            killed_before_recorded = (await instance_of("swarm-4", "ticker")).status != "running"
+            stack.start_worker()
+
+            async def settled() -> CloudInstance | None:
+                await asyncio.to_thread(stack.reconcile)
+                return await running_instance("swarm-4", "ticker")
+
+            instance = await eventually(settled, timeout=90, what="the copy adopted")
+            tasks = await asyncio.to_thread(service_tasks, client, name)
+            running_tasks = [t for t in tasks if t["Status"]["State"] == "running"]
+            assert len(running_tasks) == 1, tasks
+            assert running_tasks[0]["Status"]["ContainerStatus"]["ContainerID"] == instance.container["id"]
+            copies = [o for o in await observe_async("swarm") if o.robot == "swarm-4"]
+            assert [(o.component, o.status) for o in copies] == [("ticker", "running")]
+            # The redelivered start (visibility timeout) finds the same copy again: still exactly one.
+            await asyncio.sleep(1)
+            containers = await asyncio.to_thread(
+                client.containers.list,
+                filters={"label": [f"io.bridgeos.cloud={stack.cloud_id}", "io.bridgeos.robot=swarm-4"]},
+            )
+            assert len(containers) == 1
+            print(f"worker killed {'before' if killed_before_recorded else 'after'} the start was recorded")
+            await controller.stop_skill(SKILL)
+    finally:
+        if stack.worker is None:
+            stack.start_worker()
+
+
+def _sync_no_service(client: docker.DockerClient, name: str) -> bool:
+    try:
+        client.services.get(name)
+    except docker.errors.NotFound:
+        return True
+    return False
+
+
+def test_ids_stay_unique_and_short_for_swarm() -> None:
+    long_robot = "r" * 64
+    names = {object_name(long_robot, "s" * 64, f"c{n}") for n in range(50)}
+    assert len(names) == 50 and all(len(name) <= 63 for name in names)
+    assert object_name("a-b", "c", "d") != object_name("a", "b-c", "d")
