@@ -300,6 +300,7 @@ class VolumeSync:
         self.controller = controller
         self.replicas: dict[tuple[str, str], VolumeReplica] = {}
         self._unreachable: set[tuple[str, str]] = set()
+        self.chunks_sent = 0  # chunks read for the cloud: what volume sync cost in data
 
     async def run(self) -> None:
         """Scan the volumes of every running Skill that may have a cloud copy, for as long as the agent runs."""
@@ -366,6 +367,7 @@ class VolumeSync:
         found, missing = (
             await asyncio.to_thread(replica.read_chunks, refs) if replica else ([], [r["hash"] for r in refs])
         )
+        self.chunks_sent += len(found)
         return {"skill": payload.skill, "volume": payload.volume, "chunks": found, "missing": missing}
 
     async def replica(self, skill_id: str, volume: str) -> VolumeReplica | None:
