@@ -17,7 +17,7 @@ from asgiref.sync import sync_to_async
 import docker
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.skillconfig import parse_skill_config
-from monitoring.models import Event
+from monitoring.models import Event, Metric
 from skills.cloudruntime import KIND_ROS_MASTER, object_name
 from skills.models import CloudInstance, Component, RobotCloud
 from tests.agent.test_controller import agent_settings, eventually, make_robot, running
@@ -263,6 +263,9 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
             lambda: record.cloud_containers["ticker"].get("id") == again.container["id"], what="new container told"
         )
         assert record.statuses["ticker"] == "running"
+        # Each round measured the copy: its CPU and memory are metrics of the robot, labelled as the cloud's.
+        ram = await sync_to_async(list)(Metric.objects.filter(robot_id="swarm-3", component="ticker", name="ram"))
+        assert ram and all(point.labels == {"location": "cloud"} and point.value > 0 for point in ram)
         await controller.stop_skill(SKILL)
 
 
