@@ -263,9 +263,13 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
             lambda: record.cloud_containers["ticker"].get("id") == again.container["id"], what="new container told"
         )
         assert record.statuses["ticker"] == "running"
-        # Each round measured the copy: its CPU and memory are metrics of the robot, labelled as the cloud's.
-        ram = await sync_to_async(list)(Metric.objects.filter(robot_id="swarm-3", component="ticker", name="ram"))
-        assert ram and all(point.labels == {"location": "cloud"} and point.value > 0 for point in ram)
+        # Each round measures the copy: its CPU and memory become metrics of the robot, labelled as the cloud's.
+        async def measured() -> list[Metric]:
+            await asyncio.to_thread(stack.reconcile)
+            return await sync_to_async(list)(Metric.objects.filter(robot_id="swarm-3", component="ticker", name="ram"))
+
+        ram = await eventually(measured, timeout=60, what="the copy's memory stored")
+        assert all(point.labels == {"location": "cloud"} and point.value > 0 for point in ram)
         await controller.stop_skill(SKILL)
 
 
