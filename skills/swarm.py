@@ -99,6 +99,7 @@ class SwarmRuntime(CloudRuntime):
         self._api: APIClient | None = None
         self._socket_path: str | None = None
         self._network_ready = False
+        self._ids: dict[str, str] = {}  # service name -> id, once known
 
     # --- names -----------------------------------------------------------------------
 
@@ -128,7 +129,8 @@ class SwarmRuntime(CloudRuntime):
             network = None if self._host_networked(spec) else await self.ensure_network()
             await asyncio.to_thread(self._make_volume_dirs, spec)
             try:
-                await self._call(api.create_service, **self._service_config(spec, network))
+                created = await self._call(api.create_service, **self._service_config(spec, network))
+                self._ids[name] = created["ID"]
             except docker.errors.APIError as exc:
                 if exc.status_code != 409:  # 409: created meanwhile by a redelivered task
                     raise RuntimeFailure(
@@ -435,26 +437,33 @@ class SwarmRuntime(CloudRuntime):
     async def _service(self, name: str) -> dict[str, Any] | None:
         api = await self._connect()
         try:
-            return await self._call(api.inspect_service, name)
+            service = await self._call(api.inspect_service, name)
         except docker.errors.NotFound:
+            self._ids.pop(name, None)
             return None
+        self._ids[name] = service["ID"]
+        return service
 
     async def _newest_task(self, name: str) -> dict[str, Any] | None:
         api = await self._connect()
+        service_id = self._ids.get(name)
+        if service_id is None:
+            service = await self._service(name)
+            if service is None:
+                return None
+            service_id = service["ID"]
         try:
-            tasks = await self._call(api.tasks, filters={"service": name})
+            tasks = await self._call(api.tasks, filters={"service": service_id})
         except docker.errors.NotFound:
             return None
-        # A name filter matches by prefix: keep the service's own tasks.
-        service = await self._service(name)
-        if service is None:
-            return None
-        tasks = [t for t in tasks if t.get("ServiceID") == service["ID"]]
+        # Filters match by prefix: keep the service's own tasks.
+        tasks = [t for t in tasks if t.get("ServiceID") == service_id]
         return max(tasks, key=_task_key) if tasks else None
 
     async def _wait_task(self, name: str, skill: str, component: str, timeout: float) -> ComponentState:
         deadline = time.monotonic() + timeout
-        delay = 0.05
+        # Polled often at first: a task usually runs within a second, and every poll is one local call.
+        delay = 0.03
         while True:
             task = await self._newest_task(name)
             if task is None:
@@ -468,10 +477,11 @@ class SwarmRuntime(CloudRuntime):
                 state.message = f"{name}: not running after {timeout:g} s ({state.message or 'no task yet'})"
                 return state
             await asyncio.sleep(delay)
-            delay = min(delay * 1.5, 0.5)
+            delay = min(delay * 1.1, 0.25)
 
     async def _remove_service(self, name: str, timeout: float) -> None:
         api = await self._connect()
+        self._ids.pop(name, None)
         try:
             service = await self._call(api.inspect_service, name)
         except docker.errors.NotFound:

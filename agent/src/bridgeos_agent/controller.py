@@ -155,6 +155,7 @@ class RobotController:
         self._replaying = False
         self._dedup = protocol.Dedup(capacity=2000)
         self._answers: dict[str, str] = {}  # command id -> the frame that answered it
+        self._handling: set[str] = set()  # ids of frames whose handler has not answered yet
         self._waiters: dict[str, asyncio.Future[Envelope]] = {}
         self._tasks: list[asyncio.Task] = []
         self._handlers: set[asyncio.Task] = set()
@@ -429,6 +430,8 @@ class RobotController:
             self._on_refused(envelope)
             return
         if event in protocol.REQUIRES_ACK and self._dedup.seen(envelope.id):
+            if envelope.id in self._handling:
+                return  # still being handled (a migration takes seconds): its answer comes when done
             # A retransmission of something already handled: answer it the same way again.
             answer = self._answers.get(envelope.id) or protocol.ack_text(envelope.id, now=time.time())
             self._spawn(self._send_text(answer))
@@ -455,6 +458,13 @@ class RobotController:
                 self._spawn(self._set_status(record, data["component"], CS.FAILED, None, payload.message))
 
     async def _handle(self, envelope: Envelope) -> None:
+        self._handling.add(envelope.id)
+        try:
+            await self._handle_once(envelope)
+        finally:
+            self._handling.discard(envelope.id)
+
+    async def _handle_once(self, envelope: Envelope) -> None:
         handler = HANDLERS.get(envelope.event)
         try:
             if handler is None:
