@@ -104,6 +104,13 @@ if DATABASES["default"]["ENGINE"] == "django.db.backends.postgresql" and env_boo
         "max_size": env_int("DATABASE_POOL_MAX", 20),
         "timeout": env_float("DATABASE_POOL_TIMEOUT", 10.0),
     }
+if DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
+    # `make run` without PostgreSQL: daphne, two Celery processes and beat write to one file.
+    # WAL lets readers run beside the writer, and IMMEDIATE transactions wait for the write lock
+    # up front rather than failing at once when a read would have to become a write.
+    DATABASES["default"].setdefault("OPTIONS", {}).update(
+        {"transaction_mode": "IMMEDIATE", "timeout": 20, "init_command": "PRAGMA journal_mode=WAL;"}
+    )
 if DATABASES["default"]["ENGINE"] == "django.db.backends.postgresql":
     # JIT compiling costs ~10 ms per query; with estimates off (a bulk load not yet analysed)
     # PostgreSQL spent it on 2 ms lookups. These are short queries: never JIT them.

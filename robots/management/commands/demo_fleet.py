@@ -9,6 +9,7 @@ from typing import Any
 from django.contrib.auth import get_user_model
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
+from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot
 from robots.services import create_robot, issue_api_token, rotate_token
 from skills.models import Skill
@@ -40,7 +41,12 @@ class Command(BaseCommand):
             else:
                 # Tokens are stored hashed: a restarted demo gets fresh ones.
                 token = rotate_token(robot)
-            if not Skill.objects.filter(robot=robot, skill_id=config["skill_id"]).exists():
+            skill = Skill.objects.filter(robot=robot, skill_id=config["skill_id"]).first()
+            if skill is None:
                 add_skill(robot, config)
+            elif skill.config != parse_skill_config(config).model_dump(mode="json"):
+                # A demo kept from an older run gets the sample as it is now (e.g. its cloud images).
+                skill.config = config
+                skill.save(update_fields=["config", "updated_at"])
             robots.append({"id": robot_id, "token": token, "skill": config["skill_id"]})
         self.stdout.write(json.dumps({"robots": robots, "api_token": issue_api_token(owner)[0]}))
