@@ -10,7 +10,9 @@ from __future__ import annotations
 import asyncio
 import itertools
 import math
+import subprocess
 import threading
+import uuid
 from collections.abc import Collection, Iterator
 from typing import Any
 
@@ -25,6 +27,8 @@ from bridgeos_agent.usecases.world import get_world
 from tests.usecases.conftest import Nodes
 
 pytestmark = pytest.mark.ros
+
+ROS_IMAGE = "bridgeos/ros:noetic"
 
 PEOPLE_PROBE = """
 import json, sys, rospy
@@ -179,3 +183,51 @@ def test_mapping_builds_a_map_that_matches_the_world(nodes: Nodes) -> None:
     assert score["occupied_precision"] > 0.9, score
     loss = nodes.wait_for("mapping", r"metric message_loss_pct=([\d.]+) topic=scan", timeout=30)
     assert float(loss.group(1)) < 5.0
+
+
+@pytest.mark.docker
+def test_a_node_runs_in_the_ros_image_and_talks_to_host_nodes(nodes: Nodes) -> None:
+    """The bridgeos/ros image carries the nodes: its map server feeds a planner on the host."""
+    found = subprocess.run(["docker", "image", "inspect", ROS_IMAGE], capture_output=True, timeout=60)
+    if found.returncode != 0:
+        pytest.fail(f"image {ROS_IMAGE} not built: run `scripts/services.sh images`", pytrace=False)
+    world = get_world("room")
+    ns = "/bridgeos/navigation/docker"
+    name = f"usecases-map-server-{uuid.uuid4().hex[:8]}"
+    env = {"ROS_MASTER_URI": nodes.master.uri, "ROS_IP": "127.0.0.1", "ROS_NAMESPACE": ns}
+    try:
+        subprocess.run(
+            [
+                "docker",
+                "run",
+                "-d",
+                "--rm",
+                "--init",
+                "--network",
+                "host",
+                "--name",
+                name,
+                *(f"--env={k}={v}" for k, v in env.items()),
+                ROS_IMAGE,
+                "bridgeos-usecase",
+                "map-server",
+                "--world",
+                "room",
+                "--period",
+                "1",
+            ],
+            check=True,
+            capture_output=True,
+            timeout=120,
+        )
+        nodes.start("planner", "planner", namespace=ns)
+        nodes.start("sim", "sim", "--world", "room", namespace=ns)
+        nodes.start("mover", "mover", "--world", "room", "--loops", "1", namespace=ns)
+        path = nodes.probe(PATH_PROBE, "90", timeout=120, namespace=ns)
+        assert len(path) >= 3 and math.dist(path[-1], world.goals[0]) < 1e-6, path
+    except BaseException:
+        logs = subprocess.run(["docker", "logs", name], capture_output=True, text=True, timeout=60)
+        print(f"container logs:\n{logs.stdout}{logs.stderr}")
+        raise
+    finally:
+        subprocess.run(["docker", "rm", "-f", name], capture_output=True, timeout=60)
