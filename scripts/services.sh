@@ -15,11 +15,13 @@ ALL_PARTS=(postgres redis docker swarm ros images chromium)
 # The dashboard's browser tests drive Debian's Chromium through Playwright (never Playwright's download).
 CHROMIUM=/usr/bin/chromium
 ROS_PACKAGES=(ros-core python3-rospy python3-rostopic python3-std-msgs python3-sensor-msgs
-              python3-geometry-msgs python3-nav-msgs python3-numpy)
+              python3-geometry-msgs python3-nav-msgs)
 DOCKERD_LOG=/var/log/bridgeos-dockerd.log
 ROSCORE_LOG=/var/log/bridgeos-roscore.log
 ROS_HOME_DIR=/var/lib/bridgeos/ros
 ROS_PORT=11311
+# The use-case Skills' nodes (bridgeos_agent.usecases) compute with numpy under the ROS python.
+ROS_PACKAGES+=(python3-numpy)
 export DEBIAN_FRONTEND=noninteractive NEEDRESTART_MODE=l  # never prompt, never restart services
 export PATH="$PATH:/usr/sbin:/sbin"
 
@@ -69,12 +71,13 @@ wants() { [[ " ${REQUESTED[*]} " == *" $1 "* ]]; }
 if ! wants docker && { wants swarm || wants images; }; then REQUESTED=(docker "${REQUESTED[@]}"); fi
 
 # --- one batched apt-get for everything missing ------------------------------------
-rospy_ok() { ros_env /usr/bin/python3 -c 'import rospy, rostopic, std_msgs.msg, numpy' >/dev/null 2>&1; }
+rospy_ok() { ros_env /usr/bin/python3 -c 'import rospy, rostopic, std_msgs.msg' >/dev/null 2>&1; }
 APT_NEEDED=()
 INSTALLED=" "
 wants docker && ! have dockerd && APT_NEEDED+=(docker.io)
 wants images && ! have debootstrap && APT_NEEDED+=(debootstrap)
-wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
+numpy_ok() { ros_env /usr/bin/python3 -c 'import numpy' >/dev/null 2>&1; }
+wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok && numpy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
 wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
 if ((${#APT_NEEDED[@]})); then
     t=$(now)

@@ -188,9 +188,15 @@ def test_mapping_builds_a_map_that_matches_the_world(nodes: Nodes) -> None:
 @pytest.mark.docker
 def test_a_node_runs_in_the_ros_image_and_talks_to_host_nodes(nodes: Nodes) -> None:
     """The bridgeos/ros image carries the nodes: its map server feeds a planner on the host."""
-    found = subprocess.run(["docker", "image", "inspect", ROS_IMAGE], capture_output=True, timeout=60)
+    found = subprocess.run(
+        ["docker", "run", "--rm", ROS_IMAGE, "sh", "-c", "command -v bridgeos-usecase"],
+        capture_output=True,
+        timeout=120,
+    )
     if found.returncode != 0:
-        pytest.fail(f"image {ROS_IMAGE} not built: run `scripts/services.sh images`", pytrace=False)
+        pytest.fail(
+            f"image {ROS_IMAGE} is missing or lacks the use-case nodes: run `scripts/services.sh images`", pytrace=False
+        )
     world = get_world("room")
     ns = "/bridgeos/navigation/docker"
     name = f"usecases-map-server-{uuid.uuid4().hex[:8]}"

@@ -35,7 +35,8 @@ def main(argv: list[str]) -> int:
     metrics = Metrics("planner")
     loss = LossCounter()
     state: dict = {"map": None, "pose": None, "goal": None, "planned": None, "path": None}
-    publisher = rospy.Publisher("path", Path, queue_size=5)
+    # Latched: a subscriber that connects late (or a migrated one) still gets the current plan.
+    publisher = rospy.Publisher("path", Path, queue_size=5, latch=True)
 
     lock = threading.Lock()  # rospy runs each subscription's callbacks on a thread of its own
 
