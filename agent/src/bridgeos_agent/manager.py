@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 from bridgeos_agent.componentsapi import ComponentsAPI, MetricStore
 from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, decide_batch
 from bridgeos_agent.heuristics import Resources
+from bridgeos_agent.monitor import Reporter
 from bridgeos_agent.policies import Metrics, PolicyCosts, PolicyEstimator
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.robotconfig import RobotConfig
@@ -37,6 +38,9 @@ __all__ = ["SkillManager", "skill_manager_plugin"]
 logger = logging.getLogger(__name__)
 
 DECISION_METRIC = "offloading.decision"
+# A decision to stay is sent when its reward changed, else at least this often (seconds): 2000
+# components deciding at 1 Hz would otherwise write 2000 rows a second to the cloud.
+STAY_POINT_EVERY = 30.0
 
 
 class SkillManager:
@@ -56,6 +60,7 @@ class SkillManager:
         self.api: ComponentsAPI | None = None
         self._estimator: tuple[tuple[Any, ...], PolicyEstimator] | None = None
         self._cost_failures: dict[str, str] = {}  # component -> the cost function error last logged
+        self._stays = Reporter(max_interval=STAY_POINT_EVERY, relative=0.05, absolute=0.01)
 
     # ------------------------------------------------------------------ the Components API's view
 
@@ -259,11 +264,17 @@ class SkillManager:
             return []
         decisions = decide_batch([self._decider(name) for name in names], inputs, self.clock())
         now = time.time()
-        points = []
         for decision in decisions:
             self.last[decision.component] = decision
-            if decision.migrate:
-                continue  # a move is logged as an offloading_decision event once it is carried out
+        # A move is logged as an offloading_decision event once carried out; a stay, as a point when it changed.
+        readings = [
+            (DECISION_METRIC, float(d.estimated_reward), self.skill_id, d.component) for d in decisions if not d.migrate
+        ]
+        changed = {point["component"] for point in self._stays.select(now, readings)}
+        points = []
+        for decision in decisions:
+            if decision.component not in changed:
+                continue
             estimate = costs[decision.component]
             points.append(
                 {
