@@ -119,7 +119,8 @@ def ros_skill(policy: str) -> dict:
     config["manager"]["policy"] = policy
     for component in config["components"].values():
         component["ros"] = True
-        component["resources"]["bandwidth"] = 10.0
+        # Small enough to fit the simulated robot's link even at its lowest (5 Mbit/s): both start on the robot.
+        component["resources"]["bandwidth"] = 1.0
     return parse_skill_config(config).model_dump(mode="json")
 
 
@@ -130,6 +131,7 @@ async def test_the_router_s_loss_rate_drives_the_performance_of_ros_components(c
     async with running(controller):
         await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
         record = await controller.start_skill(parse_skill_config(config))
+        assert set(record.locations.values()) == {"robot"}
         router = record.supervisor.context["router"] = Router()
         manager = SkillManager(controller, SKILL)
         # worker-0 loses 30 % of its messages on the robot; the cloud was never measured (0).
@@ -164,6 +166,7 @@ async def test_the_router_s_bytes_and_the_declared_bandwidth_of_a_measured_compo
     async with running(controller):
         await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
         record = await controller.start_skill(parse_skill_config(config))
+        assert set(record.locations.values()) == {"robot"}
         router = record.supervisor.context["router"] = Router()
         # The runtime measures the running processes (CPU and RAM); their bandwidth stays as declared.
         await eventually(
@@ -174,12 +177,12 @@ async def test_the_router_s_bytes_and_the_declared_bandwidth_of_a_measured_compo
         router.figures["worker-0"] = ComponentTraffic(seconds=10, bytes_robot=1_000_000, bytes_cloud=9_000_000)
         router.figures["worker-1"] = ComponentTraffic(seconds=10, bytes_robot=5_000_000)
         decisions = {d.component: d for d in await SkillManager(controller, SKILL).step()}
-        # Eq. 4.3/4.4: 10 Mbit/s times the share of traffic with the other side.
-        assert decisions["worker-0"].features["cost_robot"] == pytest.approx(9.0)
-        assert decisions["worker-0"].features["cost_cloud"] == pytest.approx(1.0)
+        # Eq. 4.3/4.4: 1 Mbit/s times the share of traffic with the other side.
+        assert decisions["worker-0"].features["cost_robot"] == pytest.approx(0.9)
+        assert decisions["worker-0"].features["cost_cloud"] == pytest.approx(0.1)
         assert decisions["worker-0"].migrate and record.locations["worker-0"] == "cloud"
         assert decisions["worker-1"].features["cost_robot"] == 0.0
-        assert decisions["worker-1"].features["cost_cloud"] == pytest.approx(10.0)
+        assert decisions["worker-1"].features["cost_cloud"] == pytest.approx(1.0)
         assert not decisions["worker-1"].migrate
 
 
