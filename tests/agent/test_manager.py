@@ -186,6 +186,26 @@ async def test_the_router_s_bytes_and_the_declared_bandwidth_of_a_measured_compo
         assert not decisions["worker-1"].migrate
 
 
+async def test_cost_functions_read_the_robot_state_a_component_would_find_there(cloud, tmp_path):
+    config = movable_skill(threshold=1e6)
+    config["manager"].update(policy="custom", cost_functions={"robot": "cpu_free", "cloud": "ram_free"})
+    config = parse_skill_config(config).model_dump(mode="json")
+    token, _ = await make_robot("man-11", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-11", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config), starting=["worker-0"])
+        await controller.place_component(record, "worker-1", location="cloud")
+        await eventually(lambda: controller.monitor.latest is not None, what="a sample of the robot")
+        decisions = {d.component: d for d in await SkillManager(controller, SKILL).step()}
+        free = controller.monitor.latest.free
+        on_robot, in_cloud = decisions["worker-0"].features, decisions["worker-1"].features
+        # On the robot: what is free now. In the cloud: what a move to the robot would leave (0.1 core, 16 MiB).
+        assert on_robot["cost_robot"] == pytest.approx(free["cpu"])
+        assert in_cloud["cost_robot"] == pytest.approx(free["cpu"] - 0.1)
+        assert on_robot["cost_cloud"] - in_cloud["cost_cloud"] == pytest.approx(16)
+
+
 async def test_a_cost_function_that_fails_skips_its_component_and_is_logged_once(cloud, tmp_path, caplog):
     config = movable_skill()
     config["manager"].update(policy="custom", cost_functions={"robot": "cpu / (battery - battery)", "cloud": "0"})

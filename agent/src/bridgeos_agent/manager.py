@@ -204,12 +204,20 @@ class SkillManager:
             usage = dataclasses.replace(needs, cpu=measured.cpu, ram=measured.ram) if measured else needs
             loss = self.loss.setdefault(name, {"robot": 0.0, "cloud": 0.0})
             metrics = robot_state
+            if location == "cloud":
+                # What the robot would have free with this component on it: costing the robot with
+                # its own share still free would call it back, only to send it away again (a flap).
+                metrics = dataclasses.replace(
+                    robot_state,
+                    cpu_free=max(0.0, robot_state.cpu_free - needs.cpu),
+                    ram_free=max(0.0, robot_state.ram_free - needs.ram),
+                )
             traffic = self._traffic(name)
             if traffic is not None:
                 if traffic.messages:
                     loss[location] = traffic.loss_rate
                 gb_local, gb_cloud = traffic.gb_per_hour()
-                metrics = dataclasses.replace(robot_state, gb_local=gb_local, gb_cloud=gb_cloud)
+                metrics = dataclasses.replace(metrics, gb_local=gb_local, gb_cloud=gb_cloud)
             if config.ros:
                 metrics = dataclasses.replace(metrics, loss_rate_robot=loss["robot"], loss_rate_cloud=loss["cloud"])
             try:

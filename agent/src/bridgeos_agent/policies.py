@@ -108,7 +108,8 @@ class Metrics:
     loss_rate_robot: float = 0.0
     loss_rate_cloud: float = 0.0
     # The robot's state when the decision is taken (same at both locations): free CPU cores and
-    # RAM MiB, the link's available bandwidth (Mbit/s) and the battery charge (%, 100 on mains).
+    # RAM MiB with the component on the robot (for one in the cloud: what a move there would
+    # leave), the link's available bandwidth (Mbit/s) and the battery charge (%, 100 on mains).
     cpu_free: float = 0.0
     ram_free: float = 0.0
     bandwidth_available: float = 0.0
