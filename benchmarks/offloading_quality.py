@@ -113,13 +113,16 @@ class Script:
     start: float | None = None
 
     def index(self, elapsed: float) -> int:
+        """Return the phase in force ``elapsed`` seconds after the start."""
         return max(0, min(len(self.phases) - 1, int(elapsed // self.phase_s)))
 
     def at(self, now: float) -> Phase:
+        """Return the phase in force at ``now`` (the first until the script starts)."""
         return self.phases[0] if self.start is None else self.phases[self.index(now - self.start)]
 
     @property
     def duration(self) -> float:
+        """Return the script's length in seconds."""
         return len(self.phases) * self.phase_s
 
 
@@ -213,6 +216,7 @@ class Costing:
         return self._cache[key]
 
     def placements(self) -> list[tuple[str, ...]]:
+        """Return every static placement of the Skill's components."""
         return list(itertools.product(("robot", "cloud"), repeat=len(self.names)))
 
 

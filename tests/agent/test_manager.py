@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 
 import pytest
 from asgiref.sync import sync_to_async
 
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.manager import DECISION_METRIC, SkillManager
+from bridgeos_agent.protocol import Event
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.traffic import ComponentTraffic
 from monitoring.models import Event as LogEvent
@@ -40,9 +42,9 @@ def decisions_stored(robot_id: str) -> list[Metric]:
     return list(Metric.objects.filter(robot_id=robot_id, name=DECISION_METRIC).order_by("ts"))
 
 
-async def _at_least(rows_coroutine, count: int) -> list | None:
-    rows = await rows_coroutine
-    return rows if len(rows) >= count else None
+@sync_to_async
+def marker_stored(robot_id: str) -> bool:
+    return Metric.objects.filter(robot_id=robot_id, name="test.marker").exists()
 
 
 @sync_to_async
@@ -151,8 +153,9 @@ async def test_the_router_s_loss_rate_drives_the_performance_of_ros_components(c
         decision = {d.component: d for d in await manager.step()}["worker-0"]
         assert (decision.features["cost_robot"], decision.features["cost_cloud"]) == (0.3, 0.05)
         # Three decisions each, but a decision to stay reaches the cloud again only once it changed.
-        await eventually(lambda: _at_least(decisions_stored("man-8"), 2), what="decisions to stay stored")
-        await asyncio.sleep(1.0)  # nothing more may arrive
+        # Frames are applied in order: once a marker sent after the decisions is stored, they all are.
+        await controller.emit(Event.METRICS, {"metrics": [{"name": "test.marker", "value": 1.0, "ts": time.time()}]})
+        await eventually(lambda: marker_stored("man-8"), what="the marker stored")
         stays = await decisions_stored("man-8")
         assert sorted((m.component, m.value) for m in stays) == [("worker-0", -0.25), ("worker-1", 0.0)]
 
