@@ -263,6 +263,7 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
             lambda: record.cloud_containers["ticker"].get("id") == again.container["id"], what="new container told"
         )
         assert record.statuses["ticker"] == "running"
+
         # Each round measures the copy: its CPU and memory become metrics of the robot, labelled as the cloud's.
         async def measured() -> list[Metric]:
             await asyncio.to_thread(stack.reconcile)

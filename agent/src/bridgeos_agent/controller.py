@@ -813,6 +813,7 @@ class RobotController:
                 await self._start_in_cloud(record, name, wait=self.settings.cloud_start_timeout)
         except Exception as exc:
             # Rolled back: the component keeps running where it was, and the cloud hears why.
+            record.locations[name] = current
             await self._set_status(record, name, CS.RUNNING if current else CS.STOPPED, current, f"not moved: {exc}")
             raise
         if target == "robot" and current == "cloud":

@@ -12,10 +12,20 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot
 from robots.services import create_robot, issue_api_token, rotate_token
-from skills.models import Skill
+from skills.models import Skill, SkillTemplate
 from skills.services import add_skill
 
 SAMPLE = "demo_telemetry.json"
+# The thesis's use cases (§5.3): in the catalog always; on demo robots (one each, in turn) with --usecases.
+USE_CASES = {
+    "people_detection.json": ("Detects people in a depth camera's pointclouds (thesis §5.3).", ["vision", "ros"]),
+    "navigation.json": ("Drives a simulated robot to goals with a cloud path planner (thesis §5.3).", ["nav", "ros"]),
+    "mapping.json": ("Maps a room from a simulated robot's laser and odometry (thesis §5.3).", ["mapping", "ros"]),
+}
+
+
+def sample(name: str) -> dict[str, Any]:
+    return json.loads(resources.files("bridgeos_agent").joinpath("samples", name).read_text())
 
 
 class Command(BaseCommand):
@@ -24,6 +34,9 @@ class Command(BaseCommand):
     def add_arguments(self, parser: CommandParser) -> None:
         parser.add_argument("--count", type=int, default=3, help="How many demo robots (default 3).")
         parser.add_argument("--owner", required=True, help="Username owning the demo robots.")
+        parser.add_argument(
+            "--usecases", action="store_true", help="Also give each robot a use-case Skill (needs ROS)."
+        )
 
     def handle(self, *args: Any, **options: Any) -> None:
         if not 0 <= options["count"] <= 500:
@@ -31,7 +44,14 @@ class Command(BaseCommand):
         owner = get_user_model().objects.filter(username=options["owner"]).first()
         if owner is None:
             raise CommandError(f"No user named {options['owner']!r}.")
-        config = json.loads(resources.files("bridgeos_agent").joinpath("samples", SAMPLE).read_text())
+        config = sample(SAMPLE)
+        use_cases = []
+        for name, (description, tags) in USE_CASES.items():
+            use_case = sample(name)
+            SkillTemplate.objects.update_or_create(
+                name=use_case["skill"], defaults={"config": use_case, "description": description, "tags": tags}
+            )
+            use_cases.append(use_case)
         robots = []
         for n in range(1, options["count"] + 1):
             robot_id = f"demo-{n}"
@@ -41,12 +61,15 @@ class Command(BaseCommand):
             else:
                 # Tokens are stored hashed: a restarted demo gets fresh ones.
                 token = rotate_token(robot)
-            skill = Skill.objects.filter(robot=robot, skill_id=config["skill_id"]).first()
-            if skill is None:
-                add_skill(robot, config)
-            elif skill.config != parse_skill_config(config).model_dump(mode="json"):
-                # A demo kept from an older run gets the sample as it is now (e.g. its cloud images).
-                skill.config = config
-                skill.save(update_fields=["config", "updated_at"])
-            robots.append({"id": robot_id, "token": token, "skill": config["skill_id"]})
+            skills = [config] + ([use_cases[(n - 1) % len(use_cases)]] if options["usecases"] else [])
+            for skill in skills:
+                existing = Skill.objects.filter(robot=robot, skill_id=skill["skill_id"]).first()
+                if existing is None:
+                    add_skill(robot, skill)
+                elif existing.config != parse_skill_config(skill).model_dump(mode="json"):
+                    # A demo kept from an older run gets the Skill as it is now (e.g. its cloud images).
+                    existing.config = skill
+                    existing.save(update_fields=["config", "updated_at"])
+            ids = [skill["skill_id"] for skill in skills]
+            robots.append({"id": robot_id, "token": token, "skill": config["skill_id"], "skills": ids})
         self.stdout.write(json.dumps({"robots": robots, "api_token": issue_api_token(owner)[0]}))
