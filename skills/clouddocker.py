@@ -201,8 +201,10 @@ class CloudDockerRuntime(DockerRuntime, CloudRuntime):
         ports = {}
         for key, bindings in bound.items():
             port, _, protocol = key.partition("/")
-            if protocol == "tcp" and bindings:
-                ports[port] = int(bindings[0]["HostPort"])
+            # IPv4 and IPv6 may be published on different host ports: robots get the IPv4 one.
+            ipv4 = [b for b in bindings or () if b.get("HostIp") in ("0.0.0.0", "")]
+            if protocol == "tcp" and ipv4:
+                ports[port] = int(ipv4[0]["HostPort"])
         result["ports"] = ports
         return result
 

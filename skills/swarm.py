@@ -262,12 +262,7 @@ class SwarmRuntime(CloudRuntime):
             # Host networking: the container's ports are the host's.
             info["ports"] = {str(port): port for port in spec.launch.ports}
         else:
-            published = ((task.get("Status") or {}).get("PortStatus") or {}).get("Ports") or []
-            info["ports"] = {
-                str(p["TargetPort"]): p["PublishedPort"]
-                for p in published
-                if p.get("PublishedPort") and p.get("TargetPort")
-            }
+            info["ports"] = await self._published_ports(task, container_id)
         return info
 
     async def restart(self, spec: ComponentSpec) -> ComponentState:
@@ -433,6 +428,32 @@ class SwarmRuntime(CloudRuntime):
             "labels": own_labels,
             "endpoint_spec": EndpointSpec(mode="dnsrr", ports=ports or None),
         }
+
+    async def _published_ports(self, task: Mapping[str, Any], container_id: str | None) -> dict[str, int]:
+        """Map container port to the host port published for IPv4.
+
+        The engine may publish a port twice, on different host ports for IPv4 and IPv6; the
+        task lists both without saying which is which, so the container's own bindings decide
+        when it runs on this engine, and otherwise the first of each (the IPv4 one) is taken.
+        """
+        ports: dict[str, int] = {}
+        if container_id:
+            api = await self._connect()
+            try:
+                info = await self._call(api.inspect_container, container_id)
+            except docker.errors.NotFound:
+                info = None
+            for key, bindings in (((info or {}).get("NetworkSettings") or {}).get("Ports") or {}).items():
+                port, _, protocol = key.partition("/")
+                ipv4 = [b for b in bindings or () if b.get("HostIp") in ("0.0.0.0", "")]
+                if protocol == "tcp" and ipv4:
+                    ports[port] = int(ipv4[0]["HostPort"])
+            if ports:
+                return ports
+        for entry in ((task.get("Status") or {}).get("PortStatus") or {}).get("Ports") or []:
+            if entry.get("PublishedPort") and entry.get("TargetPort"):
+                ports.setdefault(str(entry["TargetPort"]), entry["PublishedPort"])
+        return ports
 
     async def _service(self, name: str) -> dict[str, Any] | None:
         api = await self._connect()

@@ -120,7 +120,7 @@ def observe_async(runtime: str) -> list[Any]:
     return observe(runtime)
 
 
-def make_stack(runtime: str, tmp: Path, django_db_blocker: Any, **extra: str) -> Iterator[Stack]:
+def make_stack(runtime: str, tmp: Path, **extra: str) -> Iterator[Stack]:
     """Start daphne and a worker for a cloud of its own, and remove all it ran afterwards."""
     from django.conf import settings
 
@@ -166,8 +166,6 @@ def make_stack(runtime: str, tmp: Path, django_db_blocker: Any, **extra: str) ->
         finally:
             settings.BRIDGEOS.update(saved)
             shutil.rmtree(volumes, ignore_errors=True)
-            with django_db_blocker.unblock():
-                close_other_sessions()
 
 
 def _remove_networks(runtime: str) -> None:
@@ -178,6 +176,14 @@ def _remove_networks(runtime: str) -> None:
             await cloud_runtime.remove_network_named(name)
 
     with_runtime("cleanup", sweep, name=runtime)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def sessions_closed_at_the_end(django_db_setup, django_db_blocker) -> Iterator[None]:
+    """End every other session on the test database once the run is over, so it can be dropped."""
+    yield
+    with django_db_blocker.unblock():
+        close_other_sessions()
 
 
 @pytest.fixture

@@ -43,7 +43,7 @@ MIRROR = (
 
 @pytest.fixture(scope="module")
 def stack(django_db_setup, django_db_blocker, tmp_path_factory):
-    yield from make_stack("process", tmp_path_factory.mktemp("process"), django_db_blocker)
+    yield from make_stack("process", tmp_path_factory.mktemp("process"))
 
 
 def skill(volumes: list[str] | None = None, **components: dict) -> dict:
