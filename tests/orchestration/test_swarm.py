@@ -9,8 +9,12 @@ talk through the robot's own ROS master, which the cloud runs as a Swarm service
 from __future__ import annotations
 
 import asyncio
+import itertools
+import subprocess
+import time
 import urllib.request
 
+import httpx
 import pytest
 from asgiref.sync import sync_to_async
 
@@ -21,6 +25,7 @@ from monitoring.models import Event, Metric
 from skills.cloudruntime import KIND_ROS_MASTER, object_name
 from skills.models import CloudInstance, Component, RobotCloud
 from tests.agent.test_controller import agent_settings, eventually, make_robot, running
+from tests.e2e.conftest import host_ros_env
 
 from .conftest import make_stack, observe_async
 
@@ -333,3 +338,139 @@ def test_ids_stay_unique_and_short_for_swarm() -> None:
     names = {object_name(long_robot, "s" * 64, f"c{n}") for n in range(50)}
     assert len(names) == 50 and all(len(name) <= 63 for name in names)
     assert object_name("a-b", "c", "d") != object_name("a", "b-c", "d")
+
+
+# A talker that keeps its count in the Skill's volume: a new copy continues where the last one was.
+# It publishes on a topic named after where it runs, and waits for a subscriber before it starts.
+TALKER = """
+import os, rospy
+from std_msgs.msg import String
+state = os.path.join(os.environ["BRIDGEOS_VOLUMES"], "state")
+os.makedirs(state, exist_ok=True)
+try:
+    seq = int(open(os.path.join(state, "seq")).read())
+except (OSError, ValueError):
+    seq = 0
+rospy.init_node("talker", anonymous=True)
+pub = rospy.Publisher("/wtc/%s/chatter" % os.environ["BRIDGEOS_LOCATION"], String, queue_size=100)
+while pub.get_num_connections() == 0 and not rospy.is_shutdown():
+    rospy.sleep(0.05)
+rate = rospy.Rate(10)
+while not rospy.is_shutdown():
+    seq += 1
+    pub.publish(String(data=str(seq)))
+    temp = os.path.join(state, ".bridgeos-sync-seq")
+    with open(temp, "w") as out:
+        out.write(str(seq))
+    os.replace(temp, os.path.join(state, "seq"))
+    rate.sleep()
+"""
+
+# Outside the Skill: hears both instances and prints "where seq monotonic-time" for each message.
+LISTENER = """
+import sys, time, rospy
+from std_msgs.msg import String
+rospy.init_node("wtc_listener", anonymous=True)
+for where in ("robot", "cloud"):
+    rospy.Subscriber("/wtc/%s/chatter" % where, String,
+                     lambda m, w=where: print(w, m.data, time.monotonic(), flush=True))
+rospy.spin()
+"""
+
+
+async def test_a_ros_talker_migrates_robot_to_cloud_to_robot_while_a_listener_counts(stack, tmp_path):
+    talker = {
+        "name": "Talker",
+        "location": "either",
+        "robot": {"command": [HOST_PYTHON, "-c", TALKER], "env": {"ROS_IP": "127.0.0.1"}},
+        "cloud": {"image": IMAGE, "command": ["python3", "-c", TALKER]},
+    }
+    config = parse_skill_config(
+        {"skill": "Talk", "skill_id": SKILL, "volumes": ["state"], "components": {"talker": talker}}
+    )
+    config = config.model_dump(mode="json")
+    token, api_token = await make_robot("swarm-5", skill=config)
+    settings = agent_settings(stack.server, "swarm-5", token, tmp_path / "agent", detect_ros_master=False)
+    controller = RobotController(settings, plugins={})
+    heard = tmp_path / "heard.txt"
+    listener = None
+    headers = {"Authorization": f"Token {api_token}"}
+    path = f"/api/robot/swarm-5/skill/{SKILL}/component/talker/migrate"
+    try:
+        async with running(controller), httpx.AsyncClient(base_url=stack.url, headers=headers, timeout=90) as api:
+            await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+            env = {**host_ros_env(), "ROS_MASTER_URI": controller.ros_master}
+            listener = await asyncio.to_thread(_spawn, [HOST_PYTHON, "-c", LISTENER], env, heard)
+            await eventually(lambda: _master_recorded("swarm-5"), timeout=60, what="the robot's ROS master")
+            await controller.start_skill(parse_skill_config(config))
+            await eventually(lambda: _heard(heard, "robot", 20), timeout=90, what="20 messages from the robot")
+
+            switches = []
+            for target in ("cloud", "robot"):
+                began = time.monotonic()
+                answer = await api.post(path, json={"location": target}, params={"wait": 60})
+                assert answer.status_code == 200 and answer.json()["accepted"], answer.text
+                switches.append((began, time.monotonic()))
+                # When the API answers, the move is done: the database says so and the old copy is gone.
+                row = await component_row("swarm-5", "talker")
+                assert (row.status, row.active_location) == ("running", target)
+                assert _runs_on_robot(controller, "talker") == (target == "robot")
+                await eventually(
+                    lambda t=target, b=began: _heard(heard, t, 20, after=b), timeout=90, what=f"{target} talking"
+                )
+            await controller.stop_skill(SKILL)
+    finally:
+        if listener is not None:
+            listener.terminate()
+            listener.wait(15)
+
+    messages = _messages(heard)
+    order = [where for n, (where, _, _) in enumerate(messages) if n == 0 or messages[n - 1][0] != where]
+    # It spoke on the robot, then in the cloud, then on the robot again (both copies speak only while switching).
+    assert [w for n, w in enumerate(order) if n == 0 or order[n - 1] != w][:3] == ["robot", "cloud", "robot"]
+    by_instance: dict[str, list[int]] = {"robot": [], "cloud": []}
+    for where, seq, _ in messages:
+        by_instance[where].append(seq)
+    # No message twice from one instance, and no number missing: each new copy went on from the count
+    # its Skill volume carried across (robot → cloud, then cloud → robot).
+    assert all(len(seqs) == len(set(seqs)) for seqs in by_instance.values())
+    seen = {seq for _, seq, _ in messages}
+    assert seen == set(range(min(seen), max(seen) + 1))
+    first_cloud = by_instance["cloud"][0]
+    assert first_cloud > 20 and first_cloud <= max(s for s in by_instance["robot"] if s < first_cloud + 50) + 1
+    # Silences longer than half a second happened only around a switch (a new node's start-up).
+    times = [t for _, _, t in messages]
+    overlap = len(by_instance["robot"]) + len(by_instance["cloud"]) - len(seen)
+    print(
+        f"{len(messages)} messages, longest silence {max(b - a for a, b in itertools.pairwise(times)):.2f} s, "
+        f"{overlap} numbers heard from both copies while switching"
+    )
+    for before, after in itertools.pairwise(times):
+        if after - before > 0.5:
+            assert any(began - 1 <= before <= ended + 15 for began, ended in switches), (before, after, switches)
+
+
+def _runs_on_robot(controller: RobotController, component: str) -> bool:
+    return any(
+        entry["skill"] == SKILL and entry["component"] == component
+        for entry in controller.runtime.get_state().get("components", [])
+    )
+
+
+def _spawn(command: list[str], env: dict[str, str], out_path) -> subprocess.Popen:
+    with out_path.open("w") as out:
+        return subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
+
+
+def _messages(path) -> list[tuple[str, int, float]]:
+    found = []
+    for line in path.read_text().splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[0] in ("robot", "cloud") and parts[1].isdigit():
+            found.append((parts[0], int(parts[1]), float(parts[2])))
+    return found
+
+
+async def _heard(path, where: str, count: int, after: float = 0.0) -> bool:
+    messages = await asyncio.to_thread(_messages, path)
+    return sum(1 for w, _, t in messages if w == where and t >= after) >= count
