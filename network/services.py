@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Iterable
 from datetime import timedelta
 from pathlib import Path
@@ -156,15 +157,29 @@ def revoke_certificate(robot: Robot, reason: str) -> Revocation | None:
         return revocation
 
 
+_crls: dict[tuple[str, tuple[str, ...]], tuple[str, float]] = {}
+CRL_REFRESH_S = 7 * 24 * 3600.0  # well inside its 30 days of validity
+
+
 def crl_pem() -> str:
-    """Return the CRL of every revoked certificate that has not expired yet."""
+    """Return the CRL of every revoked certificate that has not expired yet, re-signed only when it changes."""
     ca = authority("ca")
     now = timezone.now()
-    revoked = Revocation.objects.filter(not_after__gt=now - timedelta(days=1)).values_list("serial", "revoked_at")
+    revoked = list(
+        Revocation.objects.filter(not_after__gt=now - timedelta(days=1))
+        .order_by("serial")
+        .values_list("serial", "revoked_at")
+    )
+    key = (ca.cert_pem, tuple(serial for serial, _ in revoked))
+    cached = _crls.get(key)
+    if cached is not None and time.monotonic() - cached[1] < CRL_REFRESH_S:
+        return cached[0]
     crl = pki.make_crl(
         pki.load_key(ca.key_pem), pki.load_cert(ca.cert_pem), ((int(s, 16), at) for s, at in revoked), now=now
     )
-    return pki.pem(crl)
+    _crls.clear()
+    _crls[key] = (pki.pem(crl), time.monotonic())
+    return _crls[key][0]
 
 
 def client_profile(robot: Robot) -> str:

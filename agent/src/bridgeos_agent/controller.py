@@ -167,6 +167,7 @@ class RobotController:
         self._startup_done = False
         self._lock = asyncio.Lock()  # serialises placement decisions so two never claim the same headroom
         self._tls_failure: str | None = None
+        self._holding = False  # moving to another path: new frames wait in the outbox
         self.network = CloudNetwork(
             master=settings.master,
             robot=settings.robot,
@@ -299,12 +300,23 @@ class RobotController:
             watchdog = asyncio.ensure_future(self._vpn_watchdog(target))
             try:
                 done, _ = await asyncio.wait({connecting, switching}, return_when=asyncio.FIRST_COMPLETED)
+                if switching in done and target.path != VPN:
+                    # The old path still works: let the cloud ack what is in flight, so nothing is applied twice.
+                    await self._drain(timeout=3.0)
             finally:
                 for task in (connecting, switching, watchdog):
                     task.cancel()
                 await asyncio.gather(connecting, switching, watchdog, return_exceptions=True)
             if connecting in done:
                 return  # refused: run() stops
+
+    async def _drain(self, timeout: float) -> None:
+        """Hold new frames (the outbox keeps them) until every frame sent on this connection is acked."""
+        self._holding = True
+        deadline = time.monotonic() + timeout
+        # Acks are handled by the reader task; a 20 ms poll for at most `timeout` is simplest.
+        while self.ws is not None and self._unacked and time.monotonic() < deadline:  # noqa: ASYNC110
+            await asyncio.sleep(0.02)
 
     async def _vpn_watchdog(self, target: Target) -> None:
         """Fall back to WSS when the cloud does not answer through an up tunnel."""
@@ -404,6 +416,7 @@ class RobotController:
             self.say("disconnected from the cloud; frames are kept until it is back")
         self.ws = None
         self.network.path = None
+        self._holding = False
         self.connected.clear()
         # Everything unacked is sent again, in order, on the next connection.
         self._unacked.clear()
@@ -453,7 +466,7 @@ class RobotController:
             self.metric_points_sent += len(data["metrics"])
         if event in protocol.REQUIRES_ACK:
             text = self.outbox.put(envelope)
-            if self.ws is not None and not self._replaying:
+            if self.ws is not None and not self._replaying and not self._holding:
                 self._unacked[envelope.id] = (time.monotonic() + 5.0, 1)
                 await self._send_text(text)
         else:
