@@ -72,15 +72,19 @@ def connects(namespace: str, host: str, port: int, timeout: float = 2.0) -> bool
     return bool(_in_namespace(namespace, attempt))
 
 
+CURRENT: list[World] = []  # the world under test, whose logs a timeout prints
+
+
 def wait_until(check: Any, what: str, timeout: float = 60.0, interval: float = 0.2) -> Any:
-    """Poll until check() is truthy."""
+    """Poll until check() is truthy; on timeout, say what and show the world's logs."""
     deadline = time.monotonic() + timeout
     while True:
         value = check()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+            logs = CURRENT[-1].diagnostics() if CURRENT else ""
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}\n{logs}")
         time.sleep(interval)
 
 
@@ -123,6 +127,14 @@ class World:
         for port in (5432, 6379):
             self.net.bridge(self.cloud, port)
         self.env = cloud_env(db_name)
+        CURRENT.append(self)
+
+    def diagnostics(self) -> str:
+        """Return the tail of every log of this world."""
+        parts = []
+        for path in sorted(self.dir.rglob("*.log")):
+            parts.append(f"--- {path.relative_to(self.dir)}\n{path.read_text(errors='replace')[-2500:]}")
+        return "\n".join(parts)
 
     # ------------------------------------------------------------------ hosts
 
@@ -272,6 +284,8 @@ class World:
         return process
 
     def close(self) -> None:
+        if self in CURRENT:
+            CURRENT.remove(self)
         for process in reversed(self.processes):
             if process.poll() is None:
                 with contextlib.suppress(ProcessLookupError):
