@@ -365,7 +365,9 @@ class RobotController:
     def _connect_failed(self, exc: Exception) -> Exception | None:
         """Say why a TLS handshake failed (once per reason), then let websockets retry as usual."""
         if isinstance(exc, ssl.SSLError):
-            reason = getattr(exc, "verify_message", None) or exc.reason or str(exc)
+            reason = exc.reason or str(exc)
+            if isinstance(exc, ssl.SSLCertVerificationError):
+                reason = f"certificate verify failed ({exc.verify_message})"
             if reason != self._tls_failure:
                 self._tls_failure = reason
                 self.say(f"TLS handshake with the cloud failed: {reason}. Check --ca or the cloud's certificate.")
