@@ -16,6 +16,7 @@ from django.conf import settings
 from django.core.exceptions import ValidationError
 from django.db import IntegrityError, connection, transaction
 
+from monitoring.services import record_event
 from robots.models import Robot
 
 from .models import Subnet
@@ -110,6 +111,13 @@ def ensure_subnets(robot: Robot) -> dict[str, str]:
                 if row is None:
                     Subnet.objects.create(robot=robot, kind=kind, network=want)
                 else:
+                    # A new robot's subnets come with its creation; a change is worth a line of its own.
+                    record_event(
+                        f"The {kind} subnet of robot {robot.id} moved from {row.network} to {want}",
+                        robot_id=robot.id,
+                        kind="robot_subnets",
+                        data={"kind": kind, "from": row.network, kind: want},
+                    )
                     row.network = want
                     row.save(update_fields=["network"])
                 result[kind] = want

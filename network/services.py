@@ -56,14 +56,6 @@ def sync_robot_config(robot: Robot) -> dict[str, Any]:
             config["tls_ca"] = authority("ca").cert_pem
         if config != robot.config:
             Robot.objects.filter(pk=robot.pk).update(config=config)
-            if robot.config.get("subnets") != config["subnets"]:
-                record_event(
-                    f"Subnets of robot {robot.id}: local {allocated['local']}, cloud {allocated['cloud']}, "
-                    f"tunnel {allocated['tunnel']}",
-                    robot_id=robot.id,
-                    kind="robot_subnets",
-                    data=allocated,
-                )
             robot.config = config
     return config
 

@@ -79,6 +79,9 @@ def test_an_operator_may_pick_free_subnets_inside_the_pools(owner):
     assert nets("r1")["local"] == "10.64.9.0/24"
     update_robot(robot, config={**robot.config, "subnets": {"local": "10.64.10.0/24", "cloud": "10.80.9.0/24"}})
     assert nets("r1")["local"] == "10.64.10.0/24"
+    from monitoring.models import Event
+
+    assert Event.objects.filter(robot_id="r1", kind="robot_subnets", data__local="10.64.10.0/24").exists()
 
 
 @pytest.mark.parametrize(

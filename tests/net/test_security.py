@@ -220,7 +220,7 @@ def test_a_robot_fetches_only_its_own_vpn_profile(vpn_offered):
     api.force_authenticate(owner)
     assert api.get(f"/api/robot/{mine.id}/vpn").status_code == 200
     kinds = list(LogEvent.objects.filter(robot_id=mine.id).values_list("kind", flat=True))
-    assert {"robot_subnets", "vpn_certificate_issued", "vpn_profile_fetched"} <= set(kinds)
+    assert {"vpn_certificate_issued", "vpn_profile_fetched"} <= set(kinds)
     assert Robot.objects.get(id=mine.id).config["vpn"]["master"].startswith("wss://")
 
 
