@@ -216,7 +216,7 @@ class CloudNetwork:
         if self.vpn is not None:
             vpn, self.vpn = self.vpn, None
             await vpn.close()
-            self.say("VPN: disabled by the robot config; tunnel down")
+            self.say("VPN: tunnel closed")
         self._changed.set()
 
     def _apply_firewall(self, config: RobotConfig) -> None:
