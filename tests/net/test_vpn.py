@@ -64,9 +64,12 @@ def test_robots_reach_their_own_cloud_subnet_and_never_each_other(world):
 
     # Each robot, and its local containers, reach its own cloud subnet; the cloud side reaches back.
     for host in (a, b):
-        assert connects(host.ns, host.cloud_host, 7000), f"{host.robot} cannot reach its cloud subnet"
-        assert connects(host.local_ns, host.cloud_host, 7000), f"{host.robot}'s containers cannot reach the cloud"
-        assert connects(host.cloud_ns, host.local_host, 7000), f"the cloud cannot reach {host.robot}'s containers"
+        for source, target, what in (
+            (host.ns, host.cloud_host, "the robot reaches its cloud subnet"),
+            (host.local_ns, host.cloud_host, "its local containers reach its cloud subnet"),
+            (host.cloud_ns, host.local_host, "its cloud subnet reaches its local containers"),
+        ):
+            wait_until(lambda s=source, t=target: connects(s, t, 7000), f"{host.robot}: {what}", timeout=30)
 
     # Robot A turns rogue: it drops its own firewall and routes both pools into the tunnel.
     world.net.exec(a.ns, "nft", "delete", "table", "inet", "bridgeos")
@@ -78,7 +81,7 @@ def test_robots_reach_their_own_cloud_subnet_and_never_each_other(world):
     assert not connects(a.cloud_ns, b.local_host, 7000), "robot A's cloud subnet reached robot B"
     assert not connects(b.cloud_ns, a.local_host, 7000), "robot B's cloud subnet reached robot A"
     # Its own paths still work: the cloud's rules, not a broken tunnel, stopped it.
-    assert connects(a.local_ns, a.cloud_host, 7000)
+    wait_until(lambda: connects(a.local_ns, a.cloud_host, 7000), "robot A still reaching its own cloud subnet")
 
 
 def test_a_revoked_certificate_is_refused(world):
