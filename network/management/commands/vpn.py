@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import time
@@ -123,10 +124,12 @@ class Command(BaseCommand):
     def _management(self, directory: Path, command: str) -> None:
         import socket
 
+        # A unix socket path is limited to 108 bytes: reach a deep directory through its descriptor.
+        fd = os.open(directory, os.O_RDONLY)
         try:
             with socket.socket(socket.AF_UNIX) as sock:
                 sock.settimeout(5)
-                sock.connect(str(directory / "management.sock"))
+                sock.connect(f"/proc/self/fd/{fd}/management.sock")
                 sock.sendall(command.encode() + b"\nquit\n")
                 while sock.recv(4096):
                     pass
@@ -134,3 +137,5 @@ class Command(BaseCommand):
             self.stderr.write(f"management {command!r}: {exc}")
         else:
             self.stdout.write(f"management: {command}")
+        finally:
+            os.close(fd)
