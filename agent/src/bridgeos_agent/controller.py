@@ -839,7 +839,13 @@ class RobotController:
         await self._set_status(record, name, CS.MIGRATING, current)
         if target == "robot":
             # The cloud copy keeps serving until the robot copy runs (no downtime window).
-            await self.place_component(record, name, location="robot")
+            try:
+                await self.place_component(record, name, location="robot")
+            except Exception as exc:
+                if current == "cloud":  # ... so a failed start leaves it running there
+                    record.locations[name] = "cloud"
+                    await self._set_status(record, name, CS.RUNNING, "cloud", f"move to the robot failed: {exc}")
+                raise
             if current == "cloud":
                 await self.emit(
                     Event.COMPONENT_STOP, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
