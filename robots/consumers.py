@@ -223,8 +223,13 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
     if not points:
         return True
     robot_id = consumer.robot_id
-    get_live_feed().add_metrics(robot_id, points)
-    written = get_writer().add(robot_id, points)
+    store = applied_ids()
+    written = store.in_flight(robot_id, envelope.id)
+    if written is None:
+        get_live_feed().add_metrics(robot_id, points)
+        written = get_writer().add(robot_id, points)
+        store.hold(robot_id, envelope.id, written)
+    # else: an earlier connection's copy of this frame is still being written: answer with its outcome.
 
     def acknowledge(future: asyncio.Future) -> None:
         if future.cancelled() or future.exception() is not None:
@@ -233,7 +238,6 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
                 consumer.fail("metrics not stored, send again later", reply_to=envelope.id, code="unavailable")
             )
         else:
-            applied_ids().add(robot_id, envelope.id)
             consumer.spawn(consumer.ack(envelope))
 
     written.add_done_callback(acknowledge)
