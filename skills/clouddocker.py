@@ -20,7 +20,7 @@ from typing import Any
 
 import docker.errors
 from docker.api import APIClient
-from docker.types import Mount
+from docker.types import IPAMConfig, IPAMPool, Mount
 
 from bridgeos_agent.runtime.base import (
     ComponentSpec,
@@ -145,18 +145,21 @@ class CloudDockerRuntime(DockerRuntime, CloudRuntime):
             async with self._network_lock:
                 found = await self._call(api.networks, names=[self.network])
                 if not any(n.get("Name") == self.network for n in found):
+                    ipam = IPAMConfig(pool_configs=[IPAMPool(subnet=self.subnet)]) if self.subnet else None
                     try:
                         await self._call(
                             api.create_network,
                             self.network,
                             driver="bridge",
                             check_duplicate=True,
+                            ipam=ipam,
                             labels=labels(self.robot, kind="network"),
                         )
                     except docker.errors.APIError as exc:
                         if exc.status_code != 409:
                             raise RuntimeFailure(
-                                f"cannot create the robot's cloud network {self.network}: {exc.explanation}"
+                                f"cannot create the robot's cloud network {self.network} "
+                                f"(subnet {self.subnet or 'any'}): {exc.explanation}"
                             ) from None
                 self._network_ready = True
         return self.network

@@ -154,6 +154,8 @@ class CloudRuntime(Runtime):
     def __init__(self, robot: str, *, data_dir: Path, **options: Any) -> None:
         super().__init__(robot, data_dir=data_dir, **options)
         self.host = settings.BRIDGEOS["CLOUD_HOST"]
+        # The robot's cloud subnet (IPAM: network.ipam), for its network when it is created.
+        self.subnet: str | None = None
 
     @abstractmethod
     async def ensure_network(self) -> str | None:

@@ -190,6 +190,7 @@ def _run(instance: CloudInstance) -> str:
     robot_id, skill_id, component_id = _who(instance)
     try:
         spec = cloud_spec(instance)
+        subnet = cloud_subnet(instance.component.skill.robot)
     except LaunchFailed as exc:
         _fail(instance, str(exc))
         return "failed"
@@ -198,6 +199,7 @@ def _run(instance: CloudInstance) -> str:
     timeout = settings.BRIDGEOS["CLOUD_START_TIMEOUT_S"]
 
     async def launch(runtime: CloudRuntime) -> tuple[ComponentState, dict[str, Any], list[str]]:
+        runtime.subnet = subnet
         state = await runtime.start(spec)
         if state.status is not Status.RUNNING:
             state = await runtime.wait_running(skill_id, component_id, timeout)
@@ -286,6 +288,18 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
         ros=declared.ros,
         token=instance.token,
     )
+
+
+def cloud_subnet(robot: Robot) -> str | None:
+    """Return the robot's cloud subnet (IPAM), which its cloud network is created with."""
+    from django.core.exceptions import ValidationError
+
+    from network.ipam import subnets
+
+    try:
+        return subnets(robot)[1]
+    except ValidationError as exc:
+        raise LaunchFailed(f"robot {robot.id} has no cloud subnet: {'; '.join(exc.messages)}") from None
 
 
 def _ros_address(robot_id: str, skill_id: str, component_id: str) -> dict[str, str]:
@@ -678,9 +692,11 @@ def _restart(instance: CloudInstance) -> str:
     """Start a crashed copy again and record the outcome."""
     robot_id, skill_id, component_id = _who(instance)
     spec = cloud_spec(instance)
+    subnet = cloud_subnet(instance.component.skill.robot)
     timeout = settings.BRIDGEOS["CLOUD_START_TIMEOUT_S"]
 
     async def again(runtime: CloudRuntime) -> tuple[ComponentState, dict[str, Any]]:
+        runtime.subnet = subnet
         state = await runtime.restart(spec)
         if state.status is not Status.RUNNING:
             state = await runtime.wait_running(skill_id, component_id, timeout)

@@ -33,6 +33,8 @@ from docker.api import APIClient
 from docker.types import (
     ContainerSpec,
     EndpointSpec,
+    IPAMConfig,
+    IPAMPool,
     LogConfig,
     Mount,
     NetworkAttachmentConfig,
@@ -207,6 +209,7 @@ class SwarmRuntime(CloudRuntime):
         api = await self._connect()
         found = await self._call(api.networks, names=[self.network])
         if not any(n.get("Name") == self.network for n in found):
+            ipam = IPAMConfig(pool_configs=[IPAMPool(subnet=self.subnet)]) if self.subnet else None
             try:
                 await self._call(
                     api.create_network,
@@ -214,12 +217,14 @@ class SwarmRuntime(CloudRuntime):
                     driver="overlay",
                     attachable=True,
                     check_duplicate=True,
+                    ipam=ipam,
                     labels=labels(self.robot, kind="network"),
                 )
             except docker.errors.APIError as exc:
                 if exc.status_code != 409:
+                    subnet = f" with the robot's cloud subnet {self.subnet}" if self.subnet else ""
                     raise RuntimeFailure(
-                        f"cannot create the robot's cloud network {self.network}: {exc.explanation}"
+                        f"cannot create the robot's cloud network {self.network}{subnet}: {exc.explanation}"
                     ) from None
         self._network_ready = True
         return self.network

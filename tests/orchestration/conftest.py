@@ -188,11 +188,15 @@ def sessions_closed_at_the_end(django_db_setup, django_db_blocker) -> Iterator[N
 
 @pytest.fixture
 def robots_disconnect_before_flush(transactional_db) -> Iterator[None]:
-    """Wait, after the test, until the stack's daphne recorded every robot gone (before tables are flushed)."""
+    """After the test: wait until daphne recorded every robot gone (before tables are flushed), then
+    remove what the test's robots ran, networks too (the next test's robot gets the same subnet)."""
     yield
     from robots.models import Robot
+    from skills.cloudruntime import runtime_name
 
     deadline = time.monotonic() + 15
     while Robot.objects.filter(connected=True).exists() and time.monotonic() < deadline:
         time.sleep(0.05)
     time.sleep(0.1)
+    remove_cloud_copies()
+    _remove_networks(runtime_name())

@@ -154,6 +154,8 @@ async def test_a_cloud_component_runs_as_a_swarm_service_with_its_env_and_networ
         network = client.networks.get(object_name("swarm-1", kind="network"))
         assert network.attrs["Driver"] == "overlay" and network.attrs["Attachable"] is True
         assert [n["Target"] for n in spec["TaskTemplate"]["Networks"]] == [network.id]
+        # ... whose subnet is the robot's cloud subnet (IPAM), the one its VPN routes to.
+        assert [c["Subnet"] for c in network.attrs["IPAM"]["Config"]] == [await _cloud_subnet("swarm-1")]
 
         # The robot heard where to reach it: the cloud host and the port Swarm published in host mode.
         info = await eventually(lambda: record.cloud_containers.get("web"), what="component_information")
@@ -169,6 +171,14 @@ async def test_a_cloud_component_runs_as_a_swarm_service_with_its_env_and_networ
         await controller.stop_skill(SKILL)
         await eventually(lambda: _no_service(client, "swarm-1", "web"), timeout=60, what="service removed")
         await eventually(lambda: _status_is("swarm-1", "web", "stopped"), what="the copy recorded stopped")
+
+
+@sync_to_async
+def _cloud_subnet(robot_id: str) -> str:
+    from network.ipam import subnets
+    from robots.models import Robot
+
+    return subnets(Robot.objects.get(id=robot_id))[1]
 
 
 async def _fetch(url: str) -> bytes | None:
