@@ -483,6 +483,7 @@ def main() -> int:
         "cloud_component_init_s": init_mean,
         "cloud_component_init_sd_s": init_sd,
         "cloud_components_wall_s": round(many_result["wall_s"], 1),
+        "cloud_component_wall_s": per_component_wall,
         "load_average": round(load[0], 2),
     }
     print(json.dumps(figures))
