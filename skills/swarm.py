@@ -85,6 +85,7 @@ _STARTING = {"new", "allocated", "pending", "assigned", "accepted", "preparing",
 _FAILED = {"failed", "rejected", "orphaned", "remove"}
 _DONE = {"complete", "shutdown"}
 STOP_GRACE_NS = 10 * 1_000_000_000
+STATS_CONCURRENCY = 32
 
 
 class SwarmRuntime(CloudRuntime):
@@ -167,7 +168,14 @@ class SwarmRuntime(CloudRuntime):
             filters={"label": [*self._own_labels(), f"{LABEL_KIND}={KIND_COMPONENT}"]},
         )
         keyed = {(c["Labels"].get(LABEL_SKILL, ""), c["Labels"].get(LABEL_COMPONENT, "")): c for c in containers}
-        samples = await asyncio.gather(*(self._sample(api, c["Id"]) for c in keyed.values()), return_exceptions=True)
+        # Each sample keeps the engine busy about a second: a few dozen at a time, not hundreds.
+        slots = asyncio.Semaphore(STATS_CONCURRENCY)
+
+        async def sample(container_id: str) -> tuple[dict[str, Any], float]:
+            async with slots:
+                return await self._sample(api, container_id)
+
+        samples = await asyncio.gather(*(sample(c["Id"]) for c in keyed.values()), return_exceptions=True)
         result: dict[tuple[str, str], Usage] = {}
         for key, sample in zip(keyed, samples, strict=True):
             if isinstance(sample, BaseException):
