@@ -259,6 +259,7 @@ class SkillRouter:
         self._session: aiohttp.ClientSession | None = None
         self._tasks: set[asyncio.Task] = set()
         self._ros_warned = False
+        self._started = clock()
 
     # ------------------------------------------------------------------ life cycle
 
@@ -681,7 +682,7 @@ class SkillRouter:
         """Return what was routed to or from a component since the previous call (the manager's input)."""
         now = self.clock()
         totals = self._totals(component)
-        since, before = self._last_traffic.get(component, (now, (0, 0, 0, 0)))
+        since, before = self._last_traffic.get(component, (self._started, (0, 0, 0, 0)))
         self._last_traffic[component] = (now, totals)
         robot, cloud, messages, dropped = (a - b for a, b in zip(totals, before, strict=True))
         return ComponentTraffic(
