@@ -7,7 +7,7 @@ its ``ROS_NAMESPACE`` gives it, exactly like a Skill component.
     talker   --topic chatter --tag robot [--rate 1000] [--count N] [--size 0]
     listener --topic chatter                       prints "tag seq" per message, one a line
     server   --service trigger --tag robot         std_srvs/Trigger answering with its tag
-    pairs    --pairs 10 --rate 100 --seconds 5 --mode pub|sub --prefix /bench   (benchmark)
+    pairs    --pairs 10 --rate 100 --seconds 5 --mode pub|sub --prefix /bench   (benchmark; rate 0: flat out)
 """
 
 from __future__ import annotations
@@ -83,9 +83,7 @@ def pairs(args: argparse.Namespace) -> None:
     from std_msgs.msg import String
 
     rospy.init_node(f"bench_{args.mode}", anonymous=True, disable_signals=True)
-    names = [
-        f"{args.prefix}{n}/data" if "{n}" not in args.prefix else args.prefix.format(n=n) for n in range(args.pairs)
-    ]
+    names = [f"{args.prefix}{n}/data" for n in range(args.pairs)]
     if args.mode == "pub":
         pubs = [rospy.Publisher(name, String, queue_size=None) for name in names]
         deadline = time.monotonic() + 120
@@ -93,7 +91,7 @@ def pairs(args: argparse.Namespace) -> None:
             time.sleep(0.01)
         print("ready", flush=True)
         sys.stdin.readline()  # the benchmark says when every subscriber is connected
-        period = 1.0 / args.rate
+        period = 1.0 / args.rate if args.rate > 0 else 0.0  # 0: as fast as the subscribers take them
         end = time.monotonic() + args.seconds
         next_at = time.monotonic()
         sent = 0
@@ -101,10 +99,11 @@ def pairs(args: argparse.Namespace) -> None:
             for pub in pubs:
                 pub.publish(String(data=f"{time.time():.6f} {sent}"))
                 sent += 1
-            next_at += period
-            delay = next_at - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            if period:
+                next_at += period
+                delay = next_at - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
         print(json.dumps({"sent": sent}), flush=True)
         time.sleep(args.linger)
         return

@@ -130,21 +130,21 @@ class Outbound:
             self.closed = True
             self.transport.close()
             with contextlib.suppress(ValueError):
-                self.publication.connections.remove(self)
+                self.publication.connections.remove(self)  # type: ignore[union-attr]
 
 
 class Publication:
     """A topic the node publishes; message bytes are forwarded as given."""
 
-    __slots__ = ("connections", "definition", "md5sum", "name", "node", "on_connect", "type")
+    __slots__ = ("connections", "definition", "md5sum", "name", "on_connect", "type")
 
-    def __init__(self, node: RosNode, name: str, type_: str) -> None:
-        self.node = node
+    def __init__(self, name: str, type_: str) -> None:
         self.name = name
         self.type = type_
         self.md5sum = "*"  # unknown until a publisher upstream (or a subscriber) tells
         self.definition = ""
-        self.connections: list[Outbound] = []
+        # Kept small for routers of thousands of topics: a list only once someone subscribes.
+        self.connections: list[Outbound] | tuple[()] = ()
         self.on_connect: Callable[[Outbound], None] | None = None
 
     def send(self, blob: bytes, count: int) -> int:
@@ -154,14 +154,14 @@ class Publication:
             dropped += connection.send(blob, count)
         return dropped
 
-    def reply_header(self, request: dict[str, str]) -> dict[str, str]:
+    def reply_header(self, request: dict[str, str], callerid: str) -> dict[str, str]:
         """Return the header answering a subscriber, echoing its type while ours is unknown."""
         wanted = request.get("md5sum", "*")
         if self.md5sum != "*" and wanted not in ("*", self.md5sum):
             return {"error": f"{self.name}: md5sum {wanted} does not match {self.type}'s {self.md5sum}"}
         if self.md5sum == "*" and wanted != "*":
             return {
-                "callerid": self.node.name,
+                "callerid": callerid,
                 "md5sum": wanted,
                 "type": request.get("type", self.type),
                 "message_definition": request.get("message_definition", ""),
@@ -169,7 +169,7 @@ class Publication:
                 "topic": self.name,
             }
         return {
-            "callerid": self.node.name,
+            "callerid": callerid,
             "md5sum": self.md5sum,
             "type": self.type,
             "message_definition": self.definition,
@@ -251,17 +251,23 @@ class Inbound(asyncio.Protocol):
         self.subscription.on_lost(self)
 
 
+_NO_CONNECTIONS: dict[str, Any] = {}  # shared, never written: every write replaces it first
+
+
 class Subscription:
     """A topic the node subscribes to, whatever its type (md5sum ``*``, like AnyMsg)."""
 
-    __slots__ = ("callback", "connections", "name", "node", "type")
+    __slots__ = ("callback", "connections", "name", "node", "owner", "type", "where")
 
     def __init__(self, node: RosNode, name: str, type_: str, callback: MessageCallback) -> None:
         self.node = node
         self.name = name
         self.type = type_
         self.callback = callback
-        self.connections: dict[str, Inbound | None] = {}  # publisher API -> connection (None: connecting)
+        self.owner: Any = None  # whatever the node's user keeps here (the router: its topic)
+        self.where: str | None = None
+        # publisher API -> connection (None while connecting); a dict only once there are publishers
+        self.connections: dict[str, Inbound | None] = _NO_CONNECTIONS
 
     @property
     def connected(self) -> bool:
@@ -271,6 +277,8 @@ class Subscription:
     def update(self, publishers: Iterable[str], *, complete: bool) -> None:
         """Connect to new publishers; with ``complete``, drop those no longer listed."""
         wanted = {uri for uri in publishers if uri != self.node.uri}
+        if wanted and self.connections is _NO_CONNECTIONS:
+            self.connections = {}
         for uri in wanted - self.connections.keys():
             self.connections[uri] = None
             self.node.spawn(self.node.connect(self, uri))
@@ -294,7 +302,7 @@ class Subscription:
         for connection in self.connections.values():
             if connection is not None and connection.transport is not None:
                 connection.transport.close()
-        self.connections.clear()
+        self.connections = _NO_CONNECTIONS
 
 
 class RosNode:
@@ -320,8 +328,11 @@ class RosNode:
         self._session: aiohttp.ClientSession | None = None
         self._runner: web.AppRunner | None = None
         self._server: asyncio.Server | None = None
-        self._pending: list[tuple[str, tuple[Any, ...], asyncio.Future[Any]]] = []
+        self._pending: list[tuple[str, tuple[Any, ...]]] = []
+        self._errors: list[MasterError] = []
         self._wake = asyncio.Event()
+        self._idle = asyncio.Event()
+        self._idle.set()
         self._tasks: set[asyncio.Task] = set()
         self._registrar: asyncio.Task | None = None
         self._ids = itertools.count(1)
@@ -338,7 +349,8 @@ class RosNode:
             await self.master_call("getPid")
             app = web.Application(client_max_size=16 << 20)
             app.router.add_post("/{tail:.*}", self._slave_request)
-            self._runner = web.AppRunner(app, access_log=None)
+            # A master keeps its slave connections alive: do not wait for it to hang up on close.
+            self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
             await self._runner.setup()
             site = web.TCPSite(self._runner, bind, 0)
             await site.start()
@@ -363,10 +375,8 @@ class RosNode:
         if self._registrar is not None:
             self._registrar.cancel()
             await asyncio.gather(self._registrar, return_exceptions=True)
-        for _, _, future in self._pending:
-            if not future.done():
-                future.set_exception(MasterError("the node closed"))
         self._pending.clear()
+        self._idle.set()
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -432,11 +442,10 @@ class RosNode:
                     results.append(answer[0][2])
         return results
 
-    def _enqueue(self, method: str, *params: Any) -> asyncio.Future[Any]:
-        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
-        self._pending.append((method, params, future))
+    def _enqueue(self, method: str, *params: Any) -> None:
+        self._pending.append((method, params))
+        self._idle.clear()
         self._wake.set()
-        return future
 
     async def _register_loop(self) -> None:
         while True:
@@ -446,67 +455,65 @@ class RosNode:
                 # Publishers first, so subscribers find them in their answer and nobody is notified twice.
                 batch = sorted(self._pending[: BATCH * 4], key=lambda call: call[0] != "registerPublisher")
                 del self._pending[: BATCH * 4]
-                results = await self._multicall([(method, params) for method, params, _ in batch])
-                for (method, params, future), result in zip(batch, results, strict=True):
-                    if isinstance(result, Exception):
-                        if not future.done():
-                            future.set_exception(result)
-                        continue
-                    if method == "registerSubscriber":
+                results = await self._multicall(batch)
+                for (method, params), result in zip(batch, results, strict=True):
+                    if isinstance(result, MasterError):
+                        self._errors.append(result)
+                    elif method == "registerSubscriber":
                         subscription = self.subscriptions.get(params[0])
                         if subscription is not None:
                             subscription.update(result, complete=False)
-                    if not future.done():
-                        future.set_result(result)
+                batch = results = []  # nothing of a finished batch outlives it
+            self._idle.set()
 
-    async def settle(self, futures: Iterable[asyncio.Future[Any]]) -> list[BaseException]:
-        """Wait for registrations; return the errors among them."""
-        results = await asyncio.gather(*futures, return_exceptions=True)
-        return [result for result in results if isinstance(result, BaseException)]
+    async def settle(self) -> list[MasterError]:
+        """Wait until every registration queued so far was sent; return (and forget) those refused."""
+        await self._idle.wait()
+        errors, self._errors = self._errors, []
+        return errors
 
     # ------------------------------------------------------------------ topics and services
 
-    def advertise(self, name: str, type_: str) -> tuple[Publication, asyncio.Future[Any]]:
-        """Publish a topic; the registration is sent with the next batch."""
+    def advertise(self, name: str, type_: str) -> Publication:
+        """Publish a topic; the registration goes with the next batch (``settle`` waits for it)."""
         publication = self.publications.get(name)
         if publication is None:
-            publication = self.publications[name] = Publication(self, name, type_)
-        return publication, self._enqueue("registerPublisher", name, type_, self.uri)
+            publication = self.publications[name] = Publication(name, type_)
+        self._enqueue("registerPublisher", name, type_, self.uri)
+        return publication
 
-    def unadvertise(self, name: str) -> asyncio.Future[Any] | None:
+    def unadvertise(self, name: str) -> None:
         """Stop publishing a topic and close its subscribers' connections."""
         publication = self.publications.pop(name, None)
-        if publication is None:
-            return None
-        for connection in list(publication.connections):
-            connection.close()
-        return self._enqueue("unregisterPublisher", name, self.uri)
+        if publication is not None:
+            for connection in list(publication.connections):
+                connection.close()
+            self._enqueue("unregisterPublisher", name, self.uri)
 
-    def subscribe(self, name: str, type_: str, callback: MessageCallback) -> tuple[Subscription, asyncio.Future[Any]]:
-        """Subscribe to a topic; the registration is sent with the next batch."""
+    def subscribe(self, name: str, type_: str, callback: MessageCallback) -> Subscription:
+        """Subscribe to a topic; the registration goes with the next batch (``settle`` waits for it)."""
         subscription = self.subscriptions.get(name)
         if subscription is None:
             subscription = self.subscriptions[name] = Subscription(self, name, type_, callback)
-        return subscription, self._enqueue("registerSubscriber", name, type_, self.uri)
+        self._enqueue("registerSubscriber", name, type_, self.uri)
+        return subscription
 
-    def unsubscribe(self, name: str) -> asyncio.Future[Any] | None:
+    def unsubscribe(self, name: str) -> None:
         """Stop subscribing to a topic."""
         subscription = self.subscriptions.pop(name, None)
-        if subscription is None:
-            return None
-        subscription.close()
-        return self._enqueue("unregisterSubscriber", name, self.uri)
+        if subscription is not None:
+            subscription.close()
+            self._enqueue("unregisterSubscriber", name, self.uri)
 
-    def advertise_service(self, name: str, handler: ServiceHandler) -> asyncio.Future[Any]:
+    def advertise_service(self, name: str, handler: ServiceHandler) -> None:
         """Serve a service; each client connection is handed to ``handler`` after its header."""
         self.services[name] = handler
-        return self._enqueue("registerService", name, f"rosrpc://{self.host}:{self.tcpros_port}", self.uri)
+        self._enqueue("registerService", name, f"rosrpc://{self.host}:{self.tcpros_port}", self.uri)
 
-    def unadvertise_service(self, name: str) -> asyncio.Future[Any] | None:
+    def unadvertise_service(self, name: str) -> None:
         """Stop serving a service."""
-        if self.services.pop(name, None) is None:
-            return None
-        return self._enqueue("unregisterService", name, f"rosrpc://{self.host}:{self.tcpros_port}")
+        if self.services.pop(name, None) is not None:
+            self._enqueue("unregisterService", name, f"rosrpc://{self.host}:{self.tcpros_port}")
 
     async def lookup_service(self, name: str) -> tuple[str, int] | None:
         """Return where a service is served, or None when nobody serves it."""
@@ -572,13 +579,15 @@ class RosNode:
             writer.write(encode_header({"error": f"{self.name} does not publish {header.get('topic')}"}))
             writer.close()
             return
-        reply = publication.reply_header(header)
+        reply = publication.reply_header(header, self.name)
         writer.write(encode_header(reply))
         if "error" in reply:
             writer.close()
             return
         outbound = Outbound(publication, writer, header.get("callerid", ""))
-        publication.connections.append(outbound)
+        if not publication.connections:
+            publication.connections = []
+        publication.connections.append(outbound)  # type: ignore[union-attr]
         if publication.on_connect is not None:
             publication.on_connect(outbound)
         try:

@@ -143,10 +143,13 @@ def _locations(where: str) -> tuple[Where, ...]:
 class _Delivery:
     """What one subscriber component of a topic received, split by where its source ran."""
 
-    __slots__ = ("bytes_cloud", "bytes_robot", "dropped", "messages", "publications")
+    # "robot" and "cloud": the router's publication in that instance's namespace (slots, not a dict:
+    # a router may map tens of thousands of topics).
+    __slots__ = ("bytes_cloud", "bytes_robot", "cloud", "dropped", "messages", "robot")
 
-    def __init__(self, publications: dict[str, Publication]) -> None:
-        self.publications = publications  # location -> the router's publication in that instance's namespace
+    def __init__(self) -> None:
+        self.robot: Publication | None = None
+        self.cloud: Publication | None = None
         self.messages = 0
         self.dropped = 0
         self.bytes_robot = 0
@@ -171,13 +174,18 @@ class _Topic:
         "outside_messages",
         "route",
         "store",
-        "w_ages",
+        "w_age_max",
+        "w_age_n",
+        "w_age_sq",
+        "w_age_sum",
         "w_bytes",
         "w_dropped",
         "w_last",
         "w_messages",
         "w_period_max",
-        "w_periods",
+        "w_period_n",
+        "w_period_sq",
+        "w_period_sum",
         "w_start",
     )
 
@@ -205,9 +213,14 @@ class _Topic:
         self.w_bytes = 0
         self.w_dropped = 0
         self.w_last = 0.0
-        self.w_periods = [0, 0.0, 0.0]  # bursts, sum, sum of squares of per-message periods
+        self.w_period_n = 0  # messages with a period, its sum and sum of squares
+        self.w_period_sum = 0.0
+        self.w_period_sq = 0.0
         self.w_period_max = 0.0
-        self.w_ages = [0, 0.0, 0.0, 0.0]  # samples, sum, sum of squares, max
+        self.w_age_n = 0  # sampled header stamps: count, sum, sum of squares, max of their ages
+        self.w_age_sum = 0.0
+        self.w_age_sq = 0.0
+        self.w_age_max = 0.0
 
 
 class _Service:
@@ -247,7 +260,6 @@ class SkillRouter:
         self._active: dict[str, Where | None] = {}
         self._containers: dict[tuple[str, str], dict[str, Any]] = {}
         self._topics: dict[str, _Topic] = {}
-        self._sources: dict[str, tuple[_Topic, Where | None]] = {}  # subscription name -> (topic, source)
         self._services: dict[str, _Service] = {}
         self._http: list[HttpRoute] = []
         self._http_counts: dict[str, list[int]] = {}  # component -> [requests, bytes, errors]
@@ -301,15 +313,14 @@ class SkillRouter:
             return False
         self.node = node
         self.ros_off_reason = None
-        self._statistics, future = node.advertise(STATISTICS_TOPIC, TOPIC_STATISTICS_TYPE)
+        self._statistics = node.advertise(STATISTICS_TOPIC, TOPIC_STATISTICS_TYPE)
         self._statistics.md5sum = TOPIC_STATISTICS_MD5
         self._statistics.definition = TOPIC_STATISTICS_DEFINITION
-        futures = [future]
         for route in self.config.router.topics:
-            futures += self._add_topic(route)
+            self._add_topic(route)
         for route in self.config.router.services:
-            futures += self._add_service(route)
-        errors = await node.settle(futures)
+            self._add_service(route)
+        errors = await node.settle()
         if errors:
             logger.warning("skill %s: %d ROS registration(s) failed, e.g. %s", self.skill, len(errors), errors[0])
         self._spawn(self._statistics_loop())
@@ -420,7 +431,7 @@ class SkillRouter:
                         return False
                 delivery = topic.deliveries.get(component) if component != route.publisher else None
                 if delivery is not None:
-                    publication = delivery.publications.get(location)
+                    publication = getattr(delivery, location)
                     if publication is None or not publication.connections:
                         return False
             for service in self._services.values():
@@ -435,71 +446,66 @@ class SkillRouter:
 
     # ------------------------------------------------------------------ topics
 
-    def _add_topic(self, route: TopicRoute) -> list[asyncio.Future[Any]]:
+    def _add_topic(self, route: TopicRoute) -> None:
         node = self.node
         assert node is not None
         components = self.config.components
         canonical = canonical_name(route.name)
-        futures = []
-        canonical_pub, future = node.advertise(canonical, route.type)
-        futures.append(future)
-        topic = _Topic(route, canonical_pub)
+        topic = _Topic(route, node.advertise(canonical, route.type))
         self._topics[canonical] = topic
         for subscriber in route.subscribers:
             if subscriber == route.publisher:
                 continue  # never route a component's own messages back to it
-            publications = {}
+            delivery = topic.deliveries[subscriber] = _Delivery()
             for location in _locations(components[subscriber].location):
-                name = instance_name(route.name, self.skill, subscriber, location)
-                publications[location], future = node.advertise(name, route.type)
-                futures.append(future)
+                publication = node.advertise(instance_name(route.name, self.skill, subscriber, location), route.type)
+                setattr(delivery, location, publication)
                 if topic.store is not None:
-                    publications[location].on_connect = functools.partial(self._replay, topic)
-            topic.deliveries[subscriber] = _Delivery(publications)
+                    publication.on_connect = functools.partial(self._replay, topic)
         for location in _locations(components[route.publisher].location):
             name = instance_name(route.name, self.skill, route.publisher, location)
-            self._sources[name] = (topic, location)
-            futures.append(node.subscribe(name, route.type, self._on_messages)[1])
+            subscription = node.subscribe(name, route.type, self._on_messages)
+            subscription.owner, subscription.where = topic, location
         if topic.deliveries:
             # Outside publishers on the canonical name reach the subscribers too.
-            self._sources[canonical] = (topic, None)
-            futures.append(node.subscribe(canonical, route.type, self._on_messages)[1])
-        return futures
+            node.subscribe(canonical, route.type, self._on_messages).owner = topic
 
-    def _remove_topic(self, canonical: str) -> list[asyncio.Future[Any]]:
+    def _publications(self, topic: _Topic) -> list[Publication]:
+        found = [topic.canonical_pub] if topic.canonical_pub is not None else []
+        for delivery in topic.deliveries.values():
+            found += [p for p in (delivery.robot, delivery.cloud) if p is not None]
+        return found
+
+    def _remove_topic(self, canonical: str) -> None:
         node = self.node
         topic = self._topics.pop(canonical, None)
         if node is None or topic is None:
-            return []
-        names = [canonical] + [p.name for d in topic.deliveries.values() for p in d.publications.values()]
-        futures = [node.unadvertise(name) for name in names]
-        for name, (owner, _) in list(self._sources.items()):
-            if owner is topic:
-                del self._sources[name]
-                futures.append(node.unsubscribe(name))
-        return [f for f in futures if f is not None]
+            return
+        for publication in self._publications(topic):
+            node.unadvertise(publication.name)
+        for name, subscription in list(node.subscriptions.items()):
+            if subscription.owner is topic:
+                node.unsubscribe(name)
 
     def _on_publisher_header(self, subscription: Subscription, inbound: Inbound) -> None:
-        source = self._sources.get(subscription.name)
+        topic: _Topic | None = subscription.owner
         header = inbound.header or {}
         md5sum = header.get("md5sum", "*")
-        if source is None or md5sum == "*":
+        if topic is None or md5sum == "*":
             return
-        topic = source[0]
         definition = header.get("message_definition", "")
         type_ = header.get("type", topic.route.type)
-        publications = [topic.canonical_pub] + [p for d in topic.deliveries.values() for p in d.publications.values()]
-        for publication in publications:
-            if publication is not None:
-                publication.md5sum, publication.type, publication.definition = md5sum, type_, definition
+        for publication in self._publications(topic):
+            publication.md5sum, publication.type, publication.definition = md5sum, type_, definition
         first = next((line.split() for line in definition.splitlines() if line.strip() and line[0] != "#"), [])
         topic.has_header = first[:1] in (["Header"], ["std_msgs/Header"])
-        if source[1] is not None:
+        if subscription.where is not None:
             topic.node_pub = header.get("callerid", "")
 
     def _on_messages(self, subscription: Subscription, blob: bytes, count: int, inbound: Inbound) -> None:
         """Relay a burst of frames from one publisher: the router's hot path."""
-        topic, source = self._sources[subscription.name]
+        topic: _Topic = subscription.owner
+        source = subscription.where
         payload = len(blob) - 4 * count
         dropped = 0
         active = self._active
@@ -510,7 +516,7 @@ class SkillRouter:
                 where = active.get(component)
                 if where is None:
                     continue
-                lost = delivery.publications[where].send(blob, count)
+                lost = getattr(delivery, where).send(blob, count)
                 delivery.messages += count - lost
                 delivery.dropped += lost
                 delivery.bytes_robot += payload  # outside nodes live on the robot's ROS graph
@@ -530,7 +536,7 @@ class SkillRouter:
                 where = active.get(component)
                 if where is None:
                     continue
-                lost = delivery.publications[where].send(blob, count)
+                lost = getattr(delivery, where).send(blob, count)
                 delivery.messages += count - lost
                 delivery.dropped += lost
                 dropped += lost
@@ -552,10 +558,9 @@ class SkillRouter:
         topic.w_dropped += dropped
         if topic.w_last:
             period = (now - topic.w_last) / count
-            periods = topic.w_periods
-            periods[0] += count
-            periods[1] += period * count
-            periods[2] += period * period * count
+            topic.w_period_n += count
+            topic.w_period_sum += period * count
+            topic.w_period_sq += period * period * count
             if period > topic.w_period_max:
                 topic.w_period_max = period
         topic.w_last = now
@@ -563,12 +568,11 @@ class SkillRouter:
             stamp = header_stamp(blob, 0)
             if stamp:
                 age = time.time() - stamp
-                ages = topic.w_ages
-                ages[0] += 1
-                ages[1] += age
-                ages[2] += age * age
-                if age > ages[3]:
-                    ages[3] = age
+                topic.w_age_n += 1
+                topic.w_age_sum += age
+                topic.w_age_sq += age * age
+                if age > topic.w_age_max:
+                    topic.w_age_max = age
 
     def _replay(self, topic: _Topic, connection: Outbound) -> None:
         """Give a newly connected instance the topic's stored messages first."""
@@ -600,9 +604,9 @@ class SkillRouter:
         return len(frames)
 
     def _window(self, topic: _Topic, now: float, wall: float) -> TopicStatistics:
-        count, total, squares = topic.w_periods
+        count, total, squares = topic.w_period_n, topic.w_period_sum, topic.w_period_sq
         mean = total / count if count else 0.0
-        ages = topic.w_ages
+        ages = (topic.w_age_n, topic.w_age_sum, topic.w_age_sq, topic.w_age_max)
         age_mean = ages[1] / ages[0] if ages[0] else 0.0
         return TopicStatistics(
             topic=topic.canonical,
@@ -695,16 +699,16 @@ class SkillRouter:
 
     # ------------------------------------------------------------------ services
 
-    def _add_service(self, route: ServiceRoute) -> list[asyncio.Future[Any]]:
+    def _add_service(self, route: ServiceRoute) -> None:
         assert self.node is not None
         service = _Service(route)
         self._services[service.canonical] = service
-        return [self.node.advertise_service(service.canonical, functools.partial(self._serve, service))]
+        self.node.advertise_service(service.canonical, functools.partial(self._serve, service))
 
-    def _remove_service(self, canonical: str) -> list[asyncio.Future[Any]]:
+    def _remove_service(self, canonical: str) -> None:
         self._services.pop(canonical, None)
-        future = self.node.unadvertise_service(canonical) if self.node is not None else None
-        return [future] if future is not None else []
+        if self.node is not None:
+            self.node.unadvertise_service(canonical)
 
     async def _upstream(
         self, service: _Service, location: Where, request: dict[str, str]
@@ -792,7 +796,7 @@ class SkillRouter:
         )
         app = web.Application(client_max_size=0)
         app.router.add_route("*", "/{tail:.*}", self._proxy)
-        runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=5.0)
         await runner.setup()
         saved = self._saved_port()
         for port in dict.fromkeys((saved, 0)):
@@ -930,24 +934,23 @@ class SkillRouter:
             if self.ros_routes:
                 await self.enable_ros(self.ros_master)
             return
-        futures: list[asyncio.Future[Any]] = []
         before = {canonical_name(t.name): t for t in old.topics}
         after = {canonical_name(t.name): t for t in config.router.topics}
         for name, route in before.items():
             if after.get(name) != route:
-                futures += self._remove_topic(name)
+                self._remove_topic(name)
         for name, route in after.items():
             if before.get(name) != route:
-                futures += self._add_topic(route)
+                self._add_topic(route)
         before_s = {canonical_name(s.name): s for s in old.services}
         after_s = {canonical_name(s.name): s for s in config.router.services}
         for name, route in before_s.items():
             if after_s.get(name) != route:
-                futures += self._remove_service(name)
+                self._remove_service(name)
         for name, route in after_s.items():
             if before_s.get(name) != route:
-                futures += self._add_service(route)
-        errors = await self.node.settle(futures)
+                self._add_service(route)
+        errors = await self.node.settle()
         if errors:
             logger.warning("skill %s: %d ROS registration(s) failed, e.g. %s", self.skill, len(errors), errors[0])
 
