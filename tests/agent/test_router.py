@@ -15,9 +15,10 @@ import aiohttp
 import pytest
 from aiohttp import web
 
+from bridgeos_agent.rosnode import read_header
 from bridgeos_agent.router import RouterSettings, SkillRouter, router_settings_from_env
 from bridgeos_agent.skillconfig import parse_skill_config
-from bridgeos_agent.tcpros import TOPIC_STATISTICS_MD5, TopicStatistics
+from bridgeos_agent.tcpros import TOPIC_STATISTICS_MD5, TopicStatistics, encode_header
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
 from tests.conftest import free_port
 
@@ -223,6 +224,54 @@ async def test_topics_are_added_and_removed_at_runtime(rosmaster, make_router):
     assert "/scan" in pubs and f"{ns('listener', 'cloud')}/scan" in subs and f"{ns('talker', 'robot')}/scan" in pubs
     assert "/chatter" not in pubs and f"{ns('talker', 'robot')}/chatter" not in subs
     assert set(router.statistics()) == {"/scan"}
+
+
+async def test_a_stalled_subscriber_of_a_big_topic_delays_no_other_topic(nodes, make_router):
+    big = {"name": "big", "type": "std_msgs/String", "publisher": "server", "subscribers": []}
+    router = await make_router(skill({"topics": [CHATTER, big]}), talker="robot", listener="robot", server="robot")
+    # A subscriber of /big that connects and then never reads (fault injection: a stalled peer).
+    reader, writer = await asyncio.open_connection("127.0.0.1", router.node.tcpros_port)
+    fields = {"callerid": "/stalled", "topic": "/big", "md5sum": "*", "type": "std_msgs/String"}
+    writer.write(encode_header(fields))
+    header = await asyncio.wait_for(read_header(reader), 30)
+    assert "error" not in header
+    try:
+        nodes.run("listener", "listener", namespace=ns("listener", "robot"))
+        assert await router.wait_ready("listener", "robot", 45)
+        nodes.run(
+            "big",
+            "talker",
+            "--topic",
+            "big",
+            "--tag",
+            "big",
+            "--rate",
+            "1000",
+            "--size",
+            "20000",
+            "--wait",
+            namespace=ns("server", "robot"),
+        )
+        await eventually(lambda: router.statistics()["/big"]["dropped"] > 0, what="the stalled subscriber's drops")
+        nodes.run(
+            "small",
+            "talker",
+            "--tag",
+            "s",
+            "--rate",
+            "200",
+            "--count",
+            "400",
+            "--wait",
+            namespace=ns("talker", "robot"),
+        )
+        await eventually(lambda: len(nodes.messages("listener")) >= 400, what="every small message")
+        assert nodes.messages("listener") == [("s", seq) for seq in range(1, 401)]
+        stats = router.statistics()
+        assert stats["/chatter"]["dropped"] == 0 and stats["/big"]["dropped"] > 0
+        assert router.traffic("server").dropped > 0 and router.traffic("talker").dropped == 0
+    finally:
+        writer.close()
 
 
 # ---------------------------------------------------------------------- statistics
