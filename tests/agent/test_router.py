@@ -368,6 +368,7 @@ async def test_statistics_match_what_was_sent(nodes, make_router, tmp_path):
     expected_bytes = sum(4 + len(f"t {seq} 1700000000.000000 ") + size for seq in range(1, count + 1))
     stats = router.statistics()["/chatter"]
     assert stats["messages"] == count and stats["dropped"] == 0 and stats["delivery_ratio"] == 1.0
+    assert "rate_hz" in stats and stats["latency_ms"] is None  # std_msgs/String has no header.stamp
     assert stats["subscribers"]["listener"] == {"messages": count, "dropped": 0, "bytes": expected_bytes}
     talker, listener = router.traffic("talker"), router.traffic("listener")
     assert (talker.messages, talker.dropped, talker.bytes_cloud, talker.bytes_robot) == (count, 0, expected_bytes, 0)

@@ -168,6 +168,8 @@ class _Topic:
         "deliveries",
         "dropped",
         "has_header",
+        "last_age",
+        "last_rate",
         "messages",
         "node_pub",
         "outside_dropped",
@@ -189,7 +191,7 @@ class _Topic:
         "w_start",
     )
 
-    def __init__(self, route: TopicRoute, canonical_pub: Publication | None) -> None:
+    def __init__(self, route: TopicRoute, canonical_pub: Publication | None, now: float) -> None:
         self.route = route
         self.canonical = canonical_name(route.name)
         self.canonical_pub = canonical_pub
@@ -197,6 +199,8 @@ class _Topic:
         self.store: deque[bytes] | None = deque(maxlen=route.store) if route.store else None
         self.has_header = False
         self.node_pub = ""
+        self.last_rate = 0.0  # messages/s over the last statistics window
+        self.last_age: float | None = None  # mean age of header.stamp then (s), when the type has a header
         # Totals since the router started (the publisher's side).
         self.messages = 0  # routed from the publisher's active instance
         self.outside_messages = 0  # routed from outside publishers on the canonical name
@@ -205,9 +209,10 @@ class _Topic:
         self.outside_dropped = 0
         self.bytes_robot = 0  # sent to peers on the robot (and outside nodes)
         self.bytes_cloud = 0
-        self._reset_window(0.0)
+        self._reset_window(now)
 
     def _reset_window(self, now: float) -> None:
+        """Start a new statistics window at ``now``."""
         self.w_start = now
         self.w_messages = 0
         self.w_bytes = 0
@@ -451,7 +456,7 @@ class SkillRouter:
         assert node is not None
         components = self.config.components
         canonical = canonical_name(route.name)
-        topic = _Topic(route, node.advertise(canonical, route.type))
+        topic = _Topic(route, node.advertise(canonical, route.type), self.clock())
         self._topics[canonical] = topic
         for subscriber in route.subscribers:
             if subscriber == route.publisher:
@@ -595,6 +600,9 @@ class SkillRouter:
         listening = publication is not None and publication.connections
         frames = []
         for topic in self._topics.values():
+            span = now - topic.w_start
+            topic.last_rate = topic.w_messages / span if span > 0 else 0.0
+            topic.last_age = topic.w_age_sum / topic.w_age_n if topic.w_age_n else None
             if listening and topic.w_messages:
                 frames.append(frame(self._window(topic, now, wall).serialize()))
             topic._reset_window(now)
@@ -640,6 +648,8 @@ class SkillRouter:
                 "delivered": delivered,
                 "dropped": dropped,
                 "delivery_ratio": delivered / (delivered + dropped) if delivered + dropped else 1.0,
+                "rate_hz": round(topic.last_rate, 3),
+                "latency_ms": None if topic.last_age is None else round(topic.last_age * 1000, 3),
                 "subscribers": {
                     name: {"messages": d.messages, "dropped": d.dropped, "bytes": d.bytes_robot + d.bytes_cloud}
                     for name, d in topic.deliveries.items()
@@ -835,11 +845,10 @@ class SkillRouter:
         component = self.config.components[route.component]
         launch = component.launch_spec(location)  # type: ignore[arg-type]
         port = route.port or (launch.ports[0] if launch is not None and launch.ports else None)
-        if location == "robot":
-            return ("127.0.0.1", port) if port else None
         container = self._containers.get((route.component, location))
-        if container is None:
-            return None
+        if container is None or not (container.get("address") or container.get("ip") or container.get("host")):
+            # A robot instance listens on the robot itself unless its runtime reported an address.
+            return ("127.0.0.1", port) if location == "robot" and port else None
         host = container.get("address") or container.get("ip") or container.get("host")
         ports = container.get("ports")
         if isinstance(ports, Mapping):
