@@ -346,7 +346,8 @@ class RosNode:
             connector=aiohttp.TCPConnector(limit=64), timeout=aiohttp.ClientTimeout(total=30)
         )
         try:
-            await self.master_call("getPid")
+            # A master that is not there should cost a Skill seconds, not the 30 s of a registration.
+            await asyncio.wait_for(self.master_call("getPid"), 5)
             app = web.Application(client_max_size=16 << 20)
             app.router.add_post("/{tail:.*}", self._slave_request)
             # A master keeps its slave connections alive: do not wait for it to hang up on close.
