@@ -40,9 +40,9 @@ lint: install
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-## Run every benchmark and print its figures.
+## Run every benchmark and write .data/bench/report.md beside the thesis's figures (BENCH_ARGS="--quick", "--only router", "--strict").
 bench: install
-	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b $(BENCH_ARGS) || exit 1; done
+	@$(PY) scripts/bench.py $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) .data .pytest_cache .hypothesis

@@ -24,7 +24,7 @@ inputs_hash() {  # extra-text, paths under docker/ ...
     local extra=$1; shift
     {
         printf '%s\n' "$extra"
-        (cd "$DOCKER_DIR" && find "$@" -type f -print0 | LC_ALL=C sort -z | xargs -0 sha256sum)
+        (cd "$DOCKER_DIR" && find "$@" -type f -not -path '*/__pycache__/*' -print0 | LC_ALL=C sort -z | xargs -0 sha256sum)
     } | sha256sum | cut -c1-64
 }
 
@@ -44,9 +44,10 @@ build_image() {  # tag, inputs hash, builder command...
     echo "image $tag: built [$(elapsed "$t")]"
 }
 
-docker_build() {  # context dir under docker/, tag, hash
-    local log="$LOG_DIR/bridgeos-image-${2//[:\/]/-}.log"
-    if ! docker build --network host --label "$LABEL=$3" -t "$2" "$DOCKER_DIR/$1" >"$log" 2>&1; then
+docker_build() {  # context dir (under docker/, or absolute), tag, hash
+    local log="$LOG_DIR/bridgeos-image-${2//[:\/]/-}.log" context=$1
+    [[ $context == /* ]] || context="$DOCKER_DIR/$context"
+    if ! docker build --network host --label "$LABEL=$3" -t "$2" "$context" >"$log" 2>&1; then
         echo "image $2: docker build failed, last lines of $log:" >&2
         tail -20 "$log" >&2
         return 1
@@ -59,9 +60,30 @@ image_base() {
         bash "$DOCKER_DIR/base/mkimage.sh"
 }
 
+# The use-case nodes live in the agent package; the ros image carries only them (stdlib, rospy, numpy).
+USECASES=../agent/src/bridgeos_agent/usecases
+AGENT_INIT=../agent/src/bridgeos_agent/__init__.py
+
+ros_context() {  # tag, hash: build from docker/ros plus the staged use-case nodes
+    local ctx; ctx=$(mktemp -d /tmp/bridgeos-ros-context.XXXXXX)
+    cp -r "$DOCKER_DIR/ros/." "$ctx/"
+    mkdir -p "$ctx/usecases/bridgeos/bridgeos_agent"
+    cp "$DOCKER_DIR/$AGENT_INIT" "$ctx/usecases/bridgeos/bridgeos_agent/"
+    (cd "$DOCKER_DIR/$USECASES/.." && find usecases -type f -name '*.py' -not -path '*/__pycache__/*' \
+        -exec cp --parents {} "$ctx/usecases/bridgeos/bridgeos_agent/" \;)
+    printf '#!/bin/sh\n# Start a bridgeOS use-case node: bridgeos-usecase NODE [ARGS]\n%s\n' \
+        'PYTHONPATH=/opt/bridgeos${PYTHONPATH:+:$PYTHONPATH} exec python3 -m bridgeos_agent.usecases "$@"' \
+        >"$ctx/usecases/bridgeos-usecase"
+    chmod 755 "$ctx/usecases/bridgeos-usecase"
+    local status=0
+    docker_build "$ctx" "$1" "$2" || status=$?
+    rm -rf "$ctx"
+    return "$status"
+}
+
 image_ros() {
-    build_image bridgeos/ros:noetic "$(inputs_hash "$(image_id bridgeos/base:bookworm)" ros)" \
-        docker_build ros
+    build_image bridgeos/ros:noetic "$(inputs_hash "$(image_id bridgeos/base:bookworm)" ros "$USECASES" "$AGENT_INIT")" \
+        ros_context
 }
 
 PARENT_base=""

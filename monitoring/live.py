@@ -9,7 +9,6 @@ Subscribers filter by the robots they may see.
 from __future__ import annotations
 
 import asyncio
-import functools
 import json
 import logging
 import weakref
@@ -128,5 +127,10 @@ async def publish(robot_id: str, frame: dict[str, Any]) -> None:
 
 def publish_on_commit(robot_id: str, frame: dict[str, Any], *, using: str | None = None) -> None:
     """Publish a state event once the current transaction commits, never if it rolls back."""
-    # robust: the change is committed already, so a broadcast failure must not fail the caller.
-    transaction.on_commit(functools.partial(async_to_sync(publish), robot_id, frame), using=using, robust=True)
+
+    def send() -> None:
+        async_to_sync(publish)(robot_id, frame)
+
+    # robust: the change is committed already, so a broadcast failure must not fail the caller. (A named
+    # function, not a partial: Django logs a robust callback's failure by its __qualname__.)
+    transaction.on_commit(send, using=using, robust=True)

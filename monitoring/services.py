@@ -23,9 +23,11 @@ def record_event(
     skill: str = "",
     component: str = "",
     data: dict[str, Any] | None = None,
+    ts: datetime | None = None,
 ) -> Event:
-    """Append one entry to the event log."""
+    """Append one entry to the event log (at ``ts``, by default now)."""
     return Event.objects.create(
+        ts=ts or timezone.now(),
         robot_id=robot_id,
         level=level,
         source=source,

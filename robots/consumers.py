@@ -265,6 +265,12 @@ async def on_skill_connect(consumer: RobotConsumer, envelope: Envelope, p: Any) 
     return True
 
 
+@handles(Event.OFFLOADING_DECISION)
+async def on_offloading_decision(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
+    await sync(skills.report_offloading_decision)(consumer.robot_id, p)
+    return True
+
+
 @handles(Event.SKILL_CONFIG)
 async def on_skill_config(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
     await sync(skills.report_skill_config)(consumer.robot_id, p.skill, dict(p.config))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -15,15 +16,33 @@ ROOT = Path(__file__).resolve().parent.parent
 BIN = ROOT / ".venv" / "bin"
 
 
+def ros_ready() -> str | None:
+    """Return why the use-case Skills cannot run here (no ROS master, no rospy/numpy), or None."""
+    uri = os.environ.get("ROS_MASTER_URI", "http://127.0.0.1:11311")
+    host, _, port = uri.removeprefix("http://").rstrip("/").partition(":")
+    try:
+        socket.create_connection((host, int(port or 11311)), timeout=1).close()
+    except (OSError, ValueError):
+        return f"no ROS master at {uri} (scripts/services.sh ros)"
+    probe = subprocess.run(["/usr/bin/python3", "-c", "import rospy, numpy"], capture_output=True)
+    if probe.returncode != 0:
+        return "Debian's python3 lacks rospy or numpy (scripts/services.sh ros)"
+    return None
+
+
 def main() -> int:
     count = int(os.environ.get("BRIDGEOS_DEMO_ROBOTS", "3"))
     host, port = os.environ.get("BRIDGEOS_HOST", "127.0.0.1"), os.environ.get("BRIDGEOS_PORT", "8000")
     owner = os.environ.get("DJANGO_SUPERUSER_USERNAME", "operator")
     if count <= 0:
         return 0
+    why_not = ros_ready() if os.environ.get("BRIDGEOS_DEMO_USECASES", "1") != "0" else "BRIDGEOS_DEMO_USECASES=0"
+    if why_not:
+        print(f"== demo fleet: use-case Skills off: {why_not}", flush=True)
     fleet = json.loads(
         subprocess.run(
-            [str(BIN / "python"), "manage.py", "demo_fleet", "--count", str(count), "--owner", owner],
+            [str(BIN / "python"), "manage.py", "demo_fleet", "--count", str(count), "--owner", owner]
+            + ([] if why_not else ["--usecases"]),
             cwd=ROOT,
             check=True,
             capture_output=True,
@@ -72,17 +91,18 @@ def main() -> int:
             except OSError:
                 pass  # the cloud is still starting
             time.sleep(0.25)
-        url = f"{base}/{robot['id']}/skill/{robot['skill']}/start?wait=5"
-        for attempt in range(5):
-            try:
-                urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers), timeout=15)
-                break
-            except OSError as exc:
-                # "connected" may be left over from a cloud that was killed: the agent's new
-                # connection replaces it within moments, so try again.
-                if attempt == 4:
-                    print(f"== demo fleet: could not start the Skill of {robot['id']}: {exc}", flush=True)
-                time.sleep(1)
+        for skill in robot.get("skills", [robot["skill"]]):
+            url = f"{base}/{robot['id']}/skill/{skill}/start?wait=5"
+            for attempt in range(5):
+                try:
+                    urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers), timeout=15)
+                    break
+                except OSError as exc:
+                    # "connected" may be left over from a cloud that was killed: the agent's new
+                    # connection replaces it within moments, so try again.
+                    if attempt == 4:
+                        print(f"== demo fleet: could not start {skill} on {robot['id']}: {exc}", flush=True)
+                    time.sleep(1)
     signal.signal(signal.SIGTERM, lambda *_: stop(agents))
     signal.signal(signal.SIGINT, lambda *_: stop(agents))
     for agent in agents:

@@ -20,6 +20,8 @@ DOCKERD_LOG=/var/log/bridgeos-dockerd.log
 ROSCORE_LOG=/var/log/bridgeos-roscore.log
 ROS_HOME_DIR=/var/lib/bridgeos/ros
 ROS_PORT=11311
+# The use-case Skills' nodes (bridgeos_agent.usecases) compute with numpy under the ROS python.
+ROS_PACKAGES+=(python3-numpy)
 export DEBIAN_FRONTEND=noninteractive NEEDRESTART_MODE=l  # never prompt, never restart services
 export PATH="$PATH:/usr/sbin:/sbin"
 
@@ -74,7 +76,8 @@ APT_NEEDED=()
 INSTALLED=" "
 wants docker && ! have dockerd && APT_NEEDED+=(docker.io)
 wants images && ! have debootstrap && APT_NEEDED+=(debootstrap)
-wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
+numpy_ok() { ros_env /usr/bin/python3 -c 'import numpy' >/dev/null 2>&1; }
+wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok && numpy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
 wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
 if ((${#APT_NEEDED[@]})); then
     t=$(now)

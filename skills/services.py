@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import json
-from typing import Any
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
 
 from django.core.exceptions import ValidationError
 from django.core.serializers.json import DjangoJSONEncoder
@@ -22,6 +23,9 @@ from robots.models import Robot
 from robots.services import client_frame
 
 from .models import Component, Skill, SkillTemplate
+
+if TYPE_CHECKING:
+    from bridgeos_agent.protocol import OffloadingDecision
 
 
 def add_skill(robot: Robot, config: dict[str, Any]) -> Skill:
@@ -152,6 +156,27 @@ def report_component_information(
             Event.COMPONENT_INFORMATION,
             {"skill": skill_id, "component": component_id, "location": location, "container": container},
         )
+
+
+def report_offloading_decision(robot_id: str, decision: OffloadingDecision) -> None:
+    """Log a move a Skill Manager decided (and how it went), and show it to clients."""
+    data = decision.model_dump(mode="json", exclude={"robot"})
+    with transaction.atomic():
+        _component(robot_id, decision.skill, decision.component)
+        moved = decision.outcome == "moved"
+        where = f"component {decision.component} from the {decision.location} to the {decision.target}"
+        record_event(
+            f"Skill Manager moved {where}" if moved else f"Skill Manager failed to move {where}: {decision.error}",
+            robot_id=robot_id,
+            level=Level.INFO if moved else Level.WARNING,
+            source=Source.MANAGER,
+            kind=Event.OFFLOADING_DECISION,
+            skill=decision.skill,
+            component=decision.component,
+            data=data,
+            ts=datetime.fromtimestamp(decision.decided_at, tz=UTC),
+        )
+        _announce(robot_id, Event.OFFLOADING_DECISION, data)
 
 
 def report_skill_connect(robot_id: str, skill_id: str, manager_url: str | None) -> None:

@@ -23,6 +23,8 @@ import {
 } from "./util.js";
 
 const DECISION_METRIC = "offloading.decision";
+const DECISION_EVENT = "offloading_decision";
+const DECISIONS_SHOWN = 12;
 const HISTORY_S = 600;
 const HISTORY_BUCKET_S = 5;
 const COMMAND_WAIT_S = 5;
@@ -356,49 +358,91 @@ async function loadHistory() {
 
 const decisionsBody = document.querySelector("#decisions tbody");
 const decisionsEmpty = document.getElementById("decisions-empty");
+// Decisions to stay are metric points; moves (done or failed) are offloading_decision events.
+let decisionRows = [];
 
-async function loadDecisions() {
-  let answer;
-  try {
-    answer = await live.request("metrics_get", {
-      robot: robotId,
-      names: [DECISION_METRIC],
-      since: Date.now() / 1000 - 86400,
-      limit: 12,
-    });
-  } catch {
-    return;
-  }
-  const points = answer.data.metrics.toSorted((a, b) => b.ts - a.ts);
-  decisionsEmpty.hidden = points.length > 0;
+function decisionFromPoint(point) {
+  const labels = point.labels ?? {};
+  return {
+    ts: point.ts,
+    component: point.component,
+    policy: labels.policy,
+    costRobot: Number.parseFloat(labels.cost_robot),
+    costCloud: Number.parseFloat(labels.cost_cloud),
+    reward: point.value,
+    outcome: labels.decision === "migrate" ? "decided" : "stay",
+    location: labels.location,
+    target: labels.target,
+    reason: labels.reason,
+  };
+}
+
+function decisionFromEvent(data) {
+  return {
+    ts: data.decided_at,
+    component: data.component,
+    policy: data.policy,
+    costRobot: data.cost_robot,
+    costCloud: data.cost_cloud,
+    reward: data.prediction ?? data.estimated_reward,
+    outcome: data.outcome,
+    location: data.location,
+    target: data.target,
+    reason: data.error ? `${data.reason}; failed: ${data.error}` : `${data.reason}; took ${fmtNumber(data.duration_s, { digits: 2 })} s`,
+  };
+}
+
+function decisionBadge(row) {
+  if (row.outcome === "moved") return el("span", { class: `badge loc-${row.target ?? "none"}` }, `moved → ${row.target ?? "?"}`);
+  if (row.outcome === "failed") return el("span", { class: "badge status-failed" }, `move → ${row.target ?? "?"} failed`);
+  if (row.outcome === "decided") return el("span", { class: `badge loc-${row.target ?? "none"}` }, `migrate → ${row.target ?? "?"}`);
+  return el("span", { class: "badge" }, `stay on ${row.location ?? "?"}`);
+}
+
+function renderDecisions() {
+  // The newest of each kind: a stream of decisions to stay never pushes the rarer moves out.
+  const sorted = decisionRows.toSorted((a, b) => b.ts - a.ts);
+  const stays = sorted.filter((row) => row.outcome === "stay").slice(0, DECISIONS_SHOWN);
+  const moves = sorted.filter((row) => row.outcome !== "stay").slice(0, DECISIONS_SHOWN);
+  decisionRows = [...stays, ...moves].toSorted((a, b) => b.ts - a.ts);
+  decisionsEmpty.hidden = decisionRows.length > 0;
   decisionsBody.replaceChildren(
-    ...points.map((point) => {
-      const labels = point.labels ?? {};
-      const costRobot = Number.parseFloat(labels.cost_robot);
-      const costCloud = Number.parseFloat(labels.cost_cloud);
-      const cheaper = costRobot < costCloud ? "robot" : costCloud < costRobot ? "cloud" : "";
-      const moved = labels.decision === "migrate";
+    ...decisionRows.map((row) => {
+      const cheaper = row.costRobot < row.costCloud ? "robot" : row.costCloud < row.costRobot ? "cloud" : "";
       return el(
         "tr",
-        {},
-        el("td", {}, fmtTime(point.ts)),
-        el("td", {}, point.component ?? "—", labels.policy ? el("span", { class: "sub" }, `policy ${labels.policy}`) : null),
-        el("td", { class: `num ${cheaper === "robot" ? "better" : ""}` }, fmtNumber(costRobot, { digits: 3 })),
-        el("td", { class: `num ${cheaper === "cloud" ? "better" : ""}` }, fmtNumber(costCloud, { digits: 3 })),
-        el("td", { class: "num" }, fmtNumber(point.value, { digits: 3 })),
-        el(
-          "td",
-          {},
-          moved
-            ? el("span", { class: `badge loc-${labels.target ?? "none"}` }, `migrate → ${labels.target ?? "?"}`)
-            : el("span", { class: "badge" }, `stay on ${labels.location ?? "?"}`),
-        ),
+        { "data-outcome": row.outcome, title: row.reason ?? "" },
+        el("td", {}, fmtTime(row.ts)),
+        el("td", {}, row.component ?? "—", row.policy ? el("span", { class: "sub" }, `policy ${row.policy}`) : null),
+        el("td", { class: `num ${cheaper === "robot" ? "better" : ""}` }, fmtNumber(row.costRobot, { digits: 3 })),
+        el("td", { class: `num ${cheaper === "cloud" ? "better" : ""}` }, fmtNumber(row.costCloud, { digits: 3 })),
+        el("td", { class: "num" }, fmtNumber(row.reward, { digits: 3 })),
+        el("td", {}, decisionBadge(row)),
       );
     }),
   );
 }
 
-// Decisions arrive in the live feed without their labels: read them from the database shortly after.
+async function loadDecisions() {
+  const since = Date.now() / 1000 - 86400;
+  const query = new URLSearchParams({
+    robot: robotId,
+    kind: DECISION_EVENT,
+    since: new Date(since * 1000).toISOString(),
+    limit: String(DECISIONS_SHOWN),
+  });
+  const [points, events] = await Promise.all([
+    live
+      .request("metrics_get", { robot: robotId, names: [DECISION_METRIC], since, limit: DECISIONS_SHOWN })
+      .then((answer) => answer.data.metrics, () => null),
+    get(`/api/events?${query}`).then((answer) => (answer.ok ? answer.data.results : null)),
+  ]);
+  if (points === null && events === null) return;
+  decisionRows = [...(points ?? []).map(decisionFromPoint), ...(events ?? []).map((event) => decisionFromEvent(event.data))];
+  renderDecisions();
+}
+
+// Decisions to stay arrive in the live feed without their labels: read them from the database shortly after.
 const decisionsSoon = coalesce(loadDecisions, 1200);
 
 // --------------------------------------------------------------------------- config
@@ -545,6 +589,11 @@ for (const event of ["component_status", "component_location"]) {
     updateComponent(frame.data.skill, frame.data.component);
   });
 }
+live.on(DECISION_EVENT, (frame) => {
+  if (!mine(frame)) return;
+  decisionRows.push(decisionFromEvent(frame.data));
+  renderDecisions();
+});
 live.on("skill_config", (frame) => mine(frame) && reload());
 live.on("offloading", (frame) => {
   if (!mine(frame)) return;

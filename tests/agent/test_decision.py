@@ -62,20 +62,45 @@ def test_hysteresis_requires_a_margin_above_threshold() -> None:
     assert decider.decide(at_robot(0.151), now=1.0).migrate
 
 
-def test_network_becomes_trained_after_trained_after_samples_then_decides() -> None:
+def trained_on(reward: float, *, hysteresis: float = 0.1) -> Decider:
+    """Return a decider whose network has learnt that the reward is always ``reward``."""
     torch.manual_seed(1)
-    decider = Decider("detector", manager(trained_after=30), hysteresis=0.0, cooldown=0.0)
+    decider = Decider("detector", manager(trained_after=30), hysteresis=hysteresis, cooldown=0.0)
     for second in range(30):
-        decision = decider.decide(at_robot(0.8), now=float(second))
+        decision = decider.decide(at_robot(reward), now=float(second))
         assert decision.prediction is None
+        decider.last_move = None
     assert decider.model.trained and decider.model.samples_seen == 30
-    # Trained on a reward of 0.8, the network now outvotes an estimate that says stay.
-    for _ in range(200):
+    for _ in range(300):
         decider.model.train_step()
-    decision = decider.decide(at_robot(-1.0), now=100.0)
-    assert decision.trained and decision.prediction is not None
-    assert decision.prediction == pytest.approx(0.8, abs=0.1)
-    assert decision.migrate and "prediction" in decision.reason
+    return decider
+
+
+def test_network_becomes_trained_after_trained_after_samples_then_decides() -> None:
+    decider = trained_on(0.8)
+    # The estimate is noisy around what the network learnt: the network decides.
+    decision = decider.decide(at_robot(0.78), now=100.0)
+    assert decision.trained and decision.trusted and decision.prediction == pytest.approx(0.8, abs=0.05)
+    assert decision.network_error is not None and decision.network_error <= 0.1
+    assert decision.migrate and decision.reason.startswith("prediction")
+
+
+def test_a_network_that_strays_from_the_estimate_does_not_decide() -> None:
+    # Trained while staying paid; now the estimate says moving pays a lot.
+    decider = trained_on(-0.5)
+    decision = decider.decide(at_robot(0.9), now=100.0)
+    assert decision.trained and not decision.trusted and decision.prediction == pytest.approx(-0.5, abs=0.05)
+    assert decision.migrate and decision.reason.startswith("estimate") and "network error" in decision.reason
+
+
+def test_the_trust_gate_averages_the_error_over_recent_decisions() -> None:
+    decider = trained_on(0.0, hysteresis=0.2)
+    # One estimate 0.5 off in five decisions: mean error 0.1, within the margin again.
+    errors = []
+    for n, estimate in enumerate([0.5, 0.0, 0.0, 0.0, 0.0, 0.0]):
+        errors.append(decider.decide(at_robot(estimate), now=100.0 + n))
+    assert [d.trusted for d in errors] == [False, False, True, True, True, True]
+    assert errors[-1].network_error == pytest.approx(0.0, abs=0.05)
 
 
 def test_default_network_is_trained_after_1000_samples() -> None:
@@ -85,11 +110,19 @@ def test_default_network_is_trained_after_1000_samples() -> None:
         model.observe(sample, 0.3)
     assert not model.trained
     model.observe(sample, 0.3)
-    assert model.trained and model.steps == 1000
+    # While warming up every sample is kept but only every fourth trains (warmup_train_every).
+    assert model.trained and model.steps == 250
+
+
+def test_warm_up_records_every_sample_and_trains_every_kth() -> None:
+    model = DecisionModel(NeuralNetworkConfig(trained_after=100, warmup_train_every=3))
+    sample = Features().vector()
+    assert [model.observe(sample, 0.1) is not None for _ in range(9)] == [False, False, True] * 3
+    assert model.samples_seen == 9 and model.buffered == 9 and model.steps == 3
 
 
 def test_trained_network_retrains_every_train_every_samples() -> None:
-    model = DecisionModel(NeuralNetworkConfig(trained_after=5, train_every=4))
+    model = DecisionModel(NeuralNetworkConfig(trained_after=5, train_every=4, warmup_train_every=1))
     sample = Features().vector()
     for _ in range(5):
         model.observe(sample, 0.0)
@@ -183,16 +216,30 @@ def test_decision_record_is_plain_data_for_the_cloud() -> None:
 
 def test_batch_decisions_match_single_decisions() -> None:
     torch.manual_seed(3)
-    deciders = [Decider(f"c{i}", manager(trained_after=3), hysteresis=0.0) for i in range(40)]
+    deciders = [Decider(f"c{i}", manager(trained_after=3), hysteresis=0.01) for i in range(40)]
     for d in deciders:
         for _ in range(3):
             d.model.observe(Features(cost_robot=random.random()).vector(), random.uniform(-1, 1))
-    inputs = [at_robot(random.uniform(-1, 1)) for _ in deciders]
-    expected = [d.model.predict(given.features.vector()) for d, given in zip(deciders, inputs, strict=True)]
+    features = [Features(cost_robot=random.random()) for _ in deciders]
+    expected = [d.model.predict(f.vector()) for d, f in zip(deciders, features, strict=True)]
+    # Estimates close to the predictions, so every network is trusted and decides.
+    inputs = [DecisionInput("robot", p + 0.001, features=f) for p, f in zip(expected, features, strict=True)]
     decisions = decide_batch(deciders, inputs, now=0.0)
     assert [d.component for d in decisions] == [d.component for d in deciders]
     assert [d.prediction for d in decisions] == pytest.approx(expected, abs=1e-5)
-    assert [d.migrate for d in decisions] == [p >= 0.1 for p in expected]
+    assert all(d.trusted for d in decisions)
+    assert [d.migrate for d in decisions] == [p >= 0.11 for p in expected]
+
+
+def test_hysteresis_and_cooldown_come_from_the_manager_config() -> None:
+    config = ManagerConfig(threshold=0.1, hysteresis=0.2, cooldown=45.0)
+    decider = Decider("detector", config)
+    assert (decider.hysteresis, decider.cooldown) == (0.2, 45.0)
+    assert not decider.decide(at_robot(0.29), now=0.0).migrate
+    assert decider.decide(at_robot(0.31), now=1.0).migrate
+    assert not decider.decide(at_robot(5.0), now=45.0).migrate  # cooling down
+    assert decider.decide(at_robot(5.0), now=46.1).migrate
+    assert ManagerConfig().cooldown == 30.0 and ManagerConfig().hysteresis == 0.05
 
 
 def test_batched_training_step_equals_a_single_step() -> None:
@@ -240,3 +287,10 @@ def test_default_model_fits_in_50_kb(optimizer: str) -> None:
     model = DecisionModel(NeuralNetworkConfig(), optimizer=optimizer)
     assert model.size_bytes() <= 50_000
     assert len(model.to_bytes()) <= 50_000
+
+
+def test_features_as_plain_data_cover_every_field() -> None:
+    import dataclasses
+
+    features = Features(cpu_available=0.5, loss=0.1, location="cloud", cost_robot=2.0, cost_cloud=1.0)
+    assert features.as_dict() == dataclasses.asdict(features)

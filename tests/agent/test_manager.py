@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import asyncio
+import logging
+import time
 
 import pytest
 from asgiref.sync import sync_to_async
 
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.manager import DECISION_METRIC, SkillManager
+from bridgeos_agent.protocol import Event
 from bridgeos_agent.skillconfig import parse_skill_config
+from bridgeos_agent.traffic import ComponentTraffic
+from monitoring.models import Event as LogEvent
 from monitoring.models import Metric
 
 from .test_controller import (
@@ -37,6 +42,16 @@ def decisions_stored(robot_id: str) -> list[Metric]:
     return list(Metric.objects.filter(robot_id=robot_id, name=DECISION_METRIC).order_by("ts"))
 
 
+@sync_to_async
+def marker_stored(robot_id: str) -> bool:
+    return Metric.objects.filter(robot_id=robot_id, name="test.marker").exists()
+
+
+@sync_to_async
+def moves_logged(robot_id: str) -> list[LogEvent]:
+    return list(LogEvent.objects.filter(robot_id=robot_id, kind="offloading_decision").order_by("ts"))
+
+
 async def test_a_recommendation_moves_the_component_and_every_decision_reaches_the_cloud(cloud, tmp_path):
     # A threshold no saving reaches: only the recommendation moves anything.
     config = movable_skill(threshold=1e6)
@@ -56,11 +71,161 @@ async def test_a_recommendation_moves_the_component_and_every_decision_reaches_t
         assert decisions["worker-1"].migrate and decisions["worker-1"].target == "cloud"
         assert record.locations == {"worker-0": "robot", "worker-1": "cloud"}
         assert set(running_workers(controller)) == {"worker-0"}
+        # The move is an event in the cloud's log, with its inputs, costs and outcome...
+        moves = await eventually(lambda: moves_logged("man-1"), what="the move logged in the cloud")
+        assert [(m.component, m.data["outcome"], m.data["target"]) for m in moves] == [("worker-1", "moved", "cloud")]
+        move = moves[0].data
+        assert move["policy"] == "energy" and move["reason"] == "recommendation" and move["duration_s"] >= 0
+        assert {"cost_robot", "cost_cloud", "estimated_reward", "inputs", "decided_at"} <= set(move)
+        assert move["inputs"]["location"] == "robot" and 0 <= move["inputs"]["cpu_available"] <= 1
+        # ... and the decision to stay a metric point.
         stored = await eventually(lambda: decisions_stored("man-1"), what="decisions stored in the cloud")
-        moved = [m for m in stored if m.component == "worker-1"]
-        assert moved[0].labels["decision"] == "migrate" and moved[0].labels["policy"] == "energy"
-        assert {"cost_robot", "cost_cloud", "location", "target"} <= set(moved[0].labels)
-        assert [m.labels["decision"] for m in stored if m.component == "worker-0"] == ["stay"]
+        assert [(m.component, m.labels["decision"]) for m in stored] == [("worker-0", "stay")]
+        assert {"cost_robot", "cost_cloud", "location", "target", "policy"} <= set(stored[0].labels)
+
+
+async def test_a_move_that_fails_is_logged_as_failed_and_the_component_stays(cloud, tmp_path):
+    config = movable_skill(threshold=1e6)
+    config["components"]["worker-1"]["robot"] = {"command": ["/nonexistent/bridgeos-test-command"]}
+    token, _ = await make_robot("man-7", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-7", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config), starting=["worker-0"])
+        await controller.place_component(record, "worker-1", location="cloud")
+        manager = SkillManager(controller, SKILL)
+        manager.recommend("worker-1", "robot")
+        decisions = {d.component: d for d in await manager.step()}
+        assert decisions["worker-1"].migrate and decisions["worker-1"].target == "robot"
+        # Its cloud copy never stopped: it still runs there.
+        assert record.locations["worker-1"] == "cloud" and record.statuses["worker-1"] == "running"
+        moves = await eventually(lambda: moves_logged("man-7"), what="the failed move logged")
+        assert moves[0].data["outcome"] == "failed" and moves[0].level == "warning"
+        assert "bridgeos-test-command" in moves[0].data["error"]
+
+
+class Router:
+    """Stand in for the Skill Router's traffic figures (pure data; the router is another engineer's)."""
+
+    def __init__(self) -> None:
+        self.figures: dict[str, ComponentTraffic] = {}
+        self.asked: list[str] = []
+
+    def traffic(self, component: str) -> ComponentTraffic:
+        self.asked.append(component)
+        return self.figures[component]  # KeyError: the router routes nothing of it
+
+
+def ros_skill(policy: str) -> dict:
+    config = movable_skill(threshold=0.1)
+    config["manager"]["policy"] = policy
+    for component in config["components"].values():
+        component["ros"] = True
+        # Small enough to fit the simulated robot's link even at its lowest (5 Mbit/s): both start on the robot.
+        component["resources"]["bandwidth"] = 1.0
+    return parse_skill_config(config).model_dump(mode="json")
+
+
+async def test_the_router_s_loss_rate_drives_the_performance_of_ros_components(cloud, tmp_path):
+    config = ros_skill("performance")
+    token, _ = await make_robot("man-8", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-8", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config))
+        assert set(record.locations.values()) == {"robot"}
+        router = record.supervisor.context["router"] = Router()
+        manager = SkillManager(controller, SKILL)
+        # worker-0 loses 30 % of its messages on the robot; the cloud was never measured (0).
+        router.figures["worker-0"] = ComponentTraffic(seconds=5, messages=100, dropped=30)
+        decisions = {d.component: d for d in await manager.step()}
+        assert set(router.asked) == {"worker-0", "worker-1"}  # worker-1: no routes, no figures
+        assert decisions["worker-0"].features["loss"] == 0.3
+        assert decisions["worker-0"].migrate and record.locations["worker-0"] == "cloud"
+        assert not decisions["worker-1"].migrate and decisions["worker-1"].estimated_reward == 0.0
+        # In the cloud it loses 5 %: the robot keeps its last measured 30 %, so it stays.
+        router.figures["worker-0"] = ComponentTraffic(seconds=5, messages=100, dropped=5)
+        decision = {d.component: d for d in await manager.step()}["worker-0"]
+        assert decision.features["cost_robot"] == 0.3 and decision.features["cost_cloud"] == 0.05
+        assert not decision.migrate and decision.estimated_reward == pytest.approx(-0.25)
+        # A window without messages measures nothing: the last figures stand.
+        router.figures["worker-0"] = ComponentTraffic(seconds=5)
+        decision = {d.component: d for d in await manager.step()}["worker-0"]
+        assert (decision.features["cost_robot"], decision.features["cost_cloud"]) == (0.3, 0.05)
+        # Three decisions each, but a decision to stay reaches the cloud again only once it changed.
+        # Frames are applied in order: once a marker sent after the decisions is stored, they all are.
+        await controller.emit(Event.METRICS, {"metrics": [{"name": "test.marker", "value": 1.0, "ts": time.time()}]})
+        await eventually(lambda: marker_stored("man-8"), what="the marker stored")
+        stays = await decisions_stored("man-8")
+        assert sorted((m.component, m.value) for m in stays) == [("worker-0", -0.25), ("worker-1", 0.0)]
+
+
+async def test_the_router_s_bytes_and_the_declared_bandwidth_of_a_measured_component_drive_its_network_cost(
+    cloud, tmp_path
+):
+    config = ros_skill("network")
+    token, _ = await make_robot("man-9", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-9", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config))
+        assert set(record.locations.values()) == {"robot"}
+        router = record.supervisor.context["router"] = Router()
+        # The runtime measures the running processes (CPU and RAM); their bandwidth stays as declared.
+        await eventually(
+            lambda: {("workers", "worker-0"), ("workers", "worker-1")} <= set(controller._usage),
+            what="components measured by the runtime",
+        )
+        # worker-0 talks mostly to the cloud, worker-1 only to robot peers.
+        router.figures["worker-0"] = ComponentTraffic(seconds=10, bytes_robot=1_000_000, bytes_cloud=9_000_000)
+        router.figures["worker-1"] = ComponentTraffic(seconds=10, bytes_robot=5_000_000)
+        decisions = {d.component: d for d in await SkillManager(controller, SKILL).step()}
+        # Eq. 4.3/4.4: 1 Mbit/s times the share of traffic with the other side.
+        assert decisions["worker-0"].features["cost_robot"] == pytest.approx(0.9)
+        assert decisions["worker-0"].features["cost_cloud"] == pytest.approx(0.1)
+        assert decisions["worker-0"].migrate and record.locations["worker-0"] == "cloud"
+        assert decisions["worker-1"].features["cost_robot"] == 0.0
+        assert decisions["worker-1"].features["cost_cloud"] == pytest.approx(1.0)
+        assert not decisions["worker-1"].migrate
+
+
+async def test_cost_functions_read_the_robot_state_a_component_would_find_there(cloud, tmp_path):
+    config = movable_skill(threshold=1e6)
+    config["manager"].update(policy="custom", cost_functions={"robot": "cpu_free", "cloud": "ram_free"})
+    config = parse_skill_config(config).model_dump(mode="json")
+    token, _ = await make_robot("man-11", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-11", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config), starting=["worker-0"])
+        await controller.place_component(record, "worker-1", location="cloud")
+        await eventually(lambda: controller.monitor.latest is not None, what="a sample of the robot")
+        decisions = {d.component: d for d in await SkillManager(controller, SKILL).step()}
+        free = controller.monitor.latest.free
+        on_robot, in_cloud = decisions["worker-0"].features, decisions["worker-1"].features
+        # On the robot: what is free now. In the cloud: what a move to the robot would leave (0.1 core, 16 MiB).
+        assert on_robot["cost_robot"] == pytest.approx(free["cpu"])
+        assert in_cloud["cost_robot"] == pytest.approx(free["cpu"] - 0.1)
+        assert on_robot["cost_cloud"] - in_cloud["cost_cloud"] == pytest.approx(16)
+
+
+async def test_a_cost_function_that_fails_skips_its_component_and_is_logged_once(cloud, tmp_path, caplog):
+    config = movable_skill()
+    config["manager"].update(policy="custom", cost_functions={"robot": "cpu / (battery - battery)", "cloud": "0"})
+    config = parse_skill_config(config).model_dump(mode="json")
+    token, _ = await make_robot("man-10", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-10", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config))
+        manager = SkillManager(controller, SKILL)
+        with caplog.at_level(logging.WARNING, logger="bridgeos_agent.manager"):
+            for _ in range(3):
+                assert await manager.step() == []
+        assert set(record.locations.values()) == {"robot"}
+        warnings = [r.getMessage() for r in caplog.records if "cannot cost" in r.getMessage()]
+        assert len(warnings) == 2, warnings
+        assert any("worker-0" in w for w in warnings) and any("worker-1" in w for w in warnings)
 
 
 async def test_the_energy_policy_sends_movable_components_to_the_cloud(cloud, tmp_path):

@@ -146,6 +146,22 @@ def test_custom_policy_reads_builtin_costs_metrics_and_constants() -> None:
     assert "custom" in estimator.policies
 
 
+def test_custom_policy_reads_the_robot_state() -> None:
+    estimator = PolicyEstimator(
+        CONSTANTS,
+        {
+            "robot": "cpu / (cpu_free + 0.1) + (1 if battery < 20 else 0)",
+            "cloud": "bandwidth / max(bandwidth_available, 1) + ram / ram_free",
+        },
+    )
+    state = Metrics(cpu_free=0.4, ram_free=1024, bandwidth_available=5.0, battery=15.0)
+    costs = estimator.estimate("custom", "robot", USAGE, state)
+    assert costs.cost_robot == pytest.approx(0.5 / 0.5 + 1)
+    assert costs.cost_cloud == pytest.approx(20 / 5 + 512 / 1024)
+    # Unmeasured, the robot runs on mains.
+    assert Metrics().battery == 100.0
+
+
 def test_user_function_overrides_one_location_of_a_builtin_policy() -> None:
     estimator = PolicyEstimator(CONSTANTS, {"performance_cloud": "latency + 0.1"})
     costs = estimator.estimate("performance", "cloud", USAGE, METRICS)
@@ -234,6 +250,7 @@ def test_cost_function_names_cover_resources_metrics_costs_and_constants() -> No
     names = cost_function_names(["weight"])
     assert {"cpu", "gpu", "ram", "bandwidth", "io", "latency", "loss_rate", "gb_local", "ros"} <= names
     assert {"energy", "network", "monetary", "performance", "per_gb", "per_kwh", "weight"} <= names
+    assert {"cpu_free", "ram_free", "bandwidth_available", "battery"} <= names
 
 
 def test_estimator_builds_from_robot_and_manager_configs() -> None:

@@ -91,6 +91,27 @@ SAMPLES: dict[Event, dict[str, Any]] = {
     },
     Event.METRICS_GET: {"names": ["cpu", "ram"], "skill": "people-detector", "since": 0, "limit": 10},
     Event.ACK: {},
+    Event.OFFLOADING_DECISION: {
+        "skill": "people-detector",
+        "component": "detector",
+        "location": "robot",
+        "target": "cloud",
+        "outcome": "failed",
+        "reason": "estimate above threshold + hysteresis",
+        "error": "no room on the robot",
+        "policy": "energy",
+        "cost_robot": 1.5,
+        "cost_cloud": 0.25,
+        "estimated_reward": 1.25,
+        "prediction": 1.1,
+        "threshold": 0.1,
+        "hysteresis": 0.05,
+        "trained": True,
+        "samples_seen": 1200,
+        "inputs": {"cpu_available": 0.5, "location": "robot"},
+        "decided_at": 1700000000.5,
+        "duration_s": 0.25,
+    },
 }
 
 
@@ -109,7 +130,7 @@ def rejection(text: str | bytes, **kwargs: Any) -> ProtocolError:
 
 def test_samples_cover_every_event_and_table() -> None:
     assert set(SAMPLES) == set(Event) == set(PAYLOADS) == set(DIRECTIONS)
-    assert len(Event) == 32
+    assert len(Event) == 33
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
     assert all(name.endswith("_get") for name in REPLIES if name not in COMMANDS and "auth" not in name)
 

@@ -162,7 +162,12 @@ async def test_component_sees_the_env_contract_its_volumes_and_its_own_directory
     env = seen["env"]
     assert {k: env.get(k) for k in CONTRACT} == CONTRACT
     assert env["MODEL"] == "yolo"
-    assert env["PATH"] == os.environ["PATH"]
+    # The agent's PATH, then its own scripts' directory (bridgeos-usecase) unless already on it.
+    scripts = os.path.dirname(sys.executable)
+    expected = (
+        os.environ["PATH"] if scripts in os.environ["PATH"].split(os.pathsep) else f"{os.environ['PATH']}:{scripts}"
+    )
+    assert env["PATH"] == expected
     assert "BRIDGEOS_TOKEN" not in env
     assert Path(seen["cwd"]) == runtime.work_dir("people", "detector")
     assert Path(env["BRIDGEOS_VOLUMES"]) == tmp_path / "volumes" / "people"

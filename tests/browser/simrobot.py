@@ -1,10 +1,11 @@
 """Simulated robots for what the real agent does not do yet: the reference Link playing a robot.
 
 The browser tests play a robot with the real agent (`bridgeos-agent run --simulate`, started
-by `start_agent` in conftest.py) wherever it can. This simulator stays for two things: the
-Skill Manager's offloading decisions (the `offloading.decision` metric, which the agent does
-not send yet), and fleets of hundreds of robots in one process (benchmarks/dashboard.py),
-which would take an agent process (about 45 MB of memory) each.
+by `start_agent` in conftest.py) wherever it can. This simulator stays for two things: a
+steady stream of Skill Manager decisions to stay (the `offloading.decision` metric, which a
+real manager sends only where a policy has costs to compare), and fleets of hundreds of robots
+in one process (benchmarks/dashboard.py), which would take an agent process (about 45 MB of
+memory) each.
 
 A simulated robot authenticates on /ws/robot/, runs the Skills it is told to (their configs
 come from the cloud with skill_config_get), reports statuses and locations the way a Robot
@@ -191,15 +192,16 @@ class SimulatedRobot:
         return points
 
     def decision(self, state: dict[str, str], scope: dict[str, Any]) -> dict[str, Any]:
-        """Invent one offloading decision: both locations' policy costs and the expected reward."""
+        """Invent one decision to stay: both locations' policy costs and the expected reward."""
         here = state["active"] or "robot"
         there = "cloud" if here == "robot" else "robot"
         cost_robot = round(self.random.uniform(0.2, 1.0), 3)
         cost_cloud = round(self.random.uniform(0.2, 1.0), 3)
         costs = {"robot": cost_robot, "cloud": cost_cloud}
         reward = round(costs[here] - costs[there], 3)
+        # A real manager logs each move as an offloading_decision event; this robot never moves on its own.
         labels = {
-            "decision": "migrate" if reward > 0.3 else "stay",
+            "decision": "stay",
             "location": here,
             "target": there,
             "cost_robot": str(cost_robot),

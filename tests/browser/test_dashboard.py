@@ -5,14 +5,16 @@ from __future__ import annotations
 import json
 import re
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from bridgeos_agent.protocol import OffloadingDecision
 from bridgeos_agent.skillconfig import load_sample_skill_config
 from monitoring.services import record_event
 from robots.models import Robot, default_robot_config
 from skills.models import Component, Skill
-from skills.services import create_template
+from skills.services import create_template, report_offloading_decision
 
 from .conftest import AGENT_SKILL, SKILL, make_robot, make_user, start_skill, wait_until
 
@@ -209,7 +211,7 @@ def test_migrating_a_component_changes_its_location_badge(browser, agents):
 
 
 def test_the_robot_page_lists_the_latest_offloading_decisions(browser, simulated_robots):
-    # The agent sends no offloading decisions before its Skill Manager exists; a simulated robot invents them.
+    # A simulated robot streams decisions to stay; the moves a Skill Manager logs arrive as events.
     alice = make_user("alice")
     token = make_robot(alice, "alice-bot")
     simulated_robots.start("alice-bot", token)
@@ -220,8 +222,39 @@ def test_the_robot_page_lists_the_latest_offloading_decisions(browser, simulated
     expect(page.locator(f'[data-location="{SKILL}/sampler"]')).to_have_text("robot")
     expect(page.locator("#decisions tbody tr").first).to_be_visible(timeout=20_000)
     expect(page.locator("#decisions tbody tr").first).to_contain_text(re.compile(r"sampler|detector"))
+    # Logged through the same service the robot door calls: it reaches the open page live...
+    move = {
+        "skill": SKILL,
+        "component": "detector",
+        "location": "robot",
+        "target": "cloud",
+        "outcome": "moved",
+        "reason": "estimate above threshold + hysteresis",
+        "policy": "performance",
+        "cost_robot": 0.9,
+        "cost_cloud": 0.2,
+        "estimated_reward": 0.7,
+        "threshold": 0.2,
+        "hysteresis": 0.05,
+        "trained": False,
+        "samples_seen": 40,
+        "inputs": {"cpu_available": 0.1, "location": "robot"},
+        "decided_at": time.time(),
+        "duration_s": 0.5,
+    }
+    # In a thread of its own: Playwright's loop runs in this one, and the service broadcasts with async_to_sync.
+    with ThreadPoolExecutor(1) as pool:
+        pool.submit(report_offloading_decision, "alice-bot", OffloadingDecision.model_validate(move)).result()
+    moved = page.locator('#decisions tbody tr[data-outcome="moved"]')
+    expect(moved).to_contain_text("moved → cloud")
+    expect(moved).to_contain_text("detector")
     page.locator("#decisions").scroll_into_view_if_needed()
     browser.screenshot("robot-decisions", full_page=False)
+    # ... and is read back from the event log on the next visit, beside the decisions to stay.
+    page.reload()
+    browser.wait_live()
+    expect(moved).to_contain_text("moved → cloud")
+    expect(page.locator('#decisions tbody tr[data-outcome="stay"]').first).to_be_visible(timeout=20_000)
 
 
 def test_a_command_to_an_offline_robot_says_so(browser):

@@ -763,7 +763,13 @@ class RobotController:
         await self._set_status(record, name, CS.MIGRATING, current)
         # The old copy keeps serving until the new one runs and the router switches (no downtime window).
         if target == "robot":
-            await self.place_component(record, name, location="robot")
+            try:
+                await self.place_component(record, name, location="robot")
+            except Exception as exc:
+                if current == "cloud":  # the cloud copy keeps serving when the robot copy cannot start
+                    record.locations[name] = "cloud"
+                    await self._set_status(record, name, CS.RUNNING, "cloud", f"move to the robot failed: {exc}")
+                raise
         else:
             await self._start_in_cloud(record, name)
         router = self._router(record)

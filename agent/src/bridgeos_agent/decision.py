@@ -8,10 +8,13 @@ so the agent package still imports (and runs fixed-location or manual Skills) wi
 Each component owns a :class:`DecisionModel`: an MLP shaped by ``NeuralNetworkConfig`` mapping a
 fixed-length feature vector (:data:`FEATURES`) to the predicted migration reward. Until it has seen
 ``trained_after`` samples the :class:`Decider` decides by the estimated reward (from the policy cost
-functions) and trains on it at every decision; afterwards it decides by the model's prediction and
-retrains every ``train_every`` decisions (Algorithm 9). Unlike the thesis, a move needs the reward
-to clear the threshold by a margin (hysteresis) and none may follow another within a cooldown, so
-components do not flap when the reward is noisy.
+functions), records every decision as a sample and trains every ``warmup_train_every`` of them;
+afterwards it decides by the model's prediction and retrains every ``train_every`` decisions
+(Algorithm 9). Unlike the thesis, a move needs the reward to clear the threshold by a margin
+(hysteresis), none may follow another within a cooldown, so components do not flap when the reward
+is noisy, and a trained network decides only while its recent error against the estimate stays
+within the hysteresis margin (an under-trained network that never moves anything costs more than
+the estimate it learns from).
 
 All models of one shape are evaluated together: one batched matmul per layer for inference and
 one batched forward/backward with an elementwise Adam for training, so 2000 components cost about
@@ -24,6 +27,7 @@ import io
 import math
 import os
 from array import array
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from itertools import pairwise
@@ -66,6 +70,9 @@ FEATURES: tuple[str, ...] = (
 )
 N_FEATURES = len(FEATURES)
 
+#: Decisions over which a trained network's error against the estimate is averaged (the trust gate).
+TRUST_WINDOW = 5
+
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
 
@@ -103,6 +110,20 @@ class Features:
     location: Side = "robot"
     cost_robot: float = 0.0
     cost_cloud: float = 0.0
+
+    def as_dict(self) -> dict[str, float | str]:
+        """Return the fields as plain data (dataclasses.asdict is ten times slower: 2000 of these a second)."""
+        return {
+            "cpu_available": self.cpu_available,
+            "ram_available": self.ram_available,
+            "bandwidth_available": self.bandwidth_available,
+            "latency": self.latency,
+            "loss": self.loss,
+            "battery": self.battery,
+            "location": self.location,
+            "cost_robot": self.cost_robot,
+            "cost_cloud": self.cost_cloud,
+        }
 
     def vector(self) -> list[float]:
         """Return the model input, in the order of FEATURES."""
@@ -171,15 +192,16 @@ class DecisionModel:
         return predict_many([self], [features])[0]
 
     def record(self, features: Sequence[float], reward: float) -> bool:
-        """Store a sample and tell whether a training step is due (every sample until trained)."""
+        """Store a sample and tell whether a training step is due (every warmup_train_every until trained)."""
         start = self._next_row * self._row
         self.buffer[start : start + self._row] = array("f", [*features, reward])
         self._next_row = (self._next_row + 1) % self.buffer_size
         self.buffered = min(self.buffered + 1, self.buffer_size)
-        trained = self.trained
+        # Training every warm-up sample would cost 2000 components a quarter of a core until trained.
+        every = self.config.train_every if self.trained else self.config.warmup_train_every
         self.samples_seen += 1
         self.since_training += 1
-        return not trained or self.since_training >= self.config.train_every
+        return self.since_training >= every
 
     def observe(self, features: Sequence[float], reward: float) -> float | None:
         """Store a sample and train if due; return the training loss, or None if no step ran."""
@@ -403,6 +425,8 @@ class Decision:
     trained: bool
     samples_seen: int
     features: dict[str, float | str]
+    network_error: float | None = None  # the network's recent mean error against the estimate
+    trusted: bool = False  # whether the network's prediction decided
 
     def as_dict(self) -> dict[str, Any]:
         """Return the record as JSON-ready plain data."""
@@ -418,15 +442,21 @@ class Decider:
         config: ManagerConfig | None = None,
         *,
         model: DecisionModel | None = None,
-        hysteresis: float = 0.05,
-        cooldown: float = 60.0,
+        hysteresis: float | None = None,
+        cooldown: float | None = None,
     ) -> None:
         self.component = component
         self.config = config or ManagerConfig()
-        self.hysteresis = hysteresis
-        self.cooldown = cooldown
+        self.hysteresis = self.config.hysteresis if hysteresis is None else hysteresis
+        self.cooldown = self.config.cooldown if cooldown is None else cooldown
         self._model = model
         self.last_move: float | None = None
+        self._errors: deque[float] = deque(maxlen=TRUST_WINDOW)
+
+    @property
+    def network_error(self) -> float | None:
+        """Return the trained network's mean absolute error against the estimate over recent decisions."""
+        return sum(self._errors) / len(self._errors) if self._errors else None
 
     @property
     def model(self) -> DecisionModel:
@@ -457,8 +487,13 @@ class Decider:
     def _conclude(self, given: DecisionInput, now: float, prediction: float | None) -> tuple[Decision, bool]:
         """Compare the reward with the threshold, record the sample; return the decision and whether training is due."""
         usable = prediction is not None and math.isfinite(prediction)
-        reward = prediction if usable else given.estimated_reward
-        source = "prediction" if usable else "estimate"
+        trusted = False
+        if usable:
+            # The trust gate: a network that strays from the policy it learns from does not decide.
+            self._errors.append(abs(prediction - given.estimated_reward))
+            trusted = self.network_error <= self.hysteresis  # type: ignore[operator]
+        reward = prediction if trusted else given.estimated_reward
+        source = "prediction" if trusted else "estimate"
         threshold = self.config.threshold
         if not reward >= threshold + self.hysteresis:
             migrate, reason = False, f"{source} below threshold + hysteresis"
@@ -466,11 +501,19 @@ class Decider:
             migrate, reason = False, f"{source} above threshold, but cooling down after the last move"
         else:
             migrate, reason = True, f"{source} above threshold + hysteresis"
+        if usable and not trusted:
+            reason += f" (network error {self.network_error:.3g} exceeds the hysteresis)"
         due = self.model.record(given.features.vector(), given.estimated_reward)
-        return self._record(given, now, migrate, reason, prediction), due
+        return self._record(given, now, migrate, reason, prediction, trusted), due
 
     def _record(
-        self, given: DecisionInput, now: float, migrate: bool, reason: str, prediction: float | None
+        self,
+        given: DecisionInput,
+        now: float,
+        migrate: bool,
+        reason: str,
+        prediction: float | None,
+        trusted: bool = False,
     ) -> Decision:
         """Build the decision record and remember a move for the cooldown."""
         if migrate:
@@ -490,7 +533,9 @@ class Decider:
             hysteresis=self.hysteresis,
             trained=model is not None and model.trained,
             samples_seen=model.samples_seen if model is not None else 0,
-            features=asdict(given.features),
+            features=given.features.as_dict(),
+            network_error=self.network_error if prediction is not None else None,
+            trusted=trusted,
         )
 
 

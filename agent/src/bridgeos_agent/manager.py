@@ -2,26 +2,32 @@
 
 One manager per active Skill, run by the Skill's supervisor. Every ``decision_interval`` it
 costs each movable component at both locations under the Skill's policy (equations
-4.1-4.6, ``policies``), asks each component's decision module (Algorithms 8-9,
+4.1-4.6, ``policies``) from the runtime's measurements, the robot's state and the Skill
+Router's traffic figures, asks each component's decision module (Algorithms 8-9,
 ``decision``) and moves the components whose decision says so through the controller
-(Algorithm 1 for a move to the robot). Each decision is sent to the cloud as an
-``offloading.decision`` metric point; decision models are kept on disk between launches.
+(Algorithm 1 for a move to the robot). Each move, done or failed, is logged in the cloud as
+an ``offloading_decision`` event; each decision to stay is an ``offloading.decision`` metric
+point. Decision models are kept on disk between launches.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
+import math
 import time
 from typing import TYPE_CHECKING, Any
 
 from bridgeos_agent.componentsapi import ComponentsAPI, MetricStore
 from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, decide_batch
 from bridgeos_agent.heuristics import Resources
-from bridgeos_agent.policies import Metrics, PolicyEstimator
+from bridgeos_agent.monitor import Reporter
+from bridgeos_agent.policies import Metrics, PolicyCosts, PolicyEstimator
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.robotconfig import RobotConfig
+from bridgeos_agent.traffic import ComponentTraffic
 
 if TYPE_CHECKING:
     from bridgeos_agent.controller import RobotController, SkillRecord
@@ -32,6 +38,9 @@ __all__ = ["SkillManager", "skill_manager_plugin"]
 logger = logging.getLogger(__name__)
 
 DECISION_METRIC = "offloading.decision"
+# A decision to stay is sent when its reward changed, else at least this often (seconds): 2000
+# components deciding at 1 Hz would otherwise write 2000 rows a second to the cloud.
+STAY_POINT_EVERY = 30.0
 
 
 class SkillManager:
@@ -44,9 +53,14 @@ class SkillManager:
         self.deciders: dict[str, Decider] = {}
         self.recommendations: dict[str, str] = {}  # component -> location a component or operator asked for
         self.last: dict[str, Decision] = {}
+        # ROS message loss rate per component and location; a location it never ran at keeps its last value.
+        self.loss: dict[str, dict[str, float]] = {}
         self.model_dir = controller.data_dir / "models" / skill_id
         self.store = MetricStore()
         self.api: ComponentsAPI | None = None
+        self._estimator: tuple[tuple[Any, ...], PolicyEstimator] | None = None
+        self._cost_failures: dict[str, str] = {}  # component -> the cost function error last logged
+        self._stays = Reporter(max_interval=STAY_POINT_EVERY, relative=0.05, absolute=0.01)
 
     # ------------------------------------------------------------------ the Components API's view
 
@@ -137,30 +151,86 @@ class SkillManager:
             decider = self.deciders[name] = Decider(name, manager_config, model=model)
         return decider
 
-    def _inputs(self, names: list[str]) -> tuple[list[DecisionInput], dict[str, Any]]:
-        """Build each component's decision input from the controller's measurements."""
+    def _estimator_for(self, robot_config: RobotConfig, capacity: Resources) -> PolicyEstimator:
+        """Return the policy estimator, compiled again only when a config changed."""
+        manager_config = self.record.config.manager
+        key = (robot_config, manager_config, capacity)
+        if self._estimator is None or self._estimator[0] != key:
+            self._estimator = (key, PolicyEstimator.of(robot_config, manager_config, capacity))
+        return self._estimator[1]
+
+    def _traffic(self, name: str) -> ComponentTraffic | None:
+        """Ask the Skill's router what it measured of a component's traffic (None: no router or no routes)."""
+        supervisor = self.record.supervisor
+        router = supervisor.context.get("router") if supervisor is not None else None
+        if router is None:
+            return None
+        try:
+            traffic = router.traffic(name)
+        except (KeyError, LookupError, ValueError):
+            return None  # the router routes nothing of this component
+        return traffic if isinstance(traffic, ComponentTraffic) else None
+
+    def _inputs(self, names: list[str]) -> tuple[list[str], list[DecisionInput], dict[str, Any]]:
+        """Build each component's decision input; return the components costed, their inputs and costs."""
         controller, record = self.controller, self.record
         robot_config = controller.config or RobotConfig()
         capacity = Resources.of(robot_config.resources)
-        estimator = PolicyEstimator.of(robot_config, record.config.manager, capacity)
+        estimator = self._estimator_for(robot_config, capacity)
         policy = record.config.manager.policy
         sample = controller.monitor.latest
         values = sample.values if sample else {}
         free = sample.free if sample else {}
-        inputs, costs = [], {}
         # Latency: a component on the robot answers locally; one in the cloud is a link round
-        # trip away, measured by the WebSocket keepalive. (Loss rates come with the router.)
+        # trip away, measured by the WebSocket keepalive.
         ws = controller.ws
         rtt = float(getattr(ws, "latency", 0.0) or 0.0) if ws is not None else 0.0
-        metrics = Metrics(latency_robot=0.0, latency_cloud=rtt)
+        robot_state = Metrics(
+            latency_robot=0.0,
+            latency_cloud=rtt,
+            # Unknown (no sample yet) counts as the robot's whole capacity, as for the features.
+            cpu_free=float(free.get("cpu", capacity.cpu)),
+            ram_free=float(free.get("ram", capacity.ram)),
+            bandwidth_available=float(values.get("bandwidth_available", capacity.bandwidth)),
+            battery=float(values.get("battery", 100.0)),
+        )
+        costed, inputs, costs = [], [], {}
         for name in names:
             config = record.config.components[name]
             location = record.locations[name]
-            measured = controller._usage.get((self.skill_id, name))
-            usage = Resources(cpu=measured.cpu, ram=measured.ram) if measured else Resources.of(config.resources)
-            estimate = estimator.estimate(policy, location, usage, metrics, config.ros)
-            costs[name] = estimate
             needs = Resources.of(config.resources)
+            measured = controller._usage.get((self.skill_id, name))
+            # The runtime measures CPU and RAM only: bandwidth, GPU and I/O stay as declared.
+            usage = dataclasses.replace(needs, cpu=measured.cpu, ram=measured.ram) if measured else needs
+            loss = self.loss.setdefault(name, {"robot": 0.0, "cloud": 0.0})
+            metrics = robot_state
+            if location == "cloud":
+                # What the robot would have free with this component on it: costing the robot with
+                # its own share still free would call it back, only to send it away again (a flap).
+                metrics = dataclasses.replace(
+                    robot_state,
+                    cpu_free=max(0.0, robot_state.cpu_free - needs.cpu),
+                    ram_free=max(0.0, robot_state.ram_free - needs.ram),
+                )
+            traffic = self._traffic(name)
+            if traffic is not None:
+                if traffic.messages:
+                    loss[location] = traffic.loss_rate
+                gb_local, gb_cloud = traffic.gb_per_hour()
+                metrics = dataclasses.replace(metrics, gb_local=gb_local, gb_cloud=gb_cloud)
+            if config.ros:
+                metrics = dataclasses.replace(metrics, loss_rate_robot=loss["robot"], loss_rate_cloud=loss["cloud"])
+            try:
+                estimate = estimator.estimate(policy, location, usage, metrics, config.ros)
+            except ValueError as exc:
+                # A user cost function that fails here (say, a division by a zero free CPU) skips
+                # this component's decision; it is logged once per distinct error, not every interval.
+                if self._cost_failures.get(name) != str(exc):
+                    self._cost_failures[name] = str(exc)
+                    logger.warning("skill %s: cannot cost %s: %s", self.skill_id, name, exc)
+                continue
+            self._cost_failures.pop(name, None)
+            costs[name] = estimate
             # A move to the robot needs room there; unknown (no sample yet) counts as room.
             resources_ok = location == "robot" or not free or needs.fits(Resources(**free))
             features = Features(
@@ -169,11 +239,13 @@ class SkillManager:
                 bandwidth_available=_share(values.get("bandwidth_available"), capacity.bandwidth),
                 battery=(values["battery"] / 100) if "battery" in values else 1.0,
                 latency=rtt,
+                loss=loss[location],
                 location=location,
                 cost_robot=estimate.cost_robot,
                 cost_cloud=estimate.cost_cloud,
             )
             wanted = self.recommendations.pop(name, None)
+            costed.append(name)
             inputs.append(
                 DecisionInput(
                     location=location,
@@ -185,7 +257,7 @@ class SkillManager:
                     recommendation=None if wanted is None else wanted != location,
                 )
             )
-        return inputs, costs
+        return costed, inputs, costs
 
     async def step(self) -> list[Decision]:
         """Decide once for every movable component and carry out the moves."""
@@ -195,12 +267,22 @@ class SkillManager:
         names = self.movable()
         if not names:
             return []
-        inputs, costs = self._inputs(names)
+        names, inputs, costs = self._inputs(names)
+        if not names:
+            return []
         decisions = decide_batch([self._decider(name) for name in names], inputs, self.clock())
         now = time.time()
-        points = []
         for decision in decisions:
             self.last[decision.component] = decision
+        # A move is logged as an offloading_decision event once carried out; a stay, as a point when it changed.
+        readings = [
+            (DECISION_METRIC, float(d.estimated_reward), self.skill_id, d.component) for d in decisions if not d.migrate
+        ]
+        changed = {point["component"] for point in self._stays.select(now, readings)}
+        points = []
+        for decision in decisions:
+            if decision.component not in changed:
+                continue
             estimate = costs[decision.component]
             points.append(
                 {
@@ -210,7 +292,7 @@ class SkillManager:
                     "skill": self.skill_id,
                     "component": decision.component,
                     "labels": {
-                        "decision": "migrate" if decision.migrate else "stay",
+                        "decision": "stay",
                         "location": decision.location,
                         "target": decision.target,
                         "cost_robot": f"{estimate.cost_robot:.6g}",
@@ -220,21 +302,30 @@ class SkillManager:
                     },
                 }
             )
-        await self.controller.emit(Event.METRICS, {"metrics": points})
+        if points:
+            await self.controller.emit(Event.METRICS, {"metrics": points})
         for decision in decisions:
             if decision.migrate:
-                await self._move(decision)
+                await self._move(decision, costs[decision.component], now)
         return decisions
 
-    async def _move(self, decision: Decision) -> None:
+    async def _move(self, decision: Decision, estimate: PolicyCosts, decided_at: float) -> None:
+        """Move a component as decided and log the move, done or failed, in the cloud."""
         record = self.record
+        started = time.perf_counter()
+        error = None
         try:
             await self.controller.migrate_component(record, decision.component, decision.target)
             self.save_placement()
-        except Exception as exc:  # e.g. no room on the robot: the next decision tries again
+        except Exception as exc:  # e.g. no room on the robot: the next decision after the cooldown tries again
+            error = str(exc) or type(exc).__name__
             logger.warning(
-                "skill %s: moving %s to the %s failed: %s", self.skill_id, decision.component, decision.target, exc
+                "skill %s: moving %s to the %s failed: %s", self.skill_id, decision.component, decision.target, error
             )
+        await self.controller.emit(
+            Event.OFFLOADING_DECISION,
+            decision_event(decision, estimate, decided_at, time.perf_counter() - started, error, self.skill_id),
+        )
 
     def save_placement(self) -> None:
         """Remember where the movable components run, for the Skill's next first placement."""
@@ -288,6 +379,54 @@ class SkillManager:
             points.extend({"name": name, "value": float(value), "ts": now} for name, value in sample.values.items())
         if points:
             self.store.publish(points)
+
+
+def decision_event(
+    decision: Decision,
+    estimate: PolicyCosts,
+    decided_at: float,
+    duration_s: float,
+    error: str | None,
+    skill_id: str,
+) -> dict[str, Any]:
+    """Describe a carried-out move as the data of an ``offloading_decision`` event."""
+    inputs = {
+        key: (value if isinstance(value, str) else float(value))
+        for key, value in decision.features.items()
+        if isinstance(value, str) or math.isfinite(value)
+    }
+    prediction = decision.prediction
+    data: dict[str, Any] = {
+        "skill": skill_id,
+        "component": decision.component,
+        "location": decision.location,
+        "target": decision.target,
+        "outcome": "failed" if error else "moved",
+        "reason": decision.reason[:1000],
+        "policy": estimate.policy,
+        "cost_robot": _finite(estimate.cost_robot),
+        "cost_cloud": _finite(estimate.cost_cloud),
+        "estimated_reward": _finite(decision.estimated_reward),
+        "prediction": prediction if prediction is not None and math.isfinite(prediction) else None,
+        "threshold": float(decision.threshold),
+        "hysteresis": float(decision.hysteresis),
+        "trained": decision.trained,
+        "samples_seen": decision.samples_seen,
+        "inputs": inputs,
+        "decided_at": decided_at,
+        "duration_s": max(0.0, duration_s),
+    }
+    if error:
+        data["error"] = error[:2000]
+    return data
+
+
+def _finite(value: float) -> float:
+    """Return a float the protocol accepts: an infinite cost is clamped to the largest float."""
+    value = float(value)
+    if math.isnan(value):
+        return 0.0
+    return max(-1.7e308, min(1.7e308, value))
 
 
 def _share(free: float | None, capacity: float) -> float:

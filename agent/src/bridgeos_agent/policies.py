@@ -55,6 +55,8 @@ RESOURCE_KINDS = ("cpu", "gpu", "ram", "bandwidth", "io")
 DEFAULT_WIRELESS = frozenset({"wifi"})
 # Variables every cost function may read besides the Skill's own constants.
 METRIC_NAMES = ("gb_local", "gb_cloud", "gb_total", "latency", "loss_rate", "ros")
+# The robot's state as last measured: free CPU cores, free RAM MiB, link Mbit/s, battery %.
+ROBOT_STATE_NAMES = ("cpu_free", "ram_free", "bandwidth_available", "battery")
 PRICE_NAMES = ("per_gb", "per_kwh")
 
 
@@ -105,6 +107,13 @@ class Metrics:
     latency_cloud: float = 0.0
     loss_rate_robot: float = 0.0
     loss_rate_cloud: float = 0.0
+    # The robot's state when the decision is taken (same at both locations): free CPU cores and
+    # RAM MiB with the component on the robot (for one in the cloud: what a move there would
+    # leave), the link's available bandwidth (Mbit/s) and the battery charge (%, 100 on mains).
+    cpu_free: float = 0.0
+    ram_free: float = 0.0
+    bandwidth_available: float = 0.0
+    battery: float = 100.0
 
     @property
     def gb_total(self) -> float:
@@ -212,7 +221,9 @@ def parse_cost_function_key(key: str) -> tuple[str, Site]:
 
 def cost_function_names(user_constants: Iterable[str] = ()) -> frozenset[str]:
     """Return the variables a cost function may read: resources, metrics, costs, prices, constants."""
-    return frozenset((*RESOURCE_KINDS, *METRIC_NAMES, *PRICE_NAMES, *BUILTIN_POLICIES, *user_constants))
+    return frozenset(
+        (*RESOURCE_KINDS, *METRIC_NAMES, *ROBOT_STATE_NAMES, *PRICE_NAMES, *BUILTIN_POLICIES, *user_constants)
+    )
 
 
 def cost_function_issues(cost_functions: Mapping[str, str], constants: Iterable[str]) -> list[tuple[str | None, str]]:
@@ -287,6 +298,10 @@ class PolicyEstimator:
             latency=metrics.latency(location),
             loss_rate=metrics.loss_rate(location),
             ros=1.0 if ros else 0.0,
+            cpu_free=metrics.cpu_free,
+            ram_free=metrics.ram_free,
+            bandwidth_available=metrics.bandwidth_available,
+            battery=metrics.battery,
             per_gb=constants.per_gb,
             per_kwh=constants.per_kwh,
         )

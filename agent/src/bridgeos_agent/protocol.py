@@ -16,7 +16,7 @@ import re
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     AfterValidator,
@@ -68,6 +68,7 @@ __all__ = [
     "Metrics",
     "MetricsGet",
     "Offloading",
+    "OffloadingDecision",
     "OffloadingGet",
     "OffloadingMode",
     "Payload",
@@ -141,6 +142,8 @@ class Event(enum.StrEnum):
     METRICS = "metrics"
     METRICS_GET = "metrics_get"
     ACK = "ack"
+    # Not in the thesis: the Skill Manager's log of each move it decided (issue 6).
+    OFFLOADING_DECISION = "offloading_decision"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -493,6 +496,30 @@ class MetricsGet(RobotScoped):
     limit: Annotated[int, Strict(), Field(ge=1, le=MAX_METRICS_PER_FRAME)] | None = None
 
 
+class OffloadingDecision(RobotScoped):
+    """Log one move a Skill Manager decided: its inputs, both costs, the prediction and the outcome."""
+
+    skill: Slug
+    component: Slug
+    location: Target  # where the component ran
+    target: Target  # where the decision sent it
+    outcome: Literal["moved", "failed"]
+    reason: Reason  # why the manager decided to move it
+    error: Message | None = None  # why the move failed
+    policy: ShortText
+    cost_robot: FiniteFloat
+    cost_cloud: FiniteFloat
+    estimated_reward: FiniteFloat
+    prediction: FiniteFloat | None = None
+    threshold: FiniteFloat
+    hysteresis: FiniteFloat
+    trained: Annotated[bool, Strict()]
+    samples_seen: Annotated[int, Strict(), Field(ge=0)]
+    inputs: Annotated[dict[LabelKey, FiniteFloat | LabelValue], Field(max_length=32)]
+    decided_at: Timestamp
+    duration_s: Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
+
+
 class Ack(Payload):
     """Acknowledge the frame named by the envelope's ``reply_to``."""
 
@@ -530,6 +557,7 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.METRICS: Metrics,
     Event.METRICS_GET: MetricsGet,
     Event.ACK: Ack,
+    Event.OFFLOADING_DECISION: OffloadingDecision,
 }
 
 
@@ -575,6 +603,7 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.METRICS: frozenset({_R2C, _C2K}),
     Event.METRICS_GET: frozenset({_K2C, _C2R}),
     Event.ACK: _ALL,
+    Event.OFFLOADING_DECISION: frozenset({_R2C, _C2K}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,
@@ -601,6 +630,7 @@ REQUIRES_ACK: frozenset[Event] = frozenset(
         Event.COMPONENT_LOCATION,
         Event.COMPONENT_MIGRATE,
         Event.METRICS,
+        Event.OFFLOADING_DECISION,
     }
 )
 

@@ -692,8 +692,22 @@ class SkillRouter:
             dropped += counts[2]
         return robot, cloud, messages, dropped
 
+    def routed(self, component: str) -> bool:
+        """Tell whether any route of the Skill's config involves a component."""
+        router = self.config.router
+        return (
+            any(t.publisher == component or component in t.subscribers for t in router.topics)
+            or any(s.server == component for s in router.services)
+            or any(h.component == component for h in router.http)
+        )
+
     def traffic(self, component: str) -> ComponentTraffic:
-        """Return what was routed to or from a component since the previous call (the manager's input)."""
+        """Return what was routed to or from a component since the previous call (the manager's input).
+
+        Raises KeyError for a component no route involves: the router measures nothing of it.
+        """
+        if not self.routed(component):
+            raise KeyError(f"skill {self.skill!r} routes nothing of component {component!r}")
         now = self.clock()
         totals = self._totals(component)
         since, before = self._last_traffic.get(component, (self._started, (0, 0, 0, 0)))

@@ -149,13 +149,19 @@ class NeuralNetworkConfig(_Model):
         default=1000,
         ge=1,
         le=1_000_000,
-        description="Training steps before the network's predictions are trusted.",
+        description="Samples (decisions) before the network's predictions are trusted.",
     )
     train_every: int = Field(
         default=10,
         ge=1,
         le=100_000,
         description="Decisions between two retraining steps of a trained network.",
+    )
+    warmup_train_every: int = Field(
+        default=4,
+        ge=1,
+        le=100_000,
+        description="Decisions between two training steps while the network warms up (every one is recorded).",
     )
 
 
@@ -176,6 +182,17 @@ class ManagerConfig(_Model):
         le=3600,
         allow_inf_nan=False,
         description="Seconds between two offloading decisions for a component.",
+    )
+    hysteresis: NonNegative = Field(
+        default=0.05,
+        description="Margin the migration reward must clear above the threshold, so noise does not flap.",
+    )
+    cooldown: float = Field(
+        default=30.0,
+        ge=0,
+        le=86_400,
+        allow_inf_nan=False,
+        description="Seconds a component stays put after a move before it may move again.",
     )
     neural_network: NeuralNetworkConfig = Field(default_factory=NeuralNetworkConfig)
     constants: dict[Identifier, FiniteFloat] = Field(

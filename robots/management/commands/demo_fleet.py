@@ -11,10 +11,20 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from robots.models import Robot
 from robots.services import create_robot, issue_api_token, rotate_token
-from skills.models import Skill
+from skills.models import Skill, SkillTemplate
 from skills.services import add_skill
 
 SAMPLE = "demo_telemetry.json"
+# The thesis's use cases (§5.3): in the catalog always; on demo robots (one each, in turn) with --usecases.
+USE_CASES = {
+    "people_detection.json": ("Detects people in a depth camera's pointclouds (thesis §5.3).", ["vision", "ros"]),
+    "navigation.json": ("Drives a simulated robot to goals with a cloud path planner (thesis §5.3).", ["nav", "ros"]),
+    "mapping.json": ("Maps a room from a simulated robot's laser and odometry (thesis §5.3).", ["mapping", "ros"]),
+}
+
+
+def sample(name: str) -> dict[str, Any]:
+    return json.loads(resources.files("bridgeos_agent").joinpath("samples", name).read_text())
 
 
 class Command(BaseCommand):
@@ -23,6 +33,9 @@ class Command(BaseCommand):
     def add_arguments(self, parser: CommandParser) -> None:
         parser.add_argument("--count", type=int, default=3, help="How many demo robots (default 3).")
         parser.add_argument("--owner", required=True, help="Username owning the demo robots.")
+        parser.add_argument(
+            "--usecases", action="store_true", help="Also give each robot a use-case Skill (needs ROS)."
+        )
 
     def handle(self, *args: Any, **options: Any) -> None:
         if not 0 <= options["count"] <= 500:
@@ -30,7 +43,14 @@ class Command(BaseCommand):
         owner = get_user_model().objects.filter(username=options["owner"]).first()
         if owner is None:
             raise CommandError(f"No user named {options['owner']!r}.")
-        config = json.loads(resources.files("bridgeos_agent").joinpath("samples", SAMPLE).read_text())
+        config = sample(SAMPLE)
+        use_cases = []
+        for name, (description, tags) in USE_CASES.items():
+            use_case = sample(name)
+            SkillTemplate.objects.update_or_create(
+                name=use_case["skill"], defaults={"config": use_case, "description": description, "tags": tags}
+            )
+            use_cases.append(use_case)
         robots = []
         for n in range(1, options["count"] + 1):
             robot_id = f"demo-{n}"
@@ -40,7 +60,10 @@ class Command(BaseCommand):
             else:
                 # Tokens are stored hashed: a restarted demo gets fresh ones.
                 token = rotate_token(robot)
-            if not Skill.objects.filter(robot=robot, skill_id=config["skill_id"]).exists():
-                add_skill(robot, config)
-            robots.append({"id": robot_id, "token": token, "skill": config["skill_id"]})
+            skills = [config] + ([use_cases[(n - 1) % len(use_cases)]] if options["usecases"] else [])
+            for skill in skills:
+                if not Skill.objects.filter(robot=robot, skill_id=skill["skill_id"]).exists():
+                    add_skill(robot, skill)
+            ids = [skill["skill_id"] for skill in skills]
+            robots.append({"id": robot_id, "token": token, "skill": config["skill_id"], "skills": ids})
         self.stdout.write(json.dumps({"robots": robots, "api_token": issue_api_token(owner)[0]}))

@@ -27,6 +27,7 @@ import random
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Mapping
@@ -93,7 +94,14 @@ INHERITED_ENV = frozenset(
 
 def _inherited_env() -> dict[str, str]:
     """Return the part of the agent's environment components inherit."""
-    return {k: v for k, v in os.environ.items() if k in INHERITED_ENV or k.startswith("LC_")}
+    env = {k: v for k, v in os.environ.items() if k in INHERITED_ENV or k.startswith("LC_")}
+    # The agent's own scripts (bridgeos-usecase) sit beside its interpreter: reachable even when
+    # its venv is not activated, and last, so they never shadow what PATH already finds.
+    scripts = os.path.dirname(sys.executable)
+    path = env.get("PATH", os.defpath)
+    if scripts and scripts not in path.split(os.pathsep):
+        env["PATH"] = f"{path}{os.pathsep}{scripts}"
+    return env
 
 
 @dataclass(eq=False, slots=True)

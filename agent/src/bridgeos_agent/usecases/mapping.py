@@ -1,0 +1,110 @@
+"""Autonomous Mapping's Mapping: a log-odds occupancy grid from ``scan`` at the ``odom`` poses.
+
+Pairs each sensor_msgs/LaserScan with the odometry of the same stamp (waiting a moment for
+it), folds it into the grid and publishes nav_msgs/OccupancyGrid on ``map`` every
+``--period`` seconds. Reports ``message_loss_pct`` of scans and odometry, and scans used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import threading
+
+from bridgeos_agent.usecases.world import get_world
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="bridgeos-usecase mapping", description=__doc__.splitlines()[0])
+    parser.add_argument("--world", default="office", help="world whose extent to map (office, room)")
+    parser.add_argument("--resolution", type=float, default=0.1, help="metres a cell")
+    parser.add_argument("--period", type=float, default=1.0, help="seconds between map publications")
+    args = parser.parse_args(argv)
+    if not (0.02 <= args.resolution <= 1 and 0.1 <= args.period <= 3600):
+        parser.error("need 0.02 <= --resolution <= 1 and 0.1 <= --period <= 3600")
+    try:
+        args.world = get_world(args.world)
+    except ValueError as exc:
+        parser.error(str(exc))
+    return args
+
+
+def main(argv: list[str]) -> int:
+    args = parse_args(argv)
+    import numpy as np
+    import rospy
+    from nav_msgs.msg import OccupancyGrid, Odometry
+    from sensor_msgs.msg import LaserScan
+    from std_msgs.msg import Header
+
+    from bridgeos_agent.usecases.occupancy import LogOddsMap
+    from bridgeos_agent.usecases.rosio import LossCounter, Metrics, grid_message, pose_of
+
+    rospy.init_node("mapping")
+    metrics = Metrics("mapping")
+    scans_loss, odom_loss = LossCounter(), LossCounter()
+    grid = args.world.grid(args.resolution)
+    built = LogOddsMap(grid)
+    poses: collections.OrderedDict[int, object] = collections.OrderedDict()
+    waiting: collections.deque[LaserScan] = collections.deque()
+    unpaired = 0
+    publisher = rospy.Publisher("map", OccupancyGrid, queue_size=1, latch=True)
+    # rospy runs each subscription's callbacks on a thread of its own.
+    lock = threading.Lock()
+
+    def fold(scan: LaserScan, pose: object) -> None:
+        n = len(scan.ranges)
+        angles = scan.angle_min + np.arange(n) * scan.angle_increment
+        built.integrate(pose, angles, np.asarray(scan.ranges, dtype=np.float64), scan.range_max)
+
+    def drain() -> None:
+        nonlocal unpaired
+        while waiting:
+            scan = waiting[0]
+            pose = poses.get(scan.header.stamp.to_nsec())
+            if pose is not None:
+                fold(waiting.popleft(), pose)
+            elif poses and next(reversed(poses)) > scan.header.stamp.to_nsec() + 2_000_000_000:
+                waiting.popleft()  # its odometry never came (lost): two seconds is long enough
+                unpaired += 1
+            else:
+                break
+
+    def on_scan(scan: LaserScan) -> None:
+        with lock:
+            scans_loss.update(scan.header.seq)
+            waiting.append(scan)
+            while len(waiting) > 100:
+                waiting.popleft()
+            drain()
+
+    def on_odom(message: Odometry) -> None:
+        with lock:
+            odom_loss.update(message.header.seq)
+            poses[message.header.stamp.to_nsec()] = pose_of(message.pose.pose)
+            while len(poses) > 400:
+                poses.popitem(last=False)
+            drain()
+
+    def publish(_event: object) -> None:
+        header = Header(stamp=rospy.Time.now(), frame_id="map")
+        with lock:
+            values = built.occupancy()
+        publisher.publish(grid_message(header, values, args.resolution, (grid.origin_x, grid.origin_y)))
+
+    def report(_event: object) -> None:
+        metrics.report("message_loss_pct", scans_loss.loss_pct, topic="scan")
+        metrics.report("message_loss_pct", odom_loss.loss_pct, topic="odom")
+        metrics.report("scans_mapped", float(built.scans), unpaired=str(unpaired))
+
+    rospy.Subscriber("scan", LaserScan, on_scan, queue_size=20)
+    rospy.Subscriber("odom", Odometry, on_odom, queue_size=100)
+    timers = [rospy.Timer(rospy.Duration(args.period), publish), rospy.Timer(rospy.Duration(5.0), report)]
+    print(f"[mapping] {grid.width}x{grid.height} cells of {args.resolution} m", flush=True)
+    try:
+        rospy.spin()
+    finally:
+        for timer in timers:
+            timer.shutdown()
+        metrics.close()
+    return 0

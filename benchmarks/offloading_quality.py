@@ -1,0 +1,473 @@
+"""Offloading quality: the Skill Manager against every static placement and the hindsight oracle (issue 10).
+
+A real cloud (daphne started here, PostgreSQL, Redis), the real Robot Controller with the process
+runtime and the real Skill Manager run a Skill of four movable components on a simulated robot
+(``monitor.SimulatedRobot``) whose background CPU load and link bandwidth follow scripted phases
+(idle or busy robot, good or poor link), with noise. The components burn the CPU they declare, so
+the runtime's measurements are real. The Skill's custom policy costs each component as a delay:
+on the robot its CPU over the robot's free CPU, in the cloud a round trip plus its data over the
+link's bandwidth (``POLICY`` below). The manager decides every half second (threshold 2 and
+hysteresis 1, in the policy's units, a few percent of a cost; cooldown 8 s).
+
+Every placement the run went through is costed afterwards with the same PolicyEstimator and cost
+functions, from the script's noiseless conditions and the components' declared usage, and
+compared with: every static placement (2^4 of them) and the hindsight oracle, which runs the best
+static placement of each phase from the phase's first instant. Printed: cost relative to the
+oracle (goal <= 1.05), time to adapt after each change (goal <= 10 s; adapted = a placement
+costing at most 5 % more than the phase's best), migrations, and flaps (a move reversed within 60 s
+with no change of conditions in between; goal <= 1 per 10 minutes).
+
+    .venv/bin/python benchmarks/offloading_quality.py --quick     # 4 phases of 12 s, under a minute
+    .venv/bin/python benchmarks/offloading_quality.py             # 8 phases of 60 s
+
+The last line is one JSON object with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import itertools
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, setup_django
+
+from bridgeos_agent.controller import AgentSettings, RobotController
+from bridgeos_agent.heuristics import Resources
+from bridgeos_agent.monitor import Sample, SimulatedRobot
+from bridgeos_agent.policies import Metrics, PolicyEstimator
+from bridgeos_agent.robotconfig import parse_robot_config
+from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
+
+ROBOT_ID = "offload-bench"
+SKILL_ID = "offload"
+CPU_CORES = 2.0
+LAN_MBITS = 100.0  # the robot's own network, which components on the robot use to reach its sensors
+DECISION_INTERVAL = 0.5
+SAMPLE_INTERVAL = 0.5
+THRESHOLD, HYSTERESIS = 2.0, 1.0  # cost units (delays of 5-70): a few percent of a cost
+COOLDOWN = 8.0
+TIMELINE_STEP = 0.1
+FLAP_WINDOW = 60.0
+ADAPTED_WITHIN = 1.05
+GOALS = {"cost_over_oracle": 1.05, "adapt_s": 10.0, "flaps_per_10min": 1.0}
+
+# Declared usage: cores, Mbit/s exchanged with the robot's sensors (what crosses the link in the cloud).
+COMPONENTS = {
+    "detector": {"cpu": 0.2, "bandwidth": 2.0},
+    "sampler": {"cpu": 0.03, "bandwidth": 30.0},
+    "mapper": {"cpu": 0.08, "bandwidth": 6.0},
+    "planner": {"cpu": 0.1, "bandwidth": 0.5},
+}
+POLICY = {
+    "robot": "cpu_scale * cpu / max(cpu_free, 0.05)",
+    "cloud": "cloud_rtt + link_scale * bandwidth / max(bandwidth_available, 0.5)",
+}
+CONSTANTS = {"cpu_scale": 200.0, "cloud_rtt": 20.0, "link_scale": 100.0}
+
+# Burn a share of one core in short slices: what the component declares is what the runtime measures.
+BURNER = """
+import sys, time
+share, period = float(sys.argv[1]), 0.05
+while True:
+    started, cpu = time.perf_counter(), time.process_time()
+    while time.process_time() - cpu < share * period:
+        pass
+    time.sleep(max(0.0, period - (time.perf_counter() - started)))
+"""
+
+
+@dataclass(frozen=True)
+class Phase:
+    """Conditions held for a while: background CPU load (cores) and the link's bandwidth (Mbit/s)."""
+
+    name: str
+    load: float
+    link: float
+
+
+IDLE_GOOD = Phase("idle robot, good link", 0.2, 100.0)
+BUSY_GOOD = Phase("busy robot, good link", 1.5, 100.0)
+BUSY_POOR = Phase("busy robot, poor link", 1.5, 4.0)
+IDLE_POOR = Phase("idle robot, poor link", 0.2, 4.0)
+QUICK_SCRIPT = [IDLE_GOOD, BUSY_GOOD, BUSY_POOR, IDLE_POOR]
+FULL_SCRIPT = [IDLE_GOOD, BUSY_GOOD, BUSY_POOR, IDLE_POOR, IDLE_GOOD, BUSY_POOR, BUSY_GOOD, IDLE_POOR]
+
+
+@dataclass
+class Script:
+    """Scripted phases of equal length from ``start`` (a time.time() value, set when the Skill runs)."""
+
+    phases: list[Phase]
+    phase_s: float
+    start: float | None = None
+
+    def index(self, elapsed: float) -> int:
+        """Return the phase in force ``elapsed`` seconds after the start."""
+        return max(0, min(len(self.phases) - 1, int(elapsed // self.phase_s)))
+
+    def at(self, now: float) -> Phase:
+        """Return the phase in force at ``now`` (the first until the script starts)."""
+        return self.phases[0] if self.start is None else self.phases[self.index(now - self.start)]
+
+    @property
+    def duration(self) -> float:
+        """Return the script's length in seconds."""
+        return len(self.phases) * self.phase_s
+
+
+@dataclass(slots=True)
+class ScriptedRobot(SimulatedRobot):
+    """A SimulatedRobot whose background CPU load and link bandwidth follow a script, with noise."""
+
+    script: Script = field(default_factory=lambda: Script([IDLE_GOOD], 1.0))
+    load_noise: float = 0.03  # cores, standard deviation
+    link_noise: float = 0.03  # share of the link, standard deviation
+
+    def bandwidth_now(self, now: float) -> float:
+        """Return the link's bandwidth at ``now`` (Mbit/s)."""
+        return max(0.1, self.script.at(now).link * (1 + self._random.gauss(0, self.link_noise)))
+
+    def sample(self, now: float, used, cloud_bytes: tuple[float, float]) -> Sample:
+        """Read the robot with the scripted background load on top of what its components use."""
+        load = max(0.0, self.script.at(now).load + self._random.gauss(0, self.load_noise))
+        sample = SimulatedRobot.sample(self, now, {**used, "cpu": used.get("cpu", 0.0) + load}, cloud_bytes)
+        # bandwidth_available is the link to the cloud; components on the robot reach its sensors over the LAN.
+        sample.free["bandwidth"] = max(0.0, self.bandwidth - used.get("bandwidth", 0.0))
+        return sample
+
+
+def skill_config() -> SkillConfig:
+    """Return the benchmark's Skill: four movable burners under the delay policy."""
+    components = {}
+    for name, usage in COMPONENTS.items():
+        command = [sys.executable, "-c", BURNER, str(usage["cpu"])]
+        components[name] = {
+            "name": name.title(),
+            "location": "either",
+            "ros": False,
+            "resources": {"cpu": usage["cpu"], "ram": 32, "bandwidth": usage["bandwidth"]},
+            "robot": {"command": command},
+            "cloud": {"command": command},
+        }
+    return parse_skill_config(
+        {
+            "skill": "Offloading quality",
+            "skill_id": SKILL_ID,
+            "manager": {
+                "policy": "custom",
+                "threshold": THRESHOLD,
+                "hysteresis": HYSTERESIS,
+                "cooldown": COOLDOWN,
+                "decision_interval": DECISION_INTERVAL,
+                # Trusted early, so the run shows the network deciding (or the trust gate refusing it).
+                "neural_network": {"trained_after": 100},
+                "constants": CONSTANTS,
+                "cost_functions": POLICY,
+            },
+            "components": components,
+        }
+    )
+
+
+ROBOT_CONFIG = {
+    "offloading": "auto",
+    "resources": {"cpu": CPU_CORES, "ram": 4096, "bandwidth": LAN_MBITS, "io": 100},
+}
+
+
+# --------------------------------------------------------------------------- costing placements
+
+
+class Costing:
+    """Cost a placement under given conditions with the Skill's own policy (noiseless, declared usage)."""
+
+    def __init__(self, config: SkillConfig) -> None:
+        robot = parse_robot_config(ROBOT_CONFIG)
+        self.estimator = PolicyEstimator.of(robot, config.manager, Resources.of(robot.resources))
+        self.usage = {name: Resources.of(c.resources) for name, c in config.components.items()}
+        self.names = list(config.components)
+        self.baseline = 0.05 * CPU_CORES  # SimulatedRobot's own idle load
+        self._cache: dict[tuple[tuple[str, ...], Phase], float] = {}
+
+    def rate(self, placement: tuple[str, ...], phase: Phase) -> float:
+        """Return the summed cost per second of the components placed so, under a phase's conditions."""
+        key = (placement, phase)
+        if key not in self._cache:
+            on_robot = sum(
+                self.usage[n].cpu for n, where in zip(self.names, placement, strict=True) if where == "robot"
+            )
+            free = max(0.0, CPU_CORES - self.baseline - phase.load - on_robot)
+            state = Metrics(cpu_free=free, ram_free=4096.0, bandwidth_available=phase.link)
+            self._cache[key] = sum(
+                self.estimator.cost("custom", where, self.usage[name], state)
+                for name, where in zip(self.names, placement, strict=True)
+            )
+        return self._cache[key]
+
+    def placements(self) -> list[tuple[str, ...]]:
+        """Return every static placement of the Skill's components."""
+        return list(itertools.product(("robot", "cloud"), repeat=len(self.names)))
+
+
+# --------------------------------------------------------------------------- the run
+
+
+@dataclass
+class Run:
+    """What the run recorded: placements over time (seconds since the script started) and every move."""
+
+    timeline: list[tuple[float, tuple[str, ...]]] = field(default_factory=list)
+    moves: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, component, from, to
+    decisions: int = 0
+    trusted: int = 0
+    trained: int = 0
+
+
+async def run_scenario(ws_url: str, token: str, script: Script, data_dir: Path, config: SkillConfig) -> Run:
+    """Run the controller and its manager through the script; record placements and moves."""
+    robot = ScriptedRobot(cpu=CPU_CORES, ram=4096, bandwidth=LAN_MBITS, seed=7, script=script)
+    settings = AgentSettings(
+        master=ws_url,
+        robot=ROBOT_ID,
+        token=token,
+        data_dir=data_dir,
+        simulate=True,
+        simulated=robot,
+        sample_interval=SAMPLE_INTERVAL,
+        detect_ros_master=False,
+        stop_components_on_exit=True,
+    )
+    controller = RobotController(settings, say=lambda line: log(f"agent: {line}"))
+    task = asyncio.create_task(controller.run())
+    run = Run()
+    names = list(config.components)
+    try:
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 60)
+        record = await controller.start_skill(config)
+        if record.status != "running":
+            raise RuntimeError(f"the Skill did not start: {record.status}")
+        script.start = time.time()
+        log(f"skill running; script of {len(script.phases)} phases x {script.phase_s:.0f} s starts")
+        last = None
+        phase_index = -1
+        loop = asyncio.get_running_loop()
+        next_at = loop.time()
+        while (elapsed := time.time() - script.start) < script.duration:
+            index = script.index(elapsed)
+            if index != phase_index:
+                phase_index = index
+                log(f"t={elapsed:5.1f} s phase {index + 1}: {script.phases[index].name}")
+            # A component between two places (or stopped) loads the robot no more: costed as in the cloud.
+            placement = tuple(record.locations.get(name) or "cloud" for name in names)
+            if last is not None:
+                for name, before, after in zip(names, last, placement, strict=True):
+                    if before != after:
+                        run.moves.append((elapsed, name, before, after))
+                        log(f"t={elapsed:5.1f} s {name}: {before} -> {after}")
+            last = placement
+            run.timeline.append((elapsed, placement))
+            next_at += TIMELINE_STEP
+            await asyncio.sleep(max(0.0, next_at - loop.time()))
+        manager = record.supervisor.context.get("manager") if record.supervisor else None
+        if manager is not None:
+            for decider in manager.deciders.values():
+                run.trained += decider.model.trained
+            run.decisions = sum(d.model.samples_seen for d in manager.deciders.values())
+            run.trusted = sum(1 for d in manager.last.values() if d.trusted)
+        await controller.stop_skill(SKILL_ID)
+    finally:
+        controller.stop()
+        await asyncio.wait_for(task, 60)
+    return run
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def integrate(run: Run, script: Script, costing: Costing) -> tuple[float, list[float]]:
+    """Return the adaptive run's total cost and its cost per phase."""
+    per_phase = [0.0] * len(script.phases)
+    for (t, placement), (t_next, _) in itertools.pairwise([*run.timeline, (script.duration, ())]):
+        index = script.index(t)
+        per_phase[index] += costing.rate(placement, script.phases[index]) * (min(t_next, script.duration) - t)
+    return sum(per_phase), per_phase
+
+
+def adaptation(run: Run, script: Script, costing: Costing, best: list[tuple[str, ...]]) -> list[dict]:
+    """Return, for each change (the start included), how long the run took to be within 5 % of the best."""
+    results = []
+    for index, phase in enumerate(script.phases):
+        start, end = index * script.phase_s, (index + 1) * script.phase_s
+        target = costing.rate(best[index], phase) * ADAPTED_WITHIN
+        adapted = exact = None
+        for t, placement in run.timeline:
+            if start <= t < end:
+                if adapted is None and costing.rate(placement, phase) <= target:
+                    adapted = t - start
+                if exact is None and placement == best[index]:
+                    exact = t - start
+        results.append({"phase": index + 1, "adapt_s": adapted, "exact_s": exact})
+    return results
+
+
+def flaps(run: Run, script: Script) -> list[tuple[float, str]]:
+    """Return the moves undone within FLAP_WINDOW seconds with no change of conditions in between."""
+    found = []
+    last: dict[str, tuple[float, str, str]] = {}
+    for t, name, before, after in run.moves:
+        previous = last.get(name)
+        if (
+            previous is not None
+            and previous[1] == after
+            and previous[2] == before
+            and t - previous[0] <= FLAP_WINDOW
+            and script.index(previous[0]) == script.index(t)
+        ):
+            found.append((t, name))
+        last[name] = (t, before, after)
+    return found
+
+
+def stop_quickly(daphne: Daphne) -> None:
+    """Stop daphne, killing it after a few seconds: it can take 15 s to close its last sockets politely."""
+    if daphne.process.poll() is None:
+        daphne.process.terminate()
+        try:
+            daphne.process.wait(timeout=3)
+        except subprocess.TimeoutExpired:
+            daphne.process.kill()
+            daphne.process.wait()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="4 phases of 12 s: under a minute in all")
+    parser.add_argument("--phase-s", type=float, help="seconds per phase (default 60, --quick 10)")
+    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
+    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
+    args = parser.parse_args()
+    phase_s = args.phase_s or (12.0 if args.quick else 60.0)
+    if phase_s < 2 * DECISION_INTERVAL:
+        parser.error(f"--phase-s must be at least {2 * DECISION_INTERVAL} s")
+    script = Script(QUICK_SCRIPT if args.quick else FULL_SCRIPT, phase_s)
+    load_before = os.getloadavg()
+    log(f"machine load {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f} on {os.cpu_count()} cores")
+
+    data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-offloading-"))
+    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": str(data_dir)}
+    ensure_postgres_database(args.database_url)
+    migrate(env)
+    setup_django(env)
+    from django.contrib.auth import get_user_model
+
+    from monitoring.models import Event
+    from robots.models import Robot
+    from robots.services import create_robot, update_robot_config
+    from skills.services import add_skill
+
+    config = skill_config()
+    Robot.objects.filter(id=ROBOT_ID).delete()
+    owner, _ = get_user_model().objects.get_or_create(username="offload-bench")
+    robot, token = create_robot(ROBOT_ID, owner)
+    update_robot_config(robot.id, ROBOT_CONFIG)
+    add_skill(robot, config.model_dump(mode="json"))
+
+    daphne = Daphne(env, data_dir / "daphne.log")
+    try:
+        daphne.wait()
+        log(f"daphne pid {daphne.pid} on port {daphne.port}")
+        run = asyncio.run(run_scenario(daphne.ws_url, token, script, data_dir / "agent", config))
+    except BaseException:
+        log(f"daphne log tail:\n{daphne.log_tail()}")
+        raise
+    finally:
+        stop_quickly(daphne)
+    log("costing every placement")
+    logged = list(Event.objects.filter(robot_id=ROBOT_ID, kind="offloading_decision").values_list("data", flat=True))
+    shutil.rmtree(data_dir, ignore_errors=True)
+
+    costing = Costing(config)
+    adaptive, adaptive_phases = integrate(run, script, costing)
+    best = [min(costing.placements(), key=lambda p, ph=phase: costing.rate(p, ph)) for phase in script.phases]
+    oracle_phases = [costing.rate(best[i], phase) * script.phase_s for i, phase in enumerate(script.phases)]
+    oracle = sum(oracle_phases)
+    statics = {
+        placement: sum(costing.rate(placement, phase) * script.phase_s for phase in script.phases)
+        for placement in costing.placements()
+    }
+    best_static = min(statics, key=statics.get)
+    adapts = adaptation(run, script, costing, best)
+    flapped = flaps(run, script)
+    minutes = script.duration / 60
+    flaps_per_10min = len(flapped) * 10 / minutes
+    adapt_values = [a["adapt_s"] if a["adapt_s"] is not None else script.phase_s for a in adapts]
+    load_after = os.getloadavg()
+
+    names = list(config.components)
+
+    def short(placement: tuple[str, ...]) -> str:
+        return " ".join(f"{n[:3]}:{w[0].upper()}" for n, w in zip(names, placement, strict=True))
+
+    print(f"{'phase':4} {'conditions':24} {'oracle placement':32} {'adaptive/oracle':>15} {'adapted':>8} {'exact':>7}")
+    for i, phase in enumerate(script.phases):
+        a = adapts[i]
+        ratio = adaptive_phases[i] / oracle_phases[i]
+        adapted = "never" if a["adapt_s"] is None else f"{a['adapt_s']:.1f} s"
+        exact = "never" if a["exact_s"] is None else f"{a['exact_s']:.1f} s"
+        print(f"{i + 1:<5} {phase.name:24} {short(best[i]):32} {ratio:15.3f} {adapted:>8} {exact:>7}")
+    print()
+    print(f"{'placement':40} {'cost':>10} {'over oracle':>12}")
+    print(f"{'hindsight oracle (best static per phase)':40} {oracle:10.0f} {1:12.3f}")
+    print(f"{'adaptive (Skill Manager)':40} {adaptive:10.0f} {adaptive / oracle:12.3f}   goal <= 1.05")
+    print(
+        f"{'best static: ' + short(best_static):40} {statics[best_static]:10.0f} {statics[best_static] / oracle:12.3f}"
+    )
+    for label, placement in (("all on the robot", ("robot",) * 4), ("all in the cloud", ("cloud",) * 4)):
+        print(f"{label:40} {statics[placement]:10.0f} {statics[placement] / oracle:12.3f}")
+    worst = max(statics, key=statics.get)
+    print(f"{'worst static: ' + short(worst):40} {statics[worst]:10.0f} {statics[worst] / oracle:12.3f}")
+    print()
+    moved = sum(1 for d in logged if d.get("outcome") == "moved")
+    failed = sum(1 for d in logged if d.get("outcome") == "failed")
+    mean_adapt = sum(adapt_values) / len(adapt_values)
+    print(f"time to adapt: max {max(adapt_values):.1f} s, mean {mean_adapt:.1f} s   goal <= 10 s")
+    print(f"migrations: {len(run.moves)} seen ({moved} logged as moved, {failed} failed in the cloud's event log)")
+    print(f"flaps: {len(flapped)} in {minutes:.1f} min = {flaps_per_10min:.2f} per 10 min   goal <= 1")
+    print(f"decision networks trained: {run.trained}/{len(names)}; last decisions by a trusted network: {run.trusted}")
+    print(f"machine load (1 min) {load_before[0]:.2f} before, {load_after[0]:.2f} after, on {os.cpu_count()} cores")
+    print(
+        json.dumps(
+            {
+                "cost_over_oracle": round(adaptive / oracle, 4),
+                "adapt_s": round(max(adapt_values), 2),
+                "flaps_per_10min": round(flaps_per_10min, 3),
+                "migrations": len(run.moves),
+                "adapt_mean_s": round(mean_adapt, 2),
+                "best_static_over_oracle": round(statics[best_static] / oracle, 4),
+                "all_robot_over_oracle": round(statics[("robot",) * 4] / oracle, 4),
+                "all_cloud_over_oracle": round(statics[("cloud",) * 4] / oracle, 4),
+                "moves_logged": moved,
+                "moves_failed": failed,
+                "phases": len(script.phases),
+                "phase_s": phase_s,
+                "load_1min": round(load_after[0], 2),
+            }
+        ),
+        flush=True,
+    )
+
+
+if __name__ == "__main__":
+    os.chdir(ROOT)
+    main()

@@ -1,0 +1,67 @@
+"""The use-case Skill configs: valid, placed as thesis Table 5.1 allows, runnable, in the catalog."""
+
+from __future__ import annotations
+
+import importlib
+import io
+import json
+
+import pytest
+from django.contrib.auth import get_user_model
+from django.core.management import call_command
+
+from bridgeos_agent.skillconfig import load_sample_skill_config
+from bridgeos_agent.usecases import NODES
+from skills.models import Skill, SkillTemplate
+
+# Thesis Table 5.1 (plus the simulated robot, which stands in for the robot's own drivers).
+TABLE_5_1 = {
+    "people_detection": {"pointcloud": "robot", "sampler": "either", "detector": "either"},
+    "navigation": {"planner": "cloud", "map-server": "either", "mover": "either", "sim": "robot"},
+    "mapping": {"controller": "either", "mapping": "either", "odometry": "either", "sim": "robot"},
+}
+
+
+@pytest.mark.parametrize("sample", sorted(TABLE_5_1))
+def test_each_use_case_is_placed_as_table_5_1_allows_and_its_commands_parse(sample: str) -> None:
+    config = load_sample_skill_config(sample)
+    assert {cid: c.location for cid, c in config.components.items()} == TABLE_5_1[sample]
+    for cid, component in config.components.items():
+        for where in ("robot", "cloud"):
+            spec = component.launch_spec(where)
+            if spec is None:
+                continue
+            assert spec.image == "bridgeos/ros:noetic", cid
+            program, node, *args = spec.command
+            assert program == "bridgeos-usecase" and node in NODES, spec.command
+            # The node's own argument parser accepts the config's arguments (no rospy needed for that).
+            importlib.import_module(f"bridgeos_agent.usecases.{NODES[node]}").parse_args(args)
+    routed = {c for topic in config.router.topics for c in (topic.publisher, *topic.subscribers)}
+    assert routed == set(config.components), "every component is wired through the router's topics"
+
+
+def test_a_node_refuses_bad_arguments_with_a_clear_message(capsys: pytest.CaptureFixture[str]) -> None:
+    sim = importlib.import_module("bridgeos_agent.usecases.sim")
+    with pytest.raises(SystemExit):
+        sim.parse_args(["--world", "mars"])
+    assert "unknown world 'mars' (known: office, room)" in capsys.readouterr().err
+
+
+@pytest.mark.django_db
+def test_the_demo_fleet_puts_the_use_cases_in_the_catalog_and_on_its_robots() -> None:
+    get_user_model().objects.create_user("operator")
+
+    def demo(*extra: str) -> dict:
+        out = io.StringIO()
+        call_command("demo_fleet", "--count", "3", "--owner", "operator", *extra, stdout=out)
+        return json.loads(out.getvalue())
+
+    plain = demo()
+    assert all(robot["skills"] == ["demo-telemetry"] for robot in plain["robots"])
+    names = set(SkillTemplate.objects.values_list("name", flat=True))
+    assert {"People detection", "Autonomous navigation", "Autonomous mapping"} <= names
+
+    fleet = demo("--usecases")  # twice: the catalog is refreshed, never duplicated
+    assert [robot["skills"][1] for robot in fleet["robots"]] == ["people-detection", "navigation", "mapping"]
+    assert SkillTemplate.objects.filter(name="Autonomous mapping").count() == 1
+    assert Skill.objects.get(robot_id="demo-2", skill_id="navigation").components.count() == 4
