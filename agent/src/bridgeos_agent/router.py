@@ -21,6 +21,7 @@ import ipaddress
 import logging
 import math
 import os
+import re
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -251,6 +252,7 @@ class SkillRouter:
         ros_master: str | None,
         settings: RouterSettings | None = None,
         state_dir: Path | None = None,
+        robot: str | None = None,
         clock: Any = time.monotonic,
     ) -> None:
         self.config = config
@@ -259,6 +261,10 @@ class SkillRouter:
         self.settings = settings or RouterSettings()
         self.state_dir = state_dir
         self.clock = clock
+        # Robots may share a master (the cloud's): a node name of the robot's own keeps two
+        # routers of one Skill from evicting each other's registrations.
+        suffix = "_" + re.sub(r"[^A-Za-z0-9_]", "_", robot) if robot else ""
+        self.node_name = f"/bridgeos/{self.skill.replace('-', '_')}/router{suffix}"
         self.node: RosNode | None = None
         self.url: str | None = None  # the HTTP routes' base URL, when there are any
         self.ros_off_reason: str | None = None
@@ -306,7 +312,7 @@ class SkillRouter:
             self._ros_off("no ROS master is configured or reachable")
             return False
         node = RosNode(
-            f"/bridgeos/{self.skill}/router",
+            self.node_name,
             master,
             host=self.settings.ros_host,
             on_publisher_header=self._on_publisher_header,
@@ -994,6 +1000,7 @@ async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
         ros_master=controller.ros_master,
         settings=router_settings_from_env(),
         state_dir=controller.data_dir / "router",
+        robot=controller.settings.robot,
     )
     for name, location in record.locations.items():
         if location in LOCATIONS and name in record.config.components:
