@@ -5,9 +5,13 @@ from __future__ import annotations
 from typing import Any
 
 from rest_framework.authentication import BasicAuthentication, TokenAuthentication
-from rest_framework.exceptions import AuthenticationFailed
+from rest_framework.exceptions import AuthenticationFailed, Throttled
 
+from monitoring.choices import Level
+from monitoring.services import record_event
 from robots.services import api_token
+
+from . import bruteforce
 
 
 class ApiTokenAuthentication(TokenAuthentication):
@@ -26,4 +30,22 @@ class PasswordAuthentication(BasicAuthentication):
     def authenticate_credentials(self, userid: str, password: str, request: Any = None) -> tuple[Any, None]:
         if "\x00" in userid or "\x00" in password:
             raise AuthenticationFailed("Invalid username/password.")
-        return super().authenticate_credentials(userid, password, request)
+        address = request.META.get("REMOTE_ADDR", "") if request is not None else ""
+        keys = bruteforce.login_keys("user", userid, address)
+        limit = bruteforce.failures()
+        retry = limit.blocked_for(keys, bruteforce.window())
+        if retry:
+            raise Throttled(wait=retry, detail="Too many failed logins; try again later.")
+        try:
+            found = super().authenticate_credentials(userid, password, request)
+        except AuthenticationFailed:
+            if limit.failed(keys, bruteforce.window()):
+                record_event(
+                    f"Too many failed logins of user {userid[:150]} from {address}",
+                    level=Level.WARNING,
+                    kind="authentication_blocked",
+                    data={"user": userid[:150], "address": address},
+                )
+            raise
+        limit.succeeded(keys[0][0])
+        return found

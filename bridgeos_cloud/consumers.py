@@ -24,6 +24,7 @@ MAX_FLOOD_STRIKES = 500
 FLOOD_QUIET_S = 1.0
 CLOSE_AUTH_FAILED = 4001
 CLOSE_FLOODING = 4008
+CLOSE_TOO_MANY_FAILURES = 4029
 
 
 def peek_id(raw: str | bytes | None) -> str | None:
@@ -172,15 +173,15 @@ class ProtocolConsumer(AsyncWebsocketConsumer):
 
     # ---------------------------------------------------------------- closing
 
-    async def refuse(self, reason: str, reply_to: str | None = None) -> None:
-        """Answer authentication_failure and close."""
+    async def refuse(self, reason: str, reply_to: str | None = None, code: int = CLOSE_AUTH_FAILED) -> None:
+        """Answer authentication_failure and close (4001, or 4029 after too many failures)."""
         if self.closing:
             return
         frame = protocol.make(
             Event.AUTHENTICATION_FAILURE, {"reason": reason[:500]}, reply_to=reply_to, now=time.time()
         )
         await self.send_envelope(frame)
-        await self.close_with(CLOSE_AUTH_FAILED, "authentication failed")
+        await self.close_with(code, "authentication failed")
 
     async def close_with(self, code: int, reason: str) -> None:
         """Close the socket once, remembering why."""

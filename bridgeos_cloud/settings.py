@@ -7,6 +7,8 @@ from pathlib import Path
 
 import dj_database_url
 
+from network.conf import network_settings
+
 from .env import env_bool, env_float, env_int, env_list, env_str
 
 BASE_DIR = Path(__file__).resolve().parent.parent
@@ -34,6 +36,11 @@ CSRF_TRUSTED_ORIGINS = env_list("CSRF_TRUSTED_ORIGINS", [])
 # Behind TLS (see the README), set SECURE_COOKIES=1 so session and CSRF cookies never travel in clear.
 SESSION_COOKIE_SECURE = CSRF_COOKIE_SECURE = env_bool("SECURE_COOKIES", False)
 SECURE_PROXY_SSL_HEADER = ("HTTP_X_FORWARDED_PROTO", "https") if env_bool("BEHIND_TLS_PROXY", False) else None
+# Production behind TLS: browsers remember to use HTTPS only (HSTS), and plain HTTP is redirected.
+SECURE_HSTS_SECONDS = env_int("SECURE_HSTS_SECONDS", 31_536_000 if SESSION_COOKIE_SECURE else 0)
+SECURE_SSL_REDIRECT = env_bool("SECURE_SSL_REDIRECT", False)
+SECURE_REFERRER_POLICY = "same-origin"
+SESSION_COOKIE_SAMESITE = CSRF_COOKIE_SAMESITE = "Lax"
 
 INSTALLED_APPS = [
     "daphne",
@@ -51,6 +58,7 @@ INSTALLED_APPS = [
     "skills.apps.SkillsConfig",
     "monitoring.apps.MonitoringConfig",
     "dashboard.apps.DashboardConfig",
+    "network.apps.NetworkConfig",
 ]
 
 MIDDLEWARE = [
@@ -63,6 +71,7 @@ MIDDLEWARE = [
     "django.contrib.auth.middleware.AuthenticationMiddleware",
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
+    "bridgeos_cloud.csp.ContentSecurityPolicy",
     # Innermost on purpose: see its docstring.
     "bridgeos_cloud.middleware.SyncChain",
 ]
@@ -227,7 +236,14 @@ BRIDGEOS = {
     "HTTP_THREADS": env_int("BRIDGEOS_HTTP_THREADS", 8),
     # Robot state JSON kept per server process; every read revalidates it against the database.
     "STATE_CACHE_BYTES": env_int("BRIDGEOS_STATE_CACHE_BYTES", 64 * 1024 * 1024),
+    # Failed logins (/api/auth, robot tokens) allowed per identity and address, and per address, in a window.
+    "AUTH_FAILURES": env_int("BRIDGEOS_AUTH_FAILURES", 10),
+    "AUTH_FAILURES_PER_ADDRESS": env_int("BRIDGEOS_AUTH_FAILURES_PER_ADDRESS", 100),
+    "AUTH_WINDOW_S": env_float("BRIDGEOS_AUTH_WINDOW_S", 300.0),
 }
+
+# Robots' subnets (IPAM pools), the VPN and TLS: see network/conf.py and the README.
+BRIDGEOS_NETWORK = network_settings()
 
 LOGGING = {
     "version": 1,

@@ -8,6 +8,8 @@ from django.contrib import admin, messages
 from django.db.models import QuerySet
 from django.http import HttpRequest
 
+from monitoring.services import record_event
+
 from . import services
 from .models import ApiToken, Robot
 
@@ -27,6 +29,13 @@ class RobotAdmin(admin.ModelAdmin):
     def save_model(self, request: HttpRequest, obj: Robot, form: Any, change: bool) -> None:
         token = None if change else obj.issue_token()
         super().save_model(request, obj, form, change)
+        if change and form.changed_data:
+            record_event(
+                f"Robot {obj.id} changed in the admin by {request.user.get_username()}",
+                robot_id=obj.id,
+                kind="robot_updated",
+                data={"fields": form.changed_data, "user": request.user.get_username()},
+            )
         if token:
             messages.warning(request, f"Token of robot {obj.id} (copy it now, it is shown only once): {token}")
 

@@ -15,7 +15,8 @@ from django.core.exceptions import ValidationError
 
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
-from bridgeos_cloud.consumers import ProtocolConsumer, validation_message
+from bridgeos_cloud import bruteforce
+from bridgeos_cloud.consumers import CLOSE_TOO_MANY_FAILURES, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
 from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
@@ -113,7 +114,12 @@ class RobotConsumer(ProtocolConsumer):
     async def authenticate(self, envelope: Envelope) -> bool:
         """Check the robot's id and token, mark it connected and send it its config."""
         credentials = protocol.parse_payload(envelope)
+        address = (self.scope.get("client") or ["?"])[0]
+        if await database_sync_to_async(bruteforce.blocked)("robot", credentials.robot, address):
+            await self.refuse("too many failed attempts; try again later", envelope.id, CLOSE_TOO_MANY_FAILURES)
+            return False
         robot = await database_sync_to_async(services.authenticate_robot)(credentials.robot, credentials.token)
+        await database_sync_to_async(bruteforce.attempted)("robot", credentials.robot, address, robot is not None)
         if robot is None:
             await self.refuse("unknown robot or wrong token", reply_to=envelope.id)
             return False
@@ -217,8 +223,13 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
     if not points:
         return True
     robot_id = consumer.robot_id
-    get_live_feed().add_metrics(robot_id, points)
-    written = get_writer().add(robot_id, points)
+    store = applied_ids()
+    written = store.in_flight(robot_id, envelope.id)
+    if written is None:
+        get_live_feed().add_metrics(robot_id, points)
+        written = get_writer().add(robot_id, points)
+        store.hold(robot_id, envelope.id, written)
+    # else: an earlier connection's copy of this frame is still being written: answer with its outcome.
 
     def acknowledge(future: asyncio.Future) -> None:
         if future.cancelled() or future.exception() is not None:
@@ -227,7 +238,6 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
                 consumer.fail("metrics not stored, send again later", reply_to=envelope.id, code="unavailable")
             )
         else:
-            applied_ids().add(robot_id, envelope.id)
             consumer.spawn(consumer.ack(envelope))
 
     written.add_done_callback(acknowledge)

@@ -31,6 +31,26 @@ class AppliedIds:
         self._unsaved: dict[str, list[str]] = defaultdict(list)
         self._flusher: asyncio.TimerHandle | None = None
         self._tasks: set[asyncio.Task] = set()
+        # Frames accepted but not yet applied (metrics wait for their commit), by robot and id:
+        # a copy resent over a new connection meanwhile must wait for the first, not be applied twice.
+        self._in_flight: dict[tuple[str, str], asyncio.Future] = {}
+
+    def hold(self, robot_id: str, frame_id: str, applied: asyncio.Future) -> None:
+        """Note a frame being applied until ``applied`` completes; then it counts as applied if it was."""
+        key = (robot_id, frame_id)
+        self._in_flight[key] = applied
+
+        def settle(future: asyncio.Future) -> None:
+            # One callback, so no resend can slip in between "no longer in flight" and "applied".
+            if not future.cancelled() and future.exception() is None:
+                self.add(robot_id, frame_id)
+            self._in_flight.pop(key, None)
+
+        applied.add_done_callback(settle)
+
+    def in_flight(self, robot_id: str, frame_id: str) -> asyncio.Future | None:
+        """Return the pending application of a frame another connection accepted, if any."""
+        return self._in_flight.get((robot_id, frame_id))
 
     async def load(self, robot_id: str) -> list[str]:
         """Return the robot's applied ids, oldest first."""

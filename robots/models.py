@@ -67,6 +67,9 @@ class Robot(models.Model):
 
     def clean(self) -> None:
         self.config = validated_config(parse_robot_config, self.config)
+        from network.ipam import check_requested  # the network app depends on this model
+
+        check_requested(self.id, self.config)
 
     def issue_token(self) -> str:
         """Replace the robot's token and return the new one; only its hash is kept."""

@@ -29,6 +29,7 @@ from monitoring.services import record_event
 
 from .choices import RobotStatus
 from .models import ApiToken, Robot, hash_token
+from .signals import credentials_rotated
 
 
 def create_robot(
@@ -53,6 +54,7 @@ def rotate_token(robot: Robot) -> str:
         channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot.id)
         robot.save(update_fields=["token_hash"])
         record_event(f"Token of robot {robot.id} rotated", robot_id=robot.id, kind="robot_token_rotated")
+        credentials_rotated.send(sender=Robot, robot=robot)
         _revoke_on_commit(channel)
     return token
 

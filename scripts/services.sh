@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure the real services bridgeOS runs and tests against are up.
 #
-#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn
 #   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
 #
 # Idempotent: a part already up is left alone. Missing software is installed with apt
@@ -11,7 +11,9 @@
 set -euo pipefail
 
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-ALL_PARTS=(postgres redis docker swarm ros images chromium)
+ALL_PARTS=(postgres redis docker swarm ros images chromium vpn)
+# The private networks' tests and benchmark: OpenVPN, nftables, ip netns (iproute2) and ping.
+VPN_TOOLS=(openvpn:openvpn nft:nftables ip:iproute2 ping:iputils-ping)
 # The dashboard's browser tests drive Debian's Chromium through Playwright (never Playwright's download).
 CHROMIUM=/usr/bin/chromium
 ROS_PACKAGES=(ros-core python3-rospy python3-rostopic python3-std-msgs python3-sensor-msgs
@@ -79,6 +81,9 @@ wants images && ! have debootstrap && APT_NEEDED+=(debootstrap)
 numpy_ok() { ros_env /usr/bin/python3 -c 'import numpy' >/dev/null 2>&1; }
 wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok && numpy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
 wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
+if wants vpn; then
+    for tool in "${VPN_TOOLS[@]}"; do have "${tool%%:*}" || APT_NEEDED+=("${tool#*:}"); done
+fi
 if ((${#APT_NEEDED[@]})); then
     t=$(now)
     if is_root && have apt-get; then
@@ -224,6 +229,15 @@ part_chromium() {
     [[ $INSTALLED == *" chromium "* ]] && did="installed"
     # Debian's wrapper script prints a shell warning before the version on some systems; keep the version line.
     report chromium "$t" "$did: $("$CHROMIUM" --version 2>/dev/null | grep -m1 -i chromium || echo "version unknown")"
+}
+
+part_vpn() {
+    local t; t=$(now); local absent=()
+    for tool in "${VPN_TOOLS[@]}"; do have "${tool%%:*}" || absent+=("${tool#*:}"); done
+    if ((${#absent[@]})); then
+        missing vpn "$t" "not installed (the VPN tests skip): sudo apt-get install ${absent[*]}"; return
+    fi
+    report vpn "$t" "$(openvpn --version 2>/dev/null | head -1 | cut -d' ' -f1-2), $(nft --version 2>/dev/null)"
 }
 
 for part in "${ALL_PARTS[@]}"; do

@@ -20,6 +20,7 @@ from rest_framework.views import APIView
 
 from bridgeos_agent.protocol import Event
 from bridgeos_cloud.authentication import ApiTokenAuthentication, PasswordAuthentication
+from monitoring.services import record_event
 
 from .. import services
 from ..models import ApiToken, Robot
@@ -85,6 +86,8 @@ class AuthView(APIView):
     @extend_schema(auth=[{"basicAuth": []}], responses={200: AuthTokenSerializer, 401: OpenApiResponse()})
     def get(self, request: Request) -> Response:
         key, token = services.issue_api_token(request.user)
+        user = request.user.get_username()
+        record_event(f"API token issued to user {user}", kind="api_token_issued", data={"user": user})
         return Response({"token": key, "expires_at": token.expires_at})
 
     @extend_schema(auth=[{"basicAuth": []}], responses={200: AuthTokenSerializer, 401: OpenApiResponse()})

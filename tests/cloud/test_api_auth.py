@@ -43,6 +43,8 @@ class Route:
     lists: bool = False
     anonymous: int = 401
     ids: dict[str, str] = field(default_factory=dict)
+    # A robot's token opens only the robot's own VPN profile.
+    robot: int = 401
 
 
 def new_template_config() -> dict[str, Any]:
@@ -66,6 +68,8 @@ ROUTES = [
     Route("DELETE", ROBOT, 204, 404, 204),
     Route("GET", ROBOT + "/info", 200, 404, 200),
     Route("POST", ROBOT + "/token", 200, 404, 200),
+    # This cloud offers no VPN (BRIDGEOS_VPN_REMOTE unset): 409 to those who may ask.
+    Route("GET", ROBOT + "/vpn", 409, 404, 409, robot=409),
     # Commands reach the robot only when it is connected; here it is not.
     Route("POST", ROBOT + "/start", 409, 404, 409),
     Route("POST", ROBOT + "/stop", 409, 404, 409),
@@ -162,7 +166,7 @@ def test_each_route_answers_each_caller_as_its_rights_say(world, route):
     callers = [
         ("anonymous", None, "alice-bot", route.anonymous),
         # A robot's token never opens the user API, not even a public route: it is refused, not ignored.
-        ("robot", world.robot_token, "alice-bot", 401),
+        ("robot", world.robot_token, "alice-bot", route.robot),
         ("other", world.tokens["other"], "alice-bot", route.other),
         ("owner", world.tokens["owner"], "alice-bot", route.owner),
         ("staff", world.tokens["staff"], "alice-spare", route.staff),

@@ -4,22 +4,30 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
+import ipaddress
 import logging
 import os
 import shutil
 import signal
+import socket
+import ssl
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import psutil
 import websockets
 
-from bridgeos_agent import __version__, protocol
+from bridgeos_agent import __version__, protocol, tls
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.monitor import SimulatedRobot
 from bridgeos_agent.protocol import Event
+from bridgeos_agent.robotconfig import RobotConfig, parse_robot_config
 from bridgeos_agent.rosmaster import find_ros_master
+from bridgeos_agent.tls import is_loopback
 
 __all__ = ["doctor", "run_agent", "settings_from_args"]
 
@@ -42,6 +50,10 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
         simulated=simulated,
         sample_interval=args.sample_interval,
         stop_components_on_exit=args.stop_components_on_exit,
+        ca_file=args.ca,
+        allow_insecure=args.allow_insecure,
+        vpn_device=args.vpn_device,
+        firewall=args.firewall,
     )
 
 
@@ -85,13 +97,29 @@ def doctor(args: argparse.Namespace) -> int:
         results.append((ok, essential, good if ok else bad))
         print(f"{'ok  ' if ok else 'FAIL' if essential else 'warn'}  {good if ok else bad}")
 
-    reachable, refused = asyncio.run(_probe_cloud(args.master, args.robot, args.token))
+    context = tls.client_context(ca_file=args.ca) if args.master.startswith("wss://") else None
+    reachable, refused, config = asyncio.run(_probe_cloud(args.master, args.robot, args.token, context))
     check(
         reachable is True,
         True,
         f"cloud reachable at {args.master}",
         f"cannot reach the cloud at {args.master}: {reachable}. Check the URL and that the cloud runs.",
     )
+    if context is not None:
+        tls_ok = reachable is True or "CERTIFICATE" not in str(reachable).upper()
+        check(
+            tls_ok,
+            True,
+            f"TLS: the cloud's certificate verifies ({'--ca ' + str(args.ca) if args.ca else 'system CAs'})",
+            f"TLS: the cloud's certificate does not verify ({reachable}); pass the CA that signs it with --ca",
+        )
+    else:
+        check(
+            is_loopback(urlsplit(args.master).hostname or ""),
+            False,
+            "plain ws:// on this machine (no TLS needed)",
+            "plain ws:// to another machine: the token travels unencrypted; use wss://",
+        )
     if reachable is True:
         check(
             refused is None,
@@ -100,6 +128,8 @@ def doctor(args: argparse.Namespace) -> int:
             f"the cloud refused robot {args.robot}: {refused}. Ask the operator for the robot's token "
             "(python manage.py create_robot, or rotate it in the admin).",
         )
+    if config is not None:
+        _check_network(config, args, check)
     if args.runtime == "docker":
         docker_ok, docker_detail = _docker_status()
         check(docker_ok, True, f"Docker answers ({docker_detail})", f"Docker: {docker_detail}")
@@ -140,19 +170,80 @@ def doctor(args: argparse.Namespace) -> int:
     return 0 if not failed else 1
 
 
-async def _probe_cloud(master: str, robot: str, token: str) -> tuple[bool | str, str | None]:
-    """Connect and authenticate once; return (True or why unreachable, refusal reason or None)."""
+async def _probe_cloud(
+    master: str, robot: str, token: str, context: ssl.SSLContext | None
+) -> tuple[bool | str, str | None, RobotConfig | None]:
+    """Connect and authenticate once; return (True or why unreachable, refusal reason or None, robot config)."""
     url = master.rstrip("/") + "/ws/robot/"
+    options = {"ssl": context} if context is not None else {}
+    config = None
     try:
-        async with websockets.connect(url, open_timeout=5, compression=None) as ws:
+        async with websockets.connect(url, open_timeout=5, compression=None, proxy=None, **options) as ws:
             request = protocol.make(Event.AUTHENTICATION_ROBOT, {"robot": robot, "token": token}, now=time.time())
             await ws.send(protocol.encode(request))
             answer = protocol.decode(await asyncio.wait_for(ws.recv(), 5))
+            if answer.event == Event.AUTHENTICATION_SUCCESS:
+                with contextlib.suppress(TimeoutError, ValueError, websockets.WebSocketException):
+                    async with asyncio.timeout(5):
+                        while config is None:
+                            frame = protocol.decode(await ws.recv())
+                            if frame.event == Event.ROBOT_CONFIG:
+                                config = parse_robot_config(dict(frame.data["config"]))
     except (OSError, TimeoutError, websockets.WebSocketException, protocol.ProtocolError) as exc:
-        return (str(exc) or type(exc).__name__), None
+        return (str(exc) or type(exc).__name__), None, None
     if answer.event == Event.AUTHENTICATION_SUCCESS:
-        return True, None
-    return True, getattr(protocol.parse_payload(answer), "reason", answer.event)
+        return True, None, config
+    return True, getattr(protocol.parse_payload(answer), "reason", answer.event), None
+
+
+def _check_network(config: RobotConfig, args: argparse.Namespace, check: Callable[..., None]) -> None:
+    """Check the robot's subnets against this machine's networks, and what the tunnel needs."""
+    if config.subnets is None:
+        check(False, False, "", "no subnets in the robot config yet (the cloud allocates them)")
+    else:
+        own = {ipaddress.ip_network(config.subnets.local), ipaddress.ip_network(config.subnets.cloud)}
+        clashes = []
+        for name, addresses in psutil.net_if_addrs().items():
+            if name == args.vpn_device:
+                continue
+            for address in addresses:
+                if address.family != socket.AF_INET or not address.netmask:
+                    continue
+                interface = ipaddress.ip_interface(f"{address.address}/{address.netmask}")
+                # The robot's own Docker bridge carries the local subnet: that is not a clash.
+                if interface.network in own:
+                    continue
+                clashes += [
+                    f"{name} {interface.network} overlaps {net}" for net in own if interface.network.overlaps(net)
+                ]
+        check(
+            not clashes,
+            True,
+            f"subnets local {config.subnets.local} and cloud {config.subnets.cloud} are free on this machine",
+            "subnets clash with this machine's networks: " + "; ".join(clashes) + ". Ask the operator for others.",
+        )
+    if not config.vpn.enabled:
+        check(True, False, "VPN off in the robot config: the agent talks to the cloud over WSS", "")
+        return
+    openvpn = shutil.which("openvpn")
+    check(openvpn is not None, True, f"OpenVPN at {openvpn}", "OpenVPN missing: sudo apt-get install openvpn")
+    check(
+        os.path.exists("/dev/net/tun"),
+        True,
+        "/dev/net/tun present",
+        "/dev/net/tun missing: load the tun module (modprobe tun) or give the container the device",
+    )
+    up = [
+        address.address
+        for address in psutil.net_if_addrs().get(args.vpn_device, [])
+        if address.family == socket.AF_INET
+    ]
+    check(
+        bool(up),
+        False,
+        f"tunnel {args.vpn_device} up with address {', '.join(up)}",
+        f"tunnel {args.vpn_device} not up now (bridgeos-agent run brings it up; without it the agent uses WSS)",
+    )
 
 
 def _docker_status() -> tuple[bool, str]:

@@ -17,6 +17,7 @@ from bridgeos_agent import __version__
 from bridgeos_agent.errors import field_errors
 from bridgeos_agent.robotconfig import parse_robot_config, robot_config_json_schema
 from bridgeos_agent.skillconfig import parse_skill_config, skill_config_json_schema
+from bridgeos_agent.tls import InsecureMaster, check_master_url
 
 __all__ = ["build_parser", "main"]
 
@@ -76,6 +77,13 @@ def _positive(option: str) -> Any:
     return check
 
 
+def _device(value: str) -> str:
+    """Accept a network device name (at most 15 letters, digits, '-', '_' or '.')."""
+    if not value or len(value) > 15 or not all(ch.isalnum() or ch in "-_." for ch in value):
+        raise argparse.ArgumentTypeError(f"invalid device name {value!r}: up to 15 letters, digits, '-', '_', '.'")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser for every subcommand."""
     parser = argparse.ArgumentParser(
@@ -128,6 +136,28 @@ def build_parser() -> argparse.ArgumentParser:
         help="how components are started (env BRIDGEOS_RUNTIME; default: process)",
     )
 
+    connection.add_argument(
+        "--ca",
+        type=Path,
+        default=os.environ.get("BRIDGEOS_CA") or None,
+        metavar="FILE",
+        help="CA certificate (PEM) that signs the cloud's TLS certificate (env BRIDGEOS_CA; default: the CA the "
+        "cloud pinned in the robot config, else the system's CAs)",
+    )
+    connection.add_argument(
+        "--allow-insecure",
+        action="store_true",
+        default=os.environ.get("BRIDGEOS_ALLOW_INSECURE", "") not in ("", "0", "false", "no"),
+        help="allow plain ws:// to another machine: the token travels unencrypted (env BRIDGEOS_ALLOW_INSECURE=1)",
+    )
+    connection.add_argument(
+        "--vpn-device",
+        type=_device,
+        default=os.environ.get("BRIDGEOS_VPN_DEVICE", "bridgeos-vpn"),
+        metavar="NAME",
+        help="name of the VPN tunnel device (env BRIDGEOS_VPN_DEVICE; default bridgeos-vpn)",
+    )
+
     run = commands.add_parser(
         "run",
         parents=[connection],
@@ -174,6 +204,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--stop-components-on-exit",
         action="store_true",
         help="stop the robot's components when the agent stops (default: keep them for the next agent)",
+    )
+    run.add_argument(
+        "--firewall",
+        choices=("auto", "apply", "print", "off"),
+        default=os.environ.get("BRIDGEOS_FIREWALL", "auto"),
+        help="the robot's nftables rules: apply when root else print (auto, default), apply, print or off "
+        "(env BRIDGEOS_FIREWALL)",
     )
     run.add_argument("-q", "--quiet", action="store_true", help="print warnings and errors only")
     run.set_defaults(run_parser=run)
@@ -235,11 +272,21 @@ def _check_connection_args(parser: argparse.ArgumentParser, args: argparse.Names
         parser.error("missing " + ", ".join(missing))
 
 
+def _check_transport_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    try:
+        check_master_url(args.master, allow_insecure=args.allow_insecure)
+    except InsecureMaster as exc:
+        parser.error(str(exc))
+    if args.ca is not None and not args.ca.is_file():
+        parser.error(f"--ca {args.ca}: no such file")
+
+
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Check the run options, then run the Robot Controller until it is stopped."""
     _check_connection_args(parser, args)
     if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
         parser.error(f"--data-dir {args.data_dir} exists and is not a directory")
+    _check_transport_args(parser, args)
     from bridgeos_agent.agent import run_agent
 
     return run_agent(args)
@@ -248,6 +295,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _doctor(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Check what the agent needs and print how to fix what is missing."""
     _check_connection_args(parser, args)
+    _check_transport_args(parser, args)
     from bridgeos_agent.agent import doctor
 
     return doctor(args)

@@ -15,6 +15,7 @@ import functools
 import json
 import logging
 import os
+import ssl
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import websockets
+import websockets.asyncio.client
 from pydantic import ValidationError
 from websockets.client import backoff
 
@@ -39,6 +41,7 @@ from bridgeos_agent.allocation import (
 from bridgeos_agent.errors import field_errors
 from bridgeos_agent.heuristics import Resources, Weights
 from bridgeos_agent.monitor import Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
+from bridgeos_agent.network import VPN, CloudNetwork, Target
 from bridgeos_agent.outbox import Outbox
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Envelope, Event, ProtocolError
@@ -83,6 +86,11 @@ class AgentSettings:
     detect_ros_master: bool = True
     stop_components_on_exit: bool = False
     simulated: SimulatedRobot | None = None
+    ca_file: Path | None = None  # the CA that signs the cloud's TLS certificate (else pinned, else the system's)
+    allow_insecure: bool = False  # plain ws:// to another machine
+    vpn_device: str = "bridgeos-vpn"
+    openvpn: str = "openvpn"
+    firewall: str = "auto"  # auto (apply when root, else print) | apply | print | off
 
 
 @dataclass
@@ -160,6 +168,20 @@ class RobotController:
         self._cloud_monitor: CloudMonitor | None = None
         self._startup_done = False
         self._lock = asyncio.Lock()  # serialises placement decisions so two never claim the same headroom
+        self._tls_failure: str | None = None
+        self._holding = False  # moving to another path: new frames wait in the outbox
+        self.network = CloudNetwork(
+            master=settings.master,
+            robot=settings.robot,
+            token=settings.token,
+            data_dir=self.data_dir,
+            say=self.say,
+            ca_file=settings.ca_file,
+            allow_insecure=settings.allow_insecure,
+            vpn_device=settings.vpn_device,
+            openvpn=settings.openvpn,
+            firewall_mode=settings.firewall,
+        )
         if settings.simulate:
             self.monitor = ResourceMonitor(settings.simulated or SimulatedRobot())
         else:
@@ -204,6 +226,7 @@ class RobotController:
             if record.supervisor is not None:
                 await record.supervisor.close()
         self._save_now()
+        await self.network.close()
         # By default components keep running across an agent restart; the next agent re-adopts them.
         await self.runtime.close(stop_components=self.settings.stop_components_on_exit)
         if self.ws is not None:
@@ -230,6 +253,8 @@ class RobotController:
         if state.get("config"):
             with contextlib.suppress(ValueError):
                 self.config = parse_robot_config(state["config"])
+                # The CA the cloud pinned, and its tunnel, serve from the first connection on.
+                self.network.apply_config(self.config)
         for skill_id, saved in state.get("skills", {}).items():
             try:
                 config = parse_skill_config(saved["config"])
@@ -269,6 +294,42 @@ class RobotController:
         return self.config.connection_lost_after if self.config else 15.0
 
     async def _connection_loop(self) -> None:
+        """Stay connected on the path the network prefers (VPN or WSS), moving when the preference changes."""
+        while True:
+            target = self.network.target()
+            connecting = asyncio.ensure_future(self._connect(target))
+            switching = asyncio.ensure_future(self.network.wait_change(target.path))
+            watchdog = asyncio.ensure_future(self._vpn_watchdog(target))
+            try:
+                done, _ = await asyncio.wait({connecting, switching}, return_when=asyncio.FIRST_COMPLETED)
+                if switching in done and target.path != VPN:
+                    # The old path still works: let the cloud ack what is in flight, so nothing is applied twice.
+                    await self._drain(timeout=3.0)
+            finally:
+                for task in (connecting, switching, watchdog):
+                    task.cancel()
+                await asyncio.gather(connecting, switching, watchdog, return_exceptions=True)
+            if connecting in done:
+                return  # refused: run() stops
+
+    async def _drain(self, timeout: float) -> None:
+        """Hold new frames (the outbox keeps them) until every frame sent on this connection is acked."""
+        self._holding = True
+        deadline = time.monotonic() + timeout
+        # Acks are handled by the reader task; a 20 ms poll for at most `timeout` is simplest.
+        while self.ws is not None and self._unacked and time.monotonic() < deadline:  # noqa: ASYNC110
+            await asyncio.sleep(0.02)
+
+    async def _vpn_watchdog(self, target: Target) -> None:
+        """Fall back to WSS when the cloud does not answer through an up tunnel."""
+        if target.path != VPN:
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self.connected.wait(), self.network.vpn_connect_timeout)
+            return
+        self.network.vpn_unusable()
+
+    async def _connect(self, target: Target) -> None:
         heartbeat = self.config.heartbeat_interval if self.config else 5.0
         delays = functools.partial(
             backoff,
@@ -276,19 +337,20 @@ class RobotController:
             min_delay=self.settings.reconnect_initial,
             max_delay=self.settings.reconnect_max,
         )
-        url = self.settings.master.rstrip("/") + "/ws/robot/"
-        self.say(f"connecting to {url} as robot {self.settings.robot}")
+        self.say(f"connecting to {target.url} as robot {self.settings.robot} ({target.path})")
         async for ws in websockets.connect(
-            url,
+            target.url,
             reconnect_delays=delays,
             ping_interval=heartbeat,
             ping_timeout=self._lost_after(),
             max_size=protocol.MAX_FRAME_BYTES * 2,
             open_timeout=10,
             compression=None,
+            process_exception=self._connect_failed,
+            **target.connect_options(),
         ):
             try:
-                await self._session(ws)
+                await self._session(ws, target.path)
             except AuthenticationRefused as exc:
                 self.say(f"the cloud refused this robot: {exc}. Check --robot and --token.")
                 self.stop(3)
@@ -297,8 +359,23 @@ class RobotController:
                 pass
             finally:
                 self._on_disconnect()
+                if self.stopped.is_set() or asyncio.current_task().cancelling():
+                    # Moving to another path (or stopping): close this socket now, not at garbage collection.
+                    with contextlib.suppress(Exception):
+                        await asyncio.wait_for(ws.close(), 2)
 
-    async def _session(self, ws: Any) -> None:
+    def _connect_failed(self, exc: Exception) -> Exception | None:
+        """Say why a TLS handshake failed (once per reason), then let websockets retry as usual."""
+        if isinstance(exc, ssl.SSLError):
+            reason = exc.reason or str(exc)
+            if isinstance(exc, ssl.SSLCertVerificationError):
+                reason = f"certificate verify failed ({exc.verify_message})"
+            if reason != self._tls_failure:
+                self._tls_failure = reason
+                self.say(f"TLS handshake with the cloud failed: {reason}. Check --ca or the cloud's certificate.")
+        return websockets.asyncio.client.process_exception(exc)
+
+    async def _session(self, ws: Any, path: str = "direct") -> None:
         credentials: dict[str, Any] = {
             "robot": self.settings.robot,
             "token": self.settings.token,
@@ -311,10 +388,13 @@ class RobotController:
             raise AuthenticationRefused(reason)
         self._use_ros_master(protocol.parse_payload(answer).ros_master)
         self.ws = ws
+        self.network.path = path
         self.connected.set()
-        self.say("connected to the cloud")
+        self.say(f"connected to the cloud ({'through the VPN' if path == VPN else 'over ' + ws_scheme(ws)})")
         self._contact()
         await self._replay_backlog()
+        # Which path this connection takes is a metric of its own ("vpn": 1 through the tunnel, 0 direct).
+        await self.emit(Event.METRICS, {"metrics": [self.network.path_point(path)]})
         # The cloud pushes the config on connect; asking as well makes the agent not depend on it.
         await self._send_direct(protocol.make(Event.ROBOT_CONFIG_GET, {}, now=time.time()))
         async for raw in ws:
@@ -339,6 +419,8 @@ class RobotController:
         if self.ws is not None:
             self.say("disconnected from the cloud; frames are kept until it is back")
         self.ws = None
+        self.network.path = None
+        self._holding = False
         self.connected.clear()
         # Everything unacked is sent again, in order, on the next connection.
         self._unacked.clear()
@@ -388,7 +470,7 @@ class RobotController:
             self.metric_points_sent += len(data["metrics"])
         if event in protocol.REQUIRES_ACK:
             text = self.outbox.put(envelope)
-            if self.ws is not None and not self._replaying:
+            if self.ws is not None and not self._replaying and not self._holding:
                 self._unacked[envelope.id] = (time.monotonic() + 5.0, 1)
                 await self._send_text(text)
         else:
@@ -495,6 +577,9 @@ class RobotController:
             setattr(self.monitor.robot, name, getattr(config.resources, name))
         if source == "cloud":
             self.config_from_cloud.set()
+        self.network.apply_config(config)
+        if config.subnets is not None and hasattr(self.runtime, "use_subnet"):
+            self.runtime.use_subnet(config.subnets.local)
         self._save_soon()
         if first and source == "cloud":
             self.say(f"robot config received (heuristic {config.heuristic}, offloading {config.offloading})")
@@ -1165,6 +1250,11 @@ async def on_metrics_get(controller: RobotController, envelope: Envelope, p: Any
         if names is None or name in names
     ]
     return Event.METRICS, {"metrics": points[: p.limit or len(points)]}
+
+
+def ws_scheme(ws: Any) -> str:
+    """Name the scheme of a live connection (WSS or plain WS)."""
+    return "WSS" if getattr(ws, "transport", None) and ws.transport.get_extra_info("sslcontext") else "WS"
 
 
 def previous_placement(data_dir: Path, skill_id: str) -> dict[str, str]:

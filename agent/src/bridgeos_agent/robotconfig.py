@@ -19,6 +19,7 @@ __all__ = [
     "RobotConfig",
     "RobotResources",
     "Subnets",
+    "Vpn",
     "merge_config_changes",
     "parse_robot_config",
     "robot_config_json_schema",
@@ -113,6 +114,18 @@ class Subnets(_Model):
         return self
 
 
+class Vpn(_Model):
+    """Say whether the robot joins the cloud's VPN, and where the cloud answers inside it."""
+
+    enabled: bool = Field(default=False, description="Bring the OpenVPN tunnel up and reach the cloud through it.")
+    master: str | None = Field(
+        default=None,
+        max_length=2048,
+        pattern=r"^wss?://[^/?#\s]+/?$",
+        description="The cloud's WebSocket URL inside the tunnel (set by the cloud), e.g. wss://10.8.0.1:8443.",
+    )
+
+
 class Costs(_Model):
     """Price the resources used by the monetary policy and migration heuristics."""
 
@@ -152,6 +165,13 @@ class RobotConfig(_Model):
         ),
     )
     subnets: Subnets | None = None
+    vpn: Vpn = Field(default_factory=Vpn)
+    tls_ca: str | None = Field(
+        default=None,
+        max_length=65536,
+        pattern=r"^\s*-----BEGIN CERTIFICATE-----[\s\S]+-----END CERTIFICATE-----\s*$",
+        description="PEM of the CA the agent pins for the cloud's TLS certificate (set by the cloud).",
+    )
     energy: dict[Identifier, NonNegative] = Field(
         default_factory=lambda: dict(DEFAULT_ENERGY),
         description="Hourly energy consumption (Ec, watts) of each resource at full use.",

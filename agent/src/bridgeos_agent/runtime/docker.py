@@ -461,26 +461,60 @@ class DockerRuntime(Runtime):
                 self._api = api
         return self._api
 
+    def use_subnet(self, subnet: str | None) -> None:
+        """Give the robot's network the local subnet the cloud allocated (robot config ``subnets.local``)."""
+        if subnet != self.subnet:
+            self.subnet = subnet
+            self._network_ready = False  # checked, and recreated if it can be, before the next launch
+
     async def _ensure_network(self, api: APIClient) -> None:
-        """Create the robot's bridge network once."""
+        """Create the robot's bridge network once, on its allocated subnet."""
         if self._network_ready:
             return
         async with self._network_lock:
             if self._network_ready:
                 return
             try:
-                await self._call(api.inspect_network, self.network)
+                existing = await self._call(api.inspect_network, self.network)
+                configs = (existing.get("IPAM") or {}).get("Config") or [{}]
+                current = configs[0].get("Subnet")
+                if self.subnet and current != self.subnet:
+                    if existing.get("Containers"):
+                        logger.warning(
+                            "network %s uses %s, not the allocated %s: it is recreated once no component uses it",
+                            self.network,
+                            current,
+                            self.subnet,
+                        )
+                        self._network_ready = True
+                        return
+                    await self._call(api.remove_network, self.network)
+                    raise docker.errors.NotFound("recreated on its allocated subnet")
             except docker.errors.NotFound:
                 ipam = IPAMConfig(pool_configs=[IPAMPool(subnet=self.subnet)]) if self.subnet else None
+                create = functools.partial(
+                    api.create_network,
+                    self.network,
+                    driver="bridge",
+                    check_duplicate=True,
+                    labels={LABEL_ROBOT: self.robot, LABEL_MANAGED: "1"},
+                )
                 try:
-                    await self._call(
-                        api.create_network,
-                        self.network,
-                        driver="bridge",
-                        ipam=ipam,
-                        check_duplicate=True,
-                        labels={LABEL_ROBOT: self.robot, LABEL_MANAGED: "1"},
-                    )
+                    try:
+                        await self._call(create, ipam=ipam)
+                    except docker.errors.APIError as exc:
+                        if ipam is None or "overlap" not in str(exc.explanation).lower():
+                            raise
+                        # Something on this machine holds the allocated subnet: components still run,
+                        # but the cloud cannot reach them through the VPN until it is freed.
+                        logger.warning(
+                            "subnet %s of network %s overlaps a network on this machine (%s): using one Docker "
+                            "picks; free the subnet or change the cloud's local pools (BRIDGEOS_LOCAL_POOLS)",
+                            self.subnet,
+                            self.network,
+                            exc.explanation,
+                        )
+                        await self._call(create, ipam=None)
                 except docker.errors.APIError as exc:
                     if exc.status_code != 409:  # 409: someone created it meanwhile
                         raise RuntimeFailure(

@@ -1,0 +1,123 @@
+"""Count failed logins per (identity, address) and per address, in Redis, and block past a limit."""
+
+from __future__ import annotations
+
+import ipaddress
+import threading
+import time
+from functools import cache
+
+from django.conf import settings
+
+
+class FailureLimit:
+    """Allow ``limit`` failures per key within ``window`` seconds; past that, the key is blocked until it expires."""
+
+    def __init__(self, redis_url: str | None, *, prefix: str = "bridgeos:failures:") -> None:
+        self.prefix = prefix
+        self._redis = None
+        if redis_url:
+            import redis
+
+            self._redis = redis.Redis.from_url(redis_url, socket_timeout=5)
+        self._local: dict[str, tuple[int, float]] = {}
+        self._lock = threading.Lock()
+
+    def blocked_for(self, keys: list[tuple[str, int]], window: float) -> float:
+        """Return how many seconds the first blocked key stays blocked (0: none is)."""
+        for key, limit in keys:
+            count, expires = self._get(key, window)
+            if count >= limit:
+                return max(1.0, expires)
+        return 0.0
+
+    def failed(self, keys: list[tuple[str, int]], window: float) -> bool:
+        """Count a failure against every key; return True when one of them just reached its limit."""
+        tripped = False
+        for key, limit in keys:
+            tripped |= self._incr(key, window) == limit
+        return tripped
+
+    def succeeded(self, key: str) -> None:
+        """Forget the failures of an identity that just proved itself."""
+        if self._redis is not None:
+            self._redis.delete(self.prefix + key)
+        else:
+            with self._lock:
+                self._local.pop(key, None)
+
+    def _get(self, key: str, window: float) -> tuple[int, float]:
+        if self._redis is not None:
+            pipe = self._redis.pipeline()
+            pipe.get(self.prefix + key)
+            pipe.ttl(self.prefix + key)
+            count, ttl = pipe.execute()
+            return int(count or 0), float(ttl if ttl and ttl > 0 else window)
+        with self._lock:
+            count, until = self._local.get(key, (0, 0.0))
+            now = time.monotonic()
+            return (count, until - now) if until > now else (0, 0.0)
+
+    def _incr(self, key: str, window: float) -> int:
+        if self._redis is not None:
+            pipe = self._redis.pipeline()
+            pipe.incr(self.prefix + key)
+            pipe.expire(self.prefix + key, int(window), nx=True)
+            return int(pipe.execute()[0])
+        with self._lock:
+            now = time.monotonic()
+            count, until = self._local.get(key, (0, 0.0))
+            if until <= now:
+                count, until = 0, now + window
+            self._local[key] = (count + 1, until)
+            return count + 1
+
+
+@cache
+def failures() -> FailureLimit:
+    """Return this process's failure counter (shared through Redis between processes)."""
+    return FailureLimit(settings.REDIS_URL)
+
+
+def login_keys(scope: str, identity: str, address: str) -> list[tuple[str, int]]:
+    """Return the counters a login attempt counts against: the identity from this address, and the address."""
+    conf = settings.BRIDGEOS
+    keys = [(f"{scope}:{identity[:200]}:{address}", conf["AUTH_FAILURES"])]
+    if not _loopback(address):
+        # This machine's own processes (a local proxy, tests) are never blocked as a whole.
+        keys.append((f"address:{address}", conf["AUTH_FAILURES_PER_ADDRESS"]))
+    return keys
+
+
+def _loopback(address: str) -> bool:
+    try:
+        return ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return False
+
+
+def window() -> float:
+    """Return how long failures are counted (and a blocked key stays blocked)."""
+    return settings.BRIDGEOS["AUTH_WINDOW_S"]
+
+
+def blocked(scope: str, identity: str, address: str) -> float:
+    """Return for how many seconds more logins of this identity from this address are refused (0: not)."""
+    return failures().blocked_for(login_keys(scope, identity, address), window())
+
+
+def attempted(scope: str, identity: str, address: str, ok: bool) -> None:
+    """Count a login attempt: a success clears the identity's failures, a failure counts (and may block)."""
+    keys = login_keys(scope, identity, address)
+    if ok:
+        failures().succeeded(keys[0][0])
+    elif failures().failed(keys, window()):
+        from monitoring.choices import Level
+        from monitoring.services import record_event
+
+        record_event(
+            f"Too many failed authentications of {scope} {identity[:150]} from {address}",
+            level=Level.WARNING,
+            kind="authentication_blocked",
+            data={scope: identity[:150], "address": address},
+        )
