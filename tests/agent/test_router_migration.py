@@ -79,6 +79,8 @@ async def test_a_migration_switches_only_once_the_new_instance_is_ready(cloud, r
 
             # The cloud copy runs (started here, as the cloud would): the switch happens once it is ready.
             nodes.run("cloud-copy", "talker", "--tag", "cloud", "--rate", "100", namespace=CLOUD_NS)
+            # (Its rospy start may take longer than the 3 s a migration waits on a loaded machine.)
+            assert await router.wait_ready("talker", "cloud", 60)
             assert await controller.migrate_component(record, "talker", "cloud") == "cloud"
             assert router.active("talker") == "cloud" and record.locations["talker"] == "cloud"
             await eventually(lambda: not controller.runtime.get_state().get("components"), 30, "robot copy stopped")

@@ -42,7 +42,8 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 BATCH = 500  # master calls per system.multicall request
-QUEUE_MESSAGES = 1000  # per subscriber connection, once its socket stops taking data
+QUEUE_MESSAGES = 1000  # per subscriber connection, once its socket stops taking data...
+QUEUE_BYTES = 16 << 20  # ...and at most this much of it (a thousand pointclouds would not fit a robot)
 HIGH_WATER = 1 << 20  # bytes the kernel-side write buffer may hold before a connection queues
 
 ServiceHandler = Callable[[dict[str, str], asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
@@ -80,7 +81,17 @@ def _nodelay(transport: asyncio.BaseTransport) -> None:
 class Outbound:
     """One subscriber connected to a publication: a bounded queue once its socket backs up."""
 
-    __slots__ = ("_flusher", "backlog", "callerid", "closed", "dropped", "publication", "transport", "writer")
+    __slots__ = (
+        "_flusher",
+        "backlog",
+        "backlog_bytes",
+        "callerid",
+        "closed",
+        "dropped",
+        "publication",
+        "transport",
+        "writer",
+    )
 
     def __init__(self, publication: Publication, writer: asyncio.StreamWriter, callerid: str) -> None:
         self.publication = publication
@@ -88,6 +99,7 @@ class Outbound:
         self.transport = writer.transport
         self.callerid = callerid
         self.backlog: deque[bytes] | None = None
+        self.backlog_bytes = 0
         self.dropped = 0
         self.closed = False
         self._flusher: asyncio.Task | None = None
@@ -100,13 +112,16 @@ class Outbound:
             if self.transport.get_write_buffer_size() <= HIGH_WATER:
                 self.transport.write(blob)
                 return 0
-            self.backlog = deque(maxlen=QUEUE_MESSAGES)
+            self.backlog = deque()
             self._flusher = asyncio.get_running_loop().create_task(self._flush())
         backlog = self.backlog
-        frames = list(iter_frames(blob)) if count != 1 else [blob]
+        backlog.extend(iter_frames(blob) if count != 1 else (blob,))
+        self.backlog_bytes += len(blob)
         # A stalled subscriber loses its own oldest messages; nobody else waits for it.
-        overflow = max(0, len(backlog) + len(frames) - QUEUE_MESSAGES)
-        backlog.extend(frames)
+        overflow = 0
+        while len(backlog) > QUEUE_MESSAGES or (self.backlog_bytes > QUEUE_BYTES and len(backlog) > 1):
+            self.backlog_bytes -= len(backlog.popleft())
+            overflow += 1
         self.dropped += overflow
         return overflow
 
@@ -116,12 +131,14 @@ class Outbound:
                 await self.writer.drain()
                 data = b"".join(self.backlog)
                 self.backlog.clear()
+                self.backlog_bytes = 0
                 self.transport.write(data)
                 await self.writer.drain()
         except (ConnectionError, RuntimeError):
             self.close()
         finally:
             self.backlog = None
+            self.backlog_bytes = 0
             self._flusher = None
 
     def close(self) -> None:
