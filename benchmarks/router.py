@@ -28,6 +28,7 @@ import contextlib
 import gc
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -359,6 +360,8 @@ async def main(args: argparse.Namespace) -> dict:
 
 
 if __name__ == "__main__":
+    # A terminated run still stops its rosmaster and rospy nodes (they run in sessions of their own).
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer topics, pairs and seconds (<1 min)")
     result = asyncio.run(main(parser.parse_args()))
