@@ -48,6 +48,7 @@ from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
 from bridgeos_agent.robotconfig import RobotConfig, merge_config_changes, parse_robot_config
 from bridgeos_agent.rosmaster import find_ros_master
+from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.runtime import ComponentSpec, ComponentState, Runtime, RuntimeFailure, Status, create_runtime
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 from bridgeos_agent.supervisor import SkillPlugin, SkillSupervisor
@@ -138,8 +139,9 @@ class RobotController:
             runtime.on_status = self._on_runtime_status
         if plugins is None:
             from bridgeos_agent.manager import skill_manager_plugin
+            from bridgeos_agent.router import skill_router_plugin
 
-            plugins = {"manager": skill_manager_plugin}
+            plugins = {"manager": skill_manager_plugin, "router": skill_router_plugin}
         self.plugins = dict(plugins)
         self.config: RobotConfig | None = None
         self.config_from_cloud = asyncio.Event()
@@ -698,6 +700,7 @@ class RobotController:
                 for moved in (decision.component_id, *decision.links):
                     # The cloud copy is asked for first, then the robot copy makes room.
                     await self._start_in_cloud(replaced, moved)
+                    self._route(replaced, moved, "cloud")
                     await self.runtime.stop(decision.skill_id, moved)
                     self._usage.pop((decision.skill_id, moved), None)
             elif isinstance(decision, Cloud):
@@ -764,6 +767,9 @@ class RobotController:
         }
         if self.ros_master:
             env["ROS_MASTER_URI"] = self.ros_master
+        if component.ros:
+            # The Skill Router relays between this namespace and the names peers use.
+            env["ROS_NAMESPACE"] = instance_namespace(record.config.skill_id, name, "robot")
         if record.supervisor is not None:
             env.update({k: str(v) for k, v in record.supervisor.context.get("env", {}).items()})
         return ComponentSpec(
@@ -786,6 +792,7 @@ class RobotController:
             await self._set_status(record, name, CS.FAILED, "robot", str(exc))
             raise ProtocolError(str(exc), code="launch_failed") from None
         record.locations[name] = "robot"
+        self._route_first(record, name, "robot")
         await self._set_status(record, name, CS.RUNNING, "robot")
         await self.emit(
             Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": "robot"}
@@ -805,6 +812,7 @@ class RobotController:
     async def _start_in_cloud(self, record: SkillRecord, name: str) -> None:
         """Forward a cloud-side launch to the cloud (thesis: the controller only forwards those)."""
         record.locations[name] = "cloud"
+        self._route_first(record, name, "cloud")
         await self._set_status(record, name, CS.STARTING, "cloud")
         await self.emit(
             Event.COMPONENT_START, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
@@ -822,6 +830,7 @@ class RobotController:
             await self.emit(Event.COMPONENT_STOP, {"skill": skill_id, "component": name, "location": "cloud"})
         if only is None or only == where:
             record.locations[name] = None
+            self._route(record, name, None)
             await self._set_status(record, name, CS.STOPPED, None)
         self._reporter.forget(skill_id, name)
         self._usage.pop((skill_id, name), None)
@@ -837,28 +846,70 @@ class RobotController:
         if target == current:
             return target
         await self._set_status(record, name, CS.MIGRATING, current)
+        # The old copy keeps serving until the new one runs and the router switches (no downtime window).
         if target == "robot":
-            # The cloud copy keeps serving until the robot copy runs (no downtime window).
             try:
                 await self.place_component(record, name, location="robot")
             except Exception as exc:
-                if current == "cloud":  # ... so a failed start leaves it running there
+                if current == "cloud":  # the cloud copy keeps serving when the robot copy cannot start
                     record.locations[name] = "cloud"
                     await self._set_status(record, name, CS.RUNNING, "cloud", f"move to the robot failed: {exc}")
                 raise
-            if current == "cloud":
-                await self.emit(
-                    Event.COMPONENT_STOP, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
-                )
         else:
             await self._start_in_cloud(record, name)
-            if current == "robot":
-                await self.runtime.stop(record.config.skill_id, name)
-                self._usage.pop((record.config.skill_id, name), None)
+        router = self._router(record)
+        if router is not None and current is not None:
+            if not await router.wait_ready(name, target, router.settings.ready_timeout):
+                await self._abandon_migration(record, name, target, current)
+                raise ProtocolError(
+                    f"component {name!r} was not ready on the {target} within {router.settings.ready_timeout:g} s; "
+                    f"it keeps running on the {current}",
+                    field="data.component",
+                    code="migration_failed",
+                )
+            await router.switch(name, target)
+        elif router is not None:
+            router.set_active(name, target)
+        if current == "cloud":
+            await self.emit(
+                Event.COMPONENT_STOP, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
+            )
+        elif current == "robot":
+            await self.runtime.stop(record.config.skill_id, name)
+            self._usage.pop((record.config.skill_id, name), None)
         await self.emit(
             Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": target}
         )
         return target
+
+    async def _abandon_migration(self, record: SkillRecord, name: str, target: str, current: str) -> None:
+        """Stop the copy that did not get ready and keep the old one in charge."""
+        skill_id = record.config.skill_id
+        if target == "robot":
+            await self.runtime.stop(skill_id, name)
+        else:
+            await self.emit(Event.COMPONENT_STOP, {"skill": skill_id, "component": name, "location": "cloud"})
+        record.locations[name] = current
+        await self._set_status(record, name, CS.RUNNING, current, f"migration to the {target} abandoned: not ready")
+        await self.emit(Event.COMPONENT_LOCATION, {"skill": skill_id, "component": name, "location": current})
+        self._save_soon()
+
+    def _router(self, record: SkillRecord) -> Any:
+        """Return the Skill's router, if it runs one."""
+        return record.supervisor.context.get("router") if record.supervisor is not None else None
+
+    def _route(self, record: SkillRecord, name: str, location: str | None) -> None:
+        """Point the Skill's router at one instance of a component (or at none)."""
+        router = self._router(record)
+        if router is not None:
+            with contextlib.suppress(ValueError):
+                router.set_active(name, location)
+
+    def _route_first(self, record: SkillRecord, name: str, location: str) -> None:
+        """Let the router follow a component's first start (a migration switches it instead)."""
+        router = self._router(record)
+        if router is not None and router.active(name) is None:
+            self._route(record, name, location)
 
     async def _set_status(
         self, record: SkillRecord, name: str, status: CS, location: str | None, message: str | None = None
@@ -988,6 +1039,7 @@ class RobotController:
                     continue
                 started.append(name)
                 record.statuses[name] = CS.RUNNING
+                self._route(record, name, "robot")
             if started:
                 self._takeover[skill_id] = started
         count = sum(len(names) for names in self._takeover.values())
@@ -1004,6 +1056,8 @@ class RobotController:
         for skill_id, names in migrations.items():
             record = self.skills.get(skill_id)
             for name in names:
+                if record is not None and record.locations.get(name) == "cloud":
+                    self._route(record, name, "cloud")
                 await self.runtime.stop(skill_id, name)
                 stopped += 1
                 if record is not None and record.locations.get(name) == "cloud":
@@ -1124,6 +1178,15 @@ async def on_component_start(controller: RobotController, envelope: Envelope, p:
 async def on_component_stop(controller: RobotController, envelope: Envelope, p: Any) -> None:
     record = controller._component(p.skill, p.component)
     await controller.stop_component(record, p.component, only=str(p.location) if p.location else None)
+
+
+@handles(Event.COMPONENT_INFORMATION)
+async def on_component_information(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    record = controller._component(p.skill, p.component)
+    router = controller._router(record)
+    if router is not None:
+        # The Skill Router's HTTP routes reach a cloud instance at its published address and ports.
+        router.set_container(p.component, str(p.location), p.container.model_dump(mode="json", exclude_none=True))
 
 
 @handles(Event.COMPONENT_MIGRATE)
