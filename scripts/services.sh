@@ -17,7 +17,7 @@ VPN_TOOLS=(openvpn:openvpn nft:nftables ip:iproute2 ping:iputils-ping)
 # The dashboard's browser tests drive Debian's Chromium through Playwright (never Playwright's download).
 CHROMIUM=/usr/bin/chromium
 ROS_PACKAGES=(ros-core python3-rospy python3-rostopic python3-std-msgs python3-sensor-msgs
-              python3-geometry-msgs python3-nav-msgs)
+              python3-geometry-msgs python3-nav-msgs python3-rosservice python3-std-srvs python3-rosgraph-msgs)
 DOCKERD_LOG=/var/log/bridgeos-dockerd.log
 ROSCORE_LOG=/var/log/bridgeos-roscore.log
 ROS_HOME_DIR=/var/lib/bridgeos/ros
@@ -73,7 +73,7 @@ wants() { [[ " ${REQUESTED[*]} " == *" $1 "* ]]; }
 if ! wants docker && { wants swarm || wants images; }; then REQUESTED=(docker "${REQUESTED[@]}"); fi
 
 # --- one batched apt-get for everything missing ------------------------------------
-rospy_ok() { ros_env /usr/bin/python3 -c 'import rospy, rostopic, std_msgs.msg' >/dev/null 2>&1; }
+rospy_ok() { ros_env /usr/bin/python3 -c 'import rospy, rostopic, rosservice, std_msgs.msg, std_srvs.srv, rosgraph_msgs.msg' >/dev/null 2>&1; }
 APT_NEEDED=()
 INSTALLED=" "
 wants docker && ! have dockerd && APT_NEEDED+=(docker.io)

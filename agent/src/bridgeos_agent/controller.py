@@ -48,6 +48,7 @@ from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
 from bridgeos_agent.robotconfig import RobotConfig, merge_config_changes, parse_robot_config
 from bridgeos_agent.rosmaster import find_ros_master
+from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.runtime import ComponentSpec, ComponentState, Runtime, RuntimeFailure, Status, create_runtime
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 from bridgeos_agent.supervisor import SkillPlugin, SkillSupervisor
@@ -145,8 +146,9 @@ class RobotController:
             runtime.on_status = self._on_runtime_status
         if plugins is None:
             from bridgeos_agent.manager import skill_manager_plugin
+            from bridgeos_agent.router import skill_router_plugin
 
-            plugins = {"manager": skill_manager_plugin}
+            plugins = {"manager": skill_manager_plugin, "router": skill_router_plugin}
         self.plugins = dict(plugins)
         self.config: RobotConfig | None = None
         self.config_from_cloud = asyncio.Event()
@@ -718,6 +720,7 @@ class RobotController:
                 for moved in (decision.component_id, *decision.links):
                     # The cloud copy is asked for first, then the robot copy makes room.
                     await self._start_in_cloud(replaced, moved)
+                    self._route(replaced, moved, "cloud")
                     await self.runtime.stop(decision.skill_id, moved)
                     self._usage.pop((decision.skill_id, moved), None)
             elif isinstance(decision, Cloud):
@@ -784,6 +787,9 @@ class RobotController:
         }
         if self.ros_master:
             env["ROS_MASTER_URI"] = self.ros_master
+        if component.ros:
+            # The Skill Router relays between this namespace and the names peers use.
+            env["ROS_NAMESPACE"] = instance_namespace(record.config.skill_id, name, "robot")
         if record.supervisor is not None:
             env.update({k: str(v) for k, v in record.supervisor.context.get("env", {}).items()})
         return ComponentSpec(
@@ -806,6 +812,7 @@ class RobotController:
             await self._set_status(record, name, CS.FAILED, "robot", str(exc))
             raise ProtocolError(str(exc), code="launch_failed") from None
         record.locations[name] = "robot"
+        self._route_first(record, name, "robot")
         await self._set_status(record, name, CS.RUNNING, "robot")
         await self.emit(
             Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": "robot"}
@@ -827,6 +834,7 @@ class RobotController:
         data = {"skill": record.config.skill_id, "component": name, "location": "cloud"}
         if wait is None:
             record.locations[name] = "cloud"
+            self._route_first(record, name, "cloud")
             await self._set_status(record, name, CS.STARTING, "cloud")
             await self.emit(Event.COMPONENT_START, data)
             self._save_soon()
@@ -845,6 +853,7 @@ class RobotController:
         if status != CS.RUNNING:
             raise ProtocolError(f"the cloud could not run {name!r}: {message or status}", code="launch_failed")
         record.locations[name] = "cloud"
+        self._route_first(record, name, "cloud")
         self._save_soon()
 
     def on_cloud_report(self, skill_id: str, name: str, status: str, message: str | None) -> None:
@@ -874,6 +883,7 @@ class RobotController:
             await self.emit(Event.COMPONENT_STOP, {"skill": skill_id, "component": name, "location": "cloud"})
         if only is None or only == where:
             record.locations[name] = None
+            self._route(record, name, None)
             await self._set_status(record, name, CS.STOPPED, None)
         self._reporter.forget(skill_id, name)
         self._usage.pop((skill_id, name), None)
@@ -889,23 +899,36 @@ class RobotController:
         if target == current:
             return target
         await self._set_status(record, name, CS.MIGRATING, current)
+        # The old copy keeps serving until the new one runs and the router switches (no downtime window).
         try:
             if target == "robot":
-                # The cloud copy keeps serving until the robot copy runs (no downtime window).
                 await self.place_component(record, name, location="robot")
             else:
-                # Switch only once the cloud reports its copy running; the robot copy serves meanwhile.
+                # Nothing switches before the cloud reports its copy running.
                 await self._start_in_cloud(record, name, wait=self.settings.cloud_start_timeout)
         except Exception as exc:
             # Rolled back: the component keeps running where it was, and the cloud hears why.
             record.locations[name] = current
             await self._set_status(record, name, CS.RUNNING if current else CS.STOPPED, current, f"not moved: {exc}")
             raise
-        if target == "robot" and current == "cloud":
+        router = self._router(record)
+        if router is not None and current is not None:
+            if not await router.wait_ready(name, target, router.settings.ready_timeout):
+                await self._abandon_migration(record, name, target, current)
+                raise ProtocolError(
+                    f"component {name!r} was not ready on the {target} within {router.settings.ready_timeout:g} s; "
+                    f"it keeps running on the {current}",
+                    field="data.component",
+                    code="migration_failed",
+                )
+            await router.switch(name, target)
+        elif router is not None:
+            router.set_active(name, target)
+        if current == "cloud":
             await self.emit(
                 Event.COMPONENT_STOP, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
             )
-        elif target == "cloud" and current == "robot":
+        elif current == "robot":
             await self.runtime.stop(record.config.skill_id, name)
             self._usage.pop((record.config.skill_id, name), None)
         await self.emit(
@@ -914,6 +937,35 @@ class RobotController:
         if target == "cloud":
             await self._set_status(record, name, CS.RUNNING, "cloud")
         return target
+
+    async def _abandon_migration(self, record: SkillRecord, name: str, target: str, current: str) -> None:
+        """Stop the copy that did not get ready and keep the old one in charge."""
+        skill_id = record.config.skill_id
+        if target == "robot":
+            await self.runtime.stop(skill_id, name)
+        else:
+            await self.emit(Event.COMPONENT_STOP, {"skill": skill_id, "component": name, "location": "cloud"})
+        record.locations[name] = current
+        await self._set_status(record, name, CS.RUNNING, current, f"migration to the {target} abandoned: not ready")
+        await self.emit(Event.COMPONENT_LOCATION, {"skill": skill_id, "component": name, "location": current})
+        self._save_soon()
+
+    def _router(self, record: SkillRecord) -> Any:
+        """Return the Skill's router, if it runs one."""
+        return record.supervisor.context.get("router") if record.supervisor is not None else None
+
+    def _route(self, record: SkillRecord, name: str, location: str | None) -> None:
+        """Point the Skill's router at one instance of a component (or at none)."""
+        router = self._router(record)
+        if router is not None:
+            with contextlib.suppress(ValueError):
+                router.set_active(name, location)
+
+    def _route_first(self, record: SkillRecord, name: str, location: str) -> None:
+        """Let the router follow a component's first start (a migration switches it instead)."""
+        router = self._router(record)
+        if router is not None and router.active(name) is None:
+            self._route(record, name, location)
 
     async def _set_status(
         self, record: SkillRecord, name: str, status: CS, location: str | None, message: str | None = None
@@ -1043,6 +1095,7 @@ class RobotController:
                     continue
                 started.append(name)
                 record.statuses[name] = CS.RUNNING
+                self._route(record, name, "robot")
             if started:
                 self._takeover[skill_id] = started
         count = sum(len(names) for names in self._takeover.values())
@@ -1059,6 +1112,8 @@ class RobotController:
         for skill_id, names in migrations.items():
             record = self.skills.get(skill_id)
             for name in names:
+                if record is not None and record.locations.get(name) == "cloud":
+                    self._route(record, name, "cloud")
                 await self.runtime.stop(skill_id, name)
                 stopped += 1
                 if record is not None and record.locations.get(name) == "cloud":
@@ -1197,10 +1252,17 @@ async def on_component_status(controller: RobotController, envelope: Envelope, p
 
 @handles(Event.COMPONENT_INFORMATION)
 async def on_component_information(controller: RobotController, envelope: Envelope, p: Any) -> None:
-    # Where the cloud copy is reached: the Skill Router routes HTTP to its address and published ports.
+    # Where an instance is reached (the cloud sends its copies' address and published ports): kept for
+    # the Skill Router's HTTP routes. A Skill or component this robot no longer has is ignored.
     record = controller.skills.get(p.skill)
-    if p.location == "cloud" and record is not None:
-        record.cloud_containers[p.component] = p.container.model_dump(mode="json", exclude_none=True)
+    if record is None or p.component not in record.config.components:
+        return
+    container = p.container.model_dump(mode="json", exclude_none=True)
+    if p.location == "cloud":
+        record.cloud_containers[p.component] = container
+    router = controller._router(record)
+    if router is not None:
+        router.set_container(p.component, str(p.location), container)
 
 
 @handles(Event.METRICS)

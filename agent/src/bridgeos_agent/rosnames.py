@@ -4,16 +4,26 @@ from __future__ import annotations
 
 from typing import Literal
 
-__all__ = ["NAMESPACE_ROOT", "canonical_name", "instance_name", "instance_namespace"]
+__all__ = ["NAMESPACE_ROOT", "canonical_name", "graph_segment", "instance_name", "instance_namespace"]
 
 NAMESPACE_ROOT = "/bridgeos"
+
+
+def graph_segment(slug: str) -> str:
+    """Return a Skill or component id as a valid ROS graph name segment (``people-detection`` → ``people_detection``).
+
+    Ids may hold hyphens and start with a digit; roscpp refuses both in graph names (rospy is
+    laxer), so hyphens become underscores and a leading digit gets an ``n`` before it.
+    """
+    segment = slug.replace("-", "_")
+    return f"n{segment}" if segment[:1].isdigit() else segment
 
 
 def instance_namespace(skill: str, component: str, location: Literal["robot", "cloud"]) -> str:
     """Return the namespace one instance of a component runs in (its ``ROS_NAMESPACE``)."""
     if location not in ("robot", "cloud"):
         raise ValueError(f"location must be 'robot' or 'cloud', not {location!r}")
-    return f"{NAMESPACE_ROOT}/{skill}/{component}/{location}"
+    return f"{NAMESPACE_ROOT}/{graph_segment(skill)}/{graph_segment(component)}/{location}"
 
 
 def canonical_name(name: str) -> str:

@@ -20,6 +20,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from bridgeos_agent.policies import cost_function_issues
+from bridgeos_agent.rosnames import graph_segment
 
 __all__ = [
     "ComponentConfig",
@@ -427,7 +428,15 @@ class SkillConfig(_Model):
         return self
 
     def _name_issues(self) -> Iterable[Issue]:
-        """Report two components with the same display name."""
+        """Report two components with the same display name or the same ROS namespace."""
+        segments: dict[str, str] = {}
+        for cid in self.components:
+            other = segments.setdefault(graph_segment(cid), cid)
+            if other != cid:
+                yield (
+                    ("components", cid),
+                    f"component ids {other!r} and {cid!r} would share a ROS namespace ('-' reads as '_')",
+                )
         seen: dict[str, str] = {}
         for cid, component in self.components.items():
             key = component.name.strip().casefold()
