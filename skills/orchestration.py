@@ -526,13 +526,28 @@ def converge_ros_master(robot_id: str) -> str:
                     raise TryAgain(str(exc)) from None
                 _set_master(cloud, CS.FAILED, str(exc))
                 return "failed"
-            if state.status is Status.RUNNING:
+            if state.status is Status.RUNNING and _answers(cloud.ros_master_port, timeout=15.0):
                 _set_master(cloud, CS.RUNNING)
                 return "running"
+            if state.status is Status.RUNNING:
+                raise TryAgain(f"the ROS master of {robot_id} runs but does not answer on {cloud.ros_master_port} yet")
             _set_master(cloud, CS.FAILED, state.message or f"exit code {state.exit_code}")
             return "failed"
     except LockBusy as exc:
         raise TryAgain(str(exc)) from None
+
+
+def _answers(port: int, *, timeout: float) -> bool:
+    """Tell whether something accepts connections on the cloud host's port within ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection((settings.BRIDGEOS["CLOUD_HOST"], port), timeout=1).close()
+            return True
+        except OSError:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
 
 
 def _set_master(cloud: RobotCloud, status: str, message: str = "") -> None:
