@@ -46,6 +46,7 @@ from .cloudruntime import (
     NO_RESTARTS,
     CloudRuntime,
     CloudSpec,
+    EngineBusy,
     Observed,
     cloud_id,
     labels,
@@ -157,7 +158,9 @@ class CloudDockerRuntime(DockerRuntime, CloudRuntime):
                         )
                     except docker.errors.APIError as exc:
                         if exc.status_code != 409:
-                            raise RuntimeFailure(
+                            # A deleted robot's network may still hold the subnet: the reconciler frees it.
+                            failure = EngineBusy if "overlap" in str(exc.explanation) else RuntimeFailure
+                            raise failure(
                                 f"cannot create the robot's cloud network {self.network} "
                                 f"(subnet {self.subnet or 'any'}): {exc.explanation}"
                             ) from None

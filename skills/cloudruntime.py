@@ -28,7 +28,7 @@ from typing import Any
 from django.conf import settings
 from django.db import connections
 
-from bridgeos_agent.runtime.base import ComponentSpec, ComponentState, RestartPolicy, Runtime, Status
+from bridgeos_agent.runtime.base import ComponentSpec, ComponentState, RestartPolicy, Runtime, RuntimeFailure, Status
 from bridgeos_cloud.env import ConfigError
 
 __all__ = [
@@ -38,6 +38,7 @@ __all__ = [
     "RUNTIMES",
     "CloudRuntime",
     "CloudSpec",
+    "EngineBusy",
     "Observed",
     "cloud_id",
     "create_cloud_runtime",
@@ -114,6 +115,10 @@ def ros_networking() -> str:
 def volumes_root() -> Path:
     """Return the directory holding every robot's cloud-side Skill volumes."""
     return Path(settings.BRIDGEOS["CLOUD_VOLUMES_DIR"])
+
+
+class EngineBusy(RuntimeFailure):
+    """The engine cannot do it yet (e.g. a removed robot's network still holds the subnet): try again soon."""
 
 
 @dataclass(frozen=True)

@@ -48,6 +48,7 @@ from .cloudruntime import (
     NO_RESTARTS,
     CloudRuntime,
     CloudSpec,
+    EngineBusy,
     Observed,
     create_cloud_runtime,
     object_name,
@@ -210,7 +211,7 @@ def _run(instance: CloudInstance) -> str:
     try:
         state, endpoint, logs = with_runtime(robot_id, launch)
     except RuntimeFailure as exc:
-        if _unreachable(exc):
+        if _unreachable(exc) or isinstance(exc, EngineBusy):
             raise TryAgain(str(exc)) from None
         _fail(instance, str(exc))
         return "failed"
@@ -608,7 +609,8 @@ def _reconcile(now: float) -> dict[str, int]:
                     if outcome:
                         done[outcome] += 1
         except LockBusy:
-            continue  # a task is working on it right now
+            logger.info("reconcile %s/%s/%s: a task is working on it", robot_id, skill_id, component_id)
+            continue
         except (TryAgain, RuntimeFailure) as exc:
             logger.warning("reconcile %s/%s/%s: %s", robot_id, skill_id, component_id, exc)
         except Exception:

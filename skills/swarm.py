@@ -68,6 +68,7 @@ from .cloudruntime import (
     MASTER_COMPONENT,
     CloudRuntime,
     CloudSpec,
+    EngineBusy,
     Observed,
     cloud_id,
     labels,
@@ -218,24 +219,50 @@ class SwarmRuntime(CloudRuntime):
         found = await self._call(api.networks, names=[self.network])
         if not any(n.get("Name") == self.network for n in found):
             ipam = IPAMConfig(pool_configs=[IPAMPool(subnet=self.subnet)]) if self.subnet else None
-            try:
-                await self._call(
-                    api.create_network,
-                    self.network,
-                    driver="overlay",
-                    attachable=True,
-                    check_duplicate=True,
-                    ipam=ipam,
-                    labels=labels(self.robot, kind="network"),
-                )
-            except docker.errors.APIError as exc:
-                if exc.status_code != 409:
+            for attempt in (1, 2):
+                try:
+                    await self._call(
+                        api.create_network,
+                        self.network,
+                        driver="overlay",
+                        attachable=True,
+                        check_duplicate=True,
+                        ipam=ipam,
+                        labels=labels(self.robot, kind="network"),
+                    )
+                    break
+                except docker.errors.APIError as exc:
+                    if exc.status_code == 409:
+                        break  # created meanwhile
+                    if attempt == 1 and "overlap" in str(exc.explanation) and await self._release_subnet():
+                        continue
                     subnet = f" with the robot's cloud subnet {self.subnet}" if self.subnet else ""
-                    raise RuntimeFailure(
+                    failure = EngineBusy if "overlap" in str(exc.explanation) else RuntimeFailure
+                    raise failure(
                         f"cannot create the robot's cloud network {self.network}{subnet}: {exc.explanation}"
                     ) from None
         self._network_ready = True
         return self.network
+
+    async def _release_subnet(self) -> bool:
+        """Remove this cloud's network of another robot that holds our subnet; tell whether one went.
+
+        IPAM never gives two robots one subnet, so such a network is a deleted robot's, waiting
+        for the reconciler; Docker refuses while its last copies are still being removed.
+        """
+        api = await self._connect()
+        wanted = [f"{LABEL_CLOUD}={cloud_id()}", f"{LABEL_KIND}=network"]
+        released = False
+        for network in await self._call(api.networks, filters={"label": wanted}):
+            configs = (network.get("IPAM") or {}).get("Config") or []
+            mine = network.get("Labels", {}).get(LABEL_ROBOT) == self.robot
+            if not mine and any(config.get("Subnet") == self.subnet for config in configs):
+                try:
+                    await self._call(api.remove_network, network["Id"])
+                    released = True
+                except docker.errors.APIError as exc:
+                    logger.info("network %s still holds %s: %s", network.get("Name"), self.subnet, exc.explanation)
+        return released
 
     async def remove_network(self) -> None:
         """Remove the robot's overlay network (Docker refuses while something uses it)."""

@@ -169,13 +169,17 @@ def make_stack(runtime: str, tmp: Path, **extra: str) -> Iterator[Stack]:
 
 
 def _remove_networks(runtime: str) -> None:
+    """Remove the test cloud's networks, waiting while Swarm still detaches removed copies from them."""
     from skills.orchestration import with_runtime
 
-    async def sweep(cloud_runtime) -> None:
+    async def sweep(cloud_runtime) -> int:
         for name in (await cloud_runtime.networks()).values():
             await cloud_runtime.remove_network_named(name)
+        return len(await cloud_runtime.networks())
 
-    with_runtime("cleanup", sweep, name=runtime)
+    deadline = time.monotonic() + 20
+    while with_runtime("cleanup", sweep, name=runtime) and time.monotonic() < deadline:
+        time.sleep(0.25)
 
 
 @pytest.fixture(scope="session", autouse=True)

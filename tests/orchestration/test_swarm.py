@@ -314,7 +314,14 @@ async def test_a_worker_killed_mid_start_leaves_exactly_one_copy(stack, tmp_path
                 await asyncio.to_thread(stack.reconcile)
                 return await running_instance("swarm-4", "ticker")
 
-            instance = await eventually(settled, timeout=90, what="the copy adopted")
+            try:
+                instance = await eventually(settled, timeout=90, what="the copy adopted")
+            except AssertionError:
+                row = await instance_of("swarm-4", "ticker")
+                seen = [(o.component, o.status) for o in await observe_async("swarm") if o.robot == "swarm-4"]
+                raise AssertionError(
+                    f"not adopted: row {row.desired}/{row.status} {row.message!r}, engine {seen}\n{stack.worker_log()}"
+                ) from None
             tasks = await asyncio.to_thread(service_tasks, client, name)
             running_tasks = [t for t in tasks if t["Status"]["State"] == "running"]
             assert len(running_tasks) == 1, tasks
@@ -454,7 +461,9 @@ async def test_a_ros_talker_migrates_robot_to_cloud_to_robot_while_a_listener_co
     for _, seqs in segments:
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), seqs
     # Each new copy went on from the count its Skill volume carried across (robot → cloud → robot).
-    assert segments[1][1][0] > 40 and segments[2][1][0] > segments[1][1][0]
+    # (Not from 1 again; heard from the switch on, so a little past the count the volume carried.)
+    robot_last, cloud_first, back_first = segments[0][1][-1], segments[1][1][0], segments[2][1][0]
+    assert 1 < cloud_first < robot_last + 20 and cloud_first < back_first
     # No silence beyond the switches: a new copy is switched to once it is ready.
     times = [t for _, _, t in messages]
     longest = max(after - before for before, after in itertools.pairwise(times))
