@@ -113,6 +113,13 @@ if DATABASES["default"]["ENGINE"] == "django.db.backends.postgresql" and env_boo
         "max_size": env_int("DATABASE_POOL_MAX", 20),
         "timeout": env_float("DATABASE_POOL_TIMEOUT", 10.0),
     }
+if DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
+    # `make run` without PostgreSQL: daphne, two Celery processes and beat write to one file.
+    # WAL lets readers run beside the writer, and IMMEDIATE transactions wait for the write lock
+    # up front rather than failing at once when a read would have to become a write.
+    DATABASES["default"].setdefault("OPTIONS", {}).update(
+        {"transaction_mode": "IMMEDIATE", "timeout": 20, "init_command": "PRAGMA journal_mode=WAL;"}
+    )
 if DATABASES["default"]["ENGINE"] == "django.db.backends.postgresql":
     # JIT compiling costs ~10 ms per query; with estimates off (a bulk load not yet analysed)
     # PostgreSQL spent it on 2 ms lookups. These are short queries: never JIT them.
@@ -178,12 +185,22 @@ CELERY_TASK_ACKS_LATE = True
 CELERY_TASK_REJECT_ON_WORKER_LOST = True
 CELERY_WORKER_PREFETCH_MULTIPLIER = 1
 CELERY_RESULT_EXPIRES = 3600
+# A task of a worker that died unacknowledged goes back to the queue after this long.
+CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": env_float("CELERY_VISIBILITY_TIMEOUT_S", 3600.0)}
+# Separate queues let several clouds (or test runs) share one Redis database.
+CELERY_TASK_DEFAULT_QUEUE = env_str("CELERY_TASK_DEFAULT_QUEUE", "celery")
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
 CELERY_TIMEZONE = TIME_ZONE
 CELERY_BEAT_SCHEDULE = {
     "prune-metrics": {
         "task": "monitoring.tasks.prune_metrics",
         "schedule": 3600.0,
+    },
+    # Desired cloud components vs what runs: restart the crashed, remove orphans, collect stats.
+    "reconcile-cloud": {
+        "task": "skills.tasks.reconcile_cloud",
+        "schedule": env_float("BRIDGEOS_CLOUD_RECONCILE_S", 5.0),
+        "options": {"expires": env_float("BRIDGEOS_CLOUD_RECONCILE_S", 5.0)},
     },
 }
 
@@ -236,6 +253,25 @@ BRIDGEOS = {
     "HTTP_THREADS": env_int("BRIDGEOS_HTTP_THREADS", 8),
     # Robot state JSON kept per server process; every read revalidates it against the database.
     "STATE_CACHE_BYTES": env_int("BRIDGEOS_STATE_CACHE_BYTES", 64 * 1024 * 1024),
+    # Cloud orchestration (skills.orchestration): what runs cloud components and how robots reach them.
+    "CLOUD_RUNTIME": env_str("BRIDGEOS_CLOUD_RUNTIME", "process"),
+    # Tells this cloud's containers apart from other clouds' on a shared engine (default: from the database).
+    "CLOUD_ID": env_str("BRIDGEOS_CLOUD_ID", ""),
+    # The address robots reach cloud containers' published ports and host-network services at.
+    "CLOUD_HOST": env_str("BRIDGEOS_CLOUD_HOST", "127.0.0.1"),
+    # A dedicated ROS master per robot that has none (default: with the swarm and docker runtimes).
+    "CLOUD_ROS_MASTERS": env_str("BRIDGEOS_CLOUD_ROS_MASTERS", ""),
+    "CLOUD_ROS_MASTER_PORTS": env_str("BRIDGEOS_CLOUD_ROS_MASTER_PORTS", "41311-41999"),
+    "CLOUD_ROS_IMAGE": env_str("BRIDGEOS_CLOUD_ROS_IMAGE", "bridgeos/ros:noetic"),
+    # ROS nodes in the cloud: "host" networking (peers on this host reach them) or the robot's overlay network.
+    "CLOUD_ROS_NETWORK": env_str("BRIDGEOS_CLOUD_ROS_NETWORK", "host"),
+    "CLOUD_START_TIMEOUT_S": env_float("BRIDGEOS_CLOUD_START_TIMEOUT_S", 60.0),
+    "CLOUD_VOLUMES_DIR": env_str("BRIDGEOS_CLOUD_VOLUMES_DIR", str(DATA_DIR / "cloud" / "volumes")),
+    # A crashed cloud component is restarted after 1, 2, 4 ... s (at most this), and given up on
+    # after CLOUD_MAX_RESTARTS crashes within CLOUD_RESTART_WINDOW_S.
+    "CLOUD_RESTART_BACKOFF_MAX_S": env_float("BRIDGEOS_CLOUD_RESTART_BACKOFF_MAX_S", 60.0),
+    "CLOUD_MAX_RESTARTS": env_int("BRIDGEOS_CLOUD_MAX_RESTARTS", 5),
+    "CLOUD_RESTART_WINDOW_S": env_float("BRIDGEOS_CLOUD_RESTART_WINDOW_S", 300.0),
     # Failed logins (/api/auth, robot tokens) allowed per identity and address, and per address, in a window.
     "AUTH_FAILURES": env_int("BRIDGEOS_AUTH_FAILURES", 10),
     "AUTH_FAILURES_PER_ADDRESS": env_int("BRIDGEOS_AUTH_FAILURES_PER_ADDRESS", 100),

@@ -22,6 +22,8 @@ from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
+from skills.orchestration import cloud_reports
+from skills.volumes import CloudVolumes
 
 from . import dedup, services
 from .dedup import applied_ids
@@ -29,6 +31,8 @@ from .dedup import applied_ids
 log = logging.getLogger(__name__)
 
 REQUEST_TTL = 120.0
+VOLUME_SCAN_S = 1.0
+CHUNK_WAIT_S = 30.0
 MAX_OPEN_REQUESTS = 1000
 CLOSE_REPLACED = 4009
 CLOSE_REVOKED = 4004
@@ -51,6 +55,9 @@ class RobotConsumer(ProtocolConsumer):
         self.reliable = Reliable()
         self.requests: OrderedDict[str, tuple[str, float]] = OrderedDict()
         self.retransmit_timer: asyncio.TimerHandle | None = None
+        self.volumes: CloudVolumes | None = None
+        self.volume_scanner: asyncio.Future | None = None
+        self.chunk_requests: dict[str, asyncio.Future[Envelope]] = {}
         await super().connect()
 
     async def send_reliably(self, envelope: Envelope) -> None:
@@ -78,6 +85,11 @@ class RobotConsumer(ProtocolConsumer):
         if event == Event.ERROR_MESSAGE:
             # The robot refused a frame: sending it again would be refused again.
             self.reliable.on_ack(envelope.reply_to)
+        if envelope.reply_to is not None and envelope.reply_to in self.chunk_requests:
+            future = self.chunk_requests[envelope.reply_to]
+            if not future.done():
+                future.set_result(envelope)
+            return
         payload = protocol.parse_payload(envelope)
         named = getattr(payload, "robot", None)
         if named is not None and named != self.robot_id:
@@ -140,7 +152,43 @@ class RobotConsumer(ProtocolConsumer):
         )
         await self.send_reliably(protocol.make(Event.CONNECTION_ESTABLISHED, {"robot": robot.id}, now=time.time()))
         await self.send_reliably(protocol.make(Event.ROBOT_CONFIG, {"config": connected["config"]}, now=time.time()))
+        # What became of its cloud copies while it was away (a start it waits for may have finished).
+        for event, data in await database_sync_to_async(cloud_reports)(robot.id):
+            await self.send_reliably(protocol.make(event, data, now=time.time()))
+        self.volumes = CloudVolumes(robot.id)
+        if await asyncio.to_thread(self.volumes.exists):
+            self.scan_volumes()
         return True
+
+    # ---------------------------------------------------------------- Skill volumes
+
+    def scan_volumes(self) -> None:
+        """Announce the cloud copies' volume writes to the robot every second, from now on."""
+        if self.volume_scanner is None:
+            self.volume_scanner = self.spawn(self._scan_volumes_forever())
+
+    async def _scan_volumes_forever(self) -> None:
+        while not self.closing:
+            await asyncio.sleep(VOLUME_SCAN_S)
+            try:
+                for data in await self.volumes.scan():
+                    await self.send_reliably(protocol.make(Event.VOLUME_CHANGES, data, now=time.time()))
+            except Exception:
+                log.exception("robot %s: scanning its cloud volumes failed", self.robot_id)
+
+    async def ask_chunks(self, data: dict[str, Any]) -> Any:
+        """Ask the robot for volume chunks and wait for its answer."""
+        envelope = protocol.make(Event.VOLUME_CHUNKS_GET, data, now=time.time())
+        future = self.chunk_requests[envelope.id] = asyncio.get_running_loop().create_future()
+        try:
+            await self.send_envelope(envelope)
+            async with asyncio.timeout(CHUNK_WAIT_S):
+                reply = await future
+        finally:
+            self.chunk_requests.pop(envelope.id, None)
+        if reply.event != Event.VOLUME_CHUNKS:
+            raise RuntimeError(f"the robot did not send the chunks: {reply.data.get('message', reply.event)}")
+        return protocol.parse_payload(reply)
 
     # ---------------------------------------------------------------- commands from the cloud
 
@@ -154,6 +202,10 @@ class RobotConsumer(ProtocolConsumer):
         ):
             self.requests.popitem(last=False)
         await self.send_reliably(envelope)
+
+    async def robot_push(self, message: dict[str, Any]) -> None:
+        """Send a frame the cloud pushes to the robot (e.g. its cloud copies' status), until acked."""
+        await self.send_reliably(protocol.decode(message["frame"]))
 
     async def forward_reply(self, envelope: Envelope) -> None:
         """Hand the robot's answer to whoever relayed the command."""
@@ -339,6 +391,42 @@ async def on_error_message(consumer: RobotConsumer, envelope: Envelope, p: Any) 
 @handles(Event.AUTHENTICATION_ROBOT)
 async def on_authentication_again(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
     await consumer.fail("already authenticated", reply_to=envelope.id, code="invalid_state")
+    return False
+
+
+@handles(Event.VOLUME_CHANGES)
+async def on_volume_changes(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
+    # Applied in the background (it asks the robot for chunks); acked once written.
+    consumer.scan_volumes()
+
+    async def apply() -> None:
+        try:
+            await consumer.volumes.receive(p, consumer.ask_chunks)
+        except NotFound as exc:
+            consumer.dedup.forget(envelope.id)
+            await consumer.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
+        except Exception as exc:
+            consumer.dedup.forget(envelope.id)
+            log.warning("robot %s: volume %s/%s not synced: %s", consumer.robot_id, p.skill, p.volume, exc)
+            message = "volume changes not applied, send again later"
+            await consumer.fail(message, reply_to=envelope.id, code="unavailable")
+        else:
+            applied_ids().add(consumer.robot_id, envelope.id)
+            await consumer.ack(envelope)
+
+    consumer.spawn(apply())
+    return False
+
+
+@handles(Event.VOLUME_CHUNKS_GET)
+async def on_volume_chunks_get(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
+    await consumer.answer(envelope, Event.VOLUME_CHUNKS, await consumer.volumes.chunks(p))
+    return False
+
+
+@handles(Event.VOLUME_CHUNKS)
+async def on_volume_chunks(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
+    # A late answer to a chunk request that timed out: nothing waits for it any more.
     return False
 
 

@@ -89,11 +89,13 @@ def authenticate_robot(robot_id: str, token: str) -> Robot | None:
 
 def mark_connected(robot_id: str, channel: str, ros_master: str | None = None) -> dict[str, Any]:
     """Record that a robot connected on a channel; return its config and the ROS master to use."""
+    from skills.orchestration import ros_master_for
+
     now = timezone.now()
-    # A robot without a ROS master of its own gets the cloud's, when the cloud runs one.
-    master = ros_master or settings.BRIDGEOS["CLOUD_ROS_MASTER"] or ""
     with transaction.atomic():
         robot = Robot.objects.select_for_update().get(id=robot_id)
+        # A robot without a ROS master of its own gets the cloud's: a shared one, or its own in the cloud.
+        master = ros_master_for(robot_id, ros_master)
         replaced = robot.channel if robot.connected and robot.channel != channel else ""
         Robot.objects.filter(id=robot_id).update(
             connected=True, channel=channel, last_seen=now, status=RobotStatus.RUNNING, ros_master=master
@@ -125,6 +127,16 @@ def connection_frame(event: Event, robot_id: str, reason: str | None = None) -> 
     """Build the frame that tells clients a robot connected or dropped."""
     data = {"robot": robot_id} if reason is None else {"robot": robot_id, "reason": reason[:500]}
     return client_frame(event, data)
+
+
+def push_to_robot(robot_id: str, event: Event, data: dict[str, Any]) -> bool:
+    """Send a frame to a connected robot, resent until it acks; return False if it is offline."""
+    channel = robot_channel(robot_id)
+    if channel is None:
+        return False
+    frame = protocol.encode(protocol.make(event, data, now=time.time()))
+    async_to_sync(get_channel_layer().send)(channel, {"type": "robot.push", "frame": frame})
+    return True
 
 
 def robot_channel(robot_id: str) -> str | None:

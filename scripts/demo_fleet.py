@@ -1,4 +1,9 @@
-"""`make run`'s demo fleet: simulated robots running the real agent, each with the demo Skill started."""
+"""`make run`'s demo fleet: simulated robots running the real agent, each with the demo Skill started.
+
+Every BRIDGEOS_DEMO_MOVE_S seconds (default 30; 0: never) it moves one robot's movable component
+to the other side through the Robot API, so the dashboard shows components moving between the
+robot and the cloud (where they run as Swarm services, or processes without Swarm).
+"""
 
 from __future__ import annotations
 
@@ -105,9 +110,38 @@ def main() -> int:
                     time.sleep(1)
     signal.signal(signal.SIGTERM, lambda *_: stop(agents))
     signal.signal(signal.SIGINT, lambda *_: stop(agents))
+    move_every = float(os.environ.get("BRIDGEOS_DEMO_MOVE_S", "30"))
+    if move_every > 0:
+        move_components(fleet, base, headers, move_every, agents)
     for agent in agents:
         agent.wait()
     return 0
+
+
+def move_components(fleet: dict, base: str, headers: dict, every: float, agents: list[subprocess.Popen]) -> None:
+    """Every `every` seconds, move one demo robot's movable component to the other side, round robin."""
+    movable = ("filter", "planner")
+    turn = 0
+    while all(agent.poll() is None for agent in agents):
+        time.sleep(every)
+        robot = fleet["robots"][turn % len(fleet["robots"])]
+        component = movable[(turn // len(fleet["robots"])) % len(movable)]
+        turn += 1
+        url = f"{base}/{robot['id']}/skill/{robot['skill']}/component/{component}/migrate?wait=60"
+        started = time.monotonic()
+        try:
+            answer = json.loads(
+                urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers), timeout=70).read()
+            )
+        except OSError as exc:
+            print(f"== demo fleet: moving {robot['id']}/{component} failed: {exc}", flush=True)
+            continue
+        took = time.monotonic() - started
+        if answer.get("accepted"):
+            print(f"== demo fleet: moved {robot['id']}/{component} to the other side ({took:.1f} s)", flush=True)
+        else:
+            why = (answer.get("reply") or {}).get("data", {}).get("message", "refused")
+            print(f"== demo fleet: {robot['id']}/{component} not moved: {why}", flush=True)
 
 
 def stop(agents: list[subprocess.Popen]) -> None:

@@ -14,14 +14,29 @@ then
   export REDIS_URL="redis://127.0.0.1:6379/0"
 fi
 
+# Cloud copies of components: Swarm services when this machine runs a Swarm and has the local
+# images, else processes (set BRIDGEOS_CLOUD_RUNTIME=swarm|docker|process to choose).
+if [ -z "${BRIDGEOS_CLOUD_RUNTIME:-}" ]; then
+  if [ "$(docker info --format '{{.Swarm.LocalNodeState}}' 2>/dev/null)" = active ] \
+     && docker image inspect bridgeos/ros:noetic >/dev/null 2>&1; then
+    export BRIDGEOS_CLOUD_RUNTIME=swarm
+  else
+    export BRIDGEOS_CLOUD_RUNTIME=process
+  fi
+fi
+echo "== cloud runtime: $BRIDGEOS_CLOUD_RUNTIME"
 echo "== database: ${DATABASE_URL:-SQLite file in ${BRIDGEOS_DATA_DIR:-.data}}"
 $PY manage.py migrate --no-input -v 0
 login=$($PY manage.py ensure_operator)
 
 pids=()
+fleet=""
 stop() {
   trap - INT TERM EXIT
   echo; echo "== stopping"
+  # The demo robots first (they stop their components), then what the cloud runs for them.
+  if [ -n "$fleet" ]; then kill "$fleet" 2>/dev/null || true; wait "$fleet" 2>/dev/null || true; fi
+  $PY manage.py cloud_down || true
   for pid in "${pids[@]}"; do kill "$pid" 2>/dev/null || true; done
   wait 2>/dev/null || true
 }
@@ -43,7 +58,8 @@ for _ in $(seq 1 100); do
   sleep 0.1
 done
 .venv/bin/python scripts/demo_fleet.py &
-pids+=($!)
+fleet=$!
+pids+=($fleet)
 
 cat <<MSG
 

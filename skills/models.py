@@ -96,3 +96,49 @@ def _validated_tags(tags: Any) -> list[str]:
     if not isinstance(tags, list) or not all(isinstance(tag, str) and 0 < len(tag) <= 50 for tag in tags):
         raise ValidationError({"tags": ["Tags must be a list of strings of 1-50 characters."]})
     return tags
+
+
+class CloudInstance(models.Model):
+    """The cloud copy of a component: whether it should run, what runs, and where robots reach it."""
+
+    class Desired(models.TextChoices):
+        RUNNING = "running", "Running"
+        STOPPED = "stopped", "Stopped"
+
+    component = models.OneToOneField(Component, on_delete=models.CASCADE, related_name="cloud")
+    desired = models.CharField(max_length=8, choices=Desired.choices, default=Desired.STOPPED)
+    # A fresh token per start or stop request: a task carrying an older one has been superseded.
+    token = models.CharField(max_length=32, blank=True)
+    status = models.CharField(
+        max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value
+    )
+    runtime = models.CharField(max_length=16, blank=True)
+    # What robots are told: {"runtime", "id", "address", "ports": {"<container port>": <published port>}}.
+    container = models.JSONField(default=dict, blank=True)
+    message = models.TextField(blank=True, help_text="Why the last start failed or the copy crashed.")
+    restarts = models.PositiveIntegerField(default=0, help_text="Crash restarts since the last start request.")
+    crashes = models.JSONField(default=list, blank=True, help_text="Unix times of recent crashes.")
+    restart_at = models.DateTimeField(null=True, blank=True, help_text="When a crashed copy is started again.")
+    updated_at = models.DateTimeField(auto_now=True)
+
+    class Meta:
+        indexes = [models.Index(fields=["desired", "status"])]
+
+    def __str__(self) -> str:
+        return f"cloud copy of {self.component_id}: {self.status} (wants {self.desired})"
+
+
+class RobotCloud(models.Model):
+    """What the cloud runs for one robot besides its components: its network and its ROS master."""
+
+    robot = models.OneToOneField(Robot, on_delete=models.CASCADE, primary_key=True, related_name="cloud")
+    network = models.CharField(max_length=128, blank=True, help_text="The robot's cloud network, once created.")
+    ros_master_port = models.PositiveIntegerField(null=True, blank=True, unique=True)
+    ros_master_status = models.CharField(
+        max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value
+    )
+    message = models.TextField(blank=True)
+    updated_at = models.DateTimeField(auto_now=True)
+
+    def __str__(self) -> str:
+        return f"cloud side of {self.robot_id}"

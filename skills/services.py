@@ -22,6 +22,7 @@ from monitoring.services import record_event
 from robots.models import Robot
 from robots.services import client_frame
 
+from . import orchestration
 from .models import Component, Skill, SkillTemplate
 
 if TYPE_CHECKING:
@@ -225,19 +226,35 @@ def request_cloud_component(robot_id: str, skill_id: str, component_id: str, act
     """Record a robot's request to start or stop the cloud side of a component.
 
     The request is accepted and shown as pending in the cloud; the cloud runtime (the
-    orchestration's Celery workers) is what launches or stops it.
+    orchestration's Celery workers) launches or stops it once this commits, and tells the robot.
+    A start that is a migration's first step leaves the component where it runs until the
+    robot reports the move.
     """
     with transaction.atomic():
         component = _component(robot_id, skill_id, component_id)
         if action == "start" and component.location == Location.ROBOT:
             raise NotFound(f"component {component_id!r} may only run on the robot", field="data.location")
+        migrating = component.status == ComponentStatusName.MIGRATING and component.active_location == Location.ROBOT
         if action == "start":
+            orchestration.request_start(component)
+            if migrating:
+                record_event(
+                    f"Cloud copy of {component_id} requested for its move to the cloud",
+                    robot_id=robot_id,
+                    source=Source.ROBOT,
+                    kind="component_start",
+                    skill=skill_id,
+                    component=component_id,
+                )
+                return
             component.active_location = Location.CLOUD
             component.status = ComponentStatusName.PENDING
         elif component.active_location == Location.CLOUD:
+            orchestration.request_stop(component)
             component.status = ComponentStatusName.STOPPED
         else:
-            # Its cloud copy is being retired after a move to the robot: nothing here changes.
+            # Its cloud copy is being retired after a move to the robot: only the copy goes.
+            orchestration.request_stop(component)
             return
         component.save(update_fields=["status", "active_location", "updated_at"])
         record_event(

@@ -143,7 +143,30 @@ def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) 
         except subprocess.TimeoutExpired:
             process.kill()
         with django_db_blocker.unblock():
+            # A task that was still running when its test ended may have launched a copy since.
+            remove_cloud_copies()
             close_other_sessions()
+
+
+def remove_cloud_copies(runtime: str | None = None) -> int:
+    """Remove everything the test cloud runs (cloud copies, ROS masters); return how many there were."""
+    from skills.orchestration import with_runtime
+
+    async def sweep(cloud_runtime) -> int:
+        found = await cloud_runtime.observe()
+        for item in found:
+            await cloud_runtime.remove(item)
+        return len(found)
+
+    return with_runtime("cleanup", sweep, name=runtime)
+
+
+@pytest.fixture(autouse=True)
+def no_cloud_copies_left(request):
+    """Remove the cloud copies a test's Celery worker launched, so no process outlives the test."""
+    yield
+    if "celery_worker_process" in request.fixturenames:
+        remove_cloud_copies()
 
 
 @pytest.fixture(autouse=True)

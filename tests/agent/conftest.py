@@ -62,7 +62,8 @@ class Cloud:
 
 
 @pytest.fixture
-def cloud(tmp_path) -> Cloud:
+def cloud(tmp_path, celery_worker_process) -> Cloud:
+    # With a Celery worker: cloud-side launches really run (the process runtime, by default).
     server = Cloud(tmp_path / "daphne.log")
     server.start()
     yield server

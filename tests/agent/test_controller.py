@@ -250,10 +250,12 @@ async def test_takeover_runs_cloud_components_on_the_robot_and_reverts(cloud, tm
             response = await api.post(f"/api/robot/ctl-5/skill/{SKILL}/start", params={"wait": 10})
         assert response.status_code == 200, response.text
         # Offloading "cloud": every movable component is handed to the cloud, none runs here.
+        await eventually(lambda: _all_at(component_rows("ctl-5"), "cloud", 3), what="components placed in the cloud")
+        # The cloud's Celery worker launched each cloud copy and reported it running.
         rows = await eventually(
-            lambda: _all_at(component_rows("ctl-5"), "cloud", 3), what="components placed in the cloud"
+            lambda: _all_running_at(component_rows("ctl-5"), "cloud", 3), timeout=30, what="cloud copies running"
         )
-        assert {status for status, _ in rows.values()} == {"pending"}
+        assert set(rows.values()) == {("running", "cloud")}
         assert running_workers(controller) == {}
         cloud.stop()
         await eventually(lambda: len(running_workers(controller)) == 3, timeout=15, what="takeover")
@@ -265,6 +267,11 @@ async def test_takeover_runs_cloud_components_on_the_robot_and_reverts(cloud, tm
         assert await asyncio.wait_for(events.get(), 5) == "connection_established"
         assert controller.takeover_components() == {}
         assert set(controller.skills[SKILL].locations.values()) == {"cloud"}
+
+
+async def _all_running_at(rows_coroutine, location: str, count: int) -> dict | None:
+    rows = await _all_at(rows_coroutine, location, count)
+    return rows if rows and all(status == "running" for status, _ in rows.values()) else None
 
 
 async def _all_at(rows_coroutine, location: str, count: int) -> dict | None:
@@ -417,8 +424,9 @@ async def test_a_migration_moves_the_component_and_back(cloud, tmp_path):
         await eventually(lambda: _all_at(component_rows("mig-1"), "robot", 1), what="the cloud knows where it runs")
         path = f"/api/robot/mig-1/skill/{SKILL}/component/worker-0/migrate"
         assert (await api.post(path, params={"wait": 10})).status_code == 200
+        # The API answers once the robot moved it: the cloud copy runs, the robot copy is gone.
         rows = await eventually(lambda: _all_at(component_rows("mig-1"), "cloud", 1), what="moved to the cloud")
-        assert rows == {"worker-0": ("pending", "cloud")}
+        assert rows == {"worker-0": ("running", "cloud")}
         await eventually(lambda: not running_workers(controller), what="robot copy stopped")
         assert (await api.post(path, params={"wait": 10})).status_code == 200
         rows = await eventually(lambda: _all_at(component_rows("mig-1"), "robot", 1), what="back on the robot")

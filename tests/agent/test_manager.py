@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from types import SimpleNamespace
 
 import pytest
 from asgiref.sync import sync_to_async
@@ -105,15 +106,33 @@ async def test_a_move_that_fails_is_logged_as_failed_and_the_component_stays(clo
 
 
 class Router:
-    """Stand in for the Skill Router's traffic figures (pure data; the router is another engineer's)."""
+    """Stand in for the Skill Router: its traffic figures (pure data), and instances always ready to switch to."""
+
+    settings = SimpleNamespace(ready_timeout=5.0)
 
     def __init__(self) -> None:
         self.figures: dict[str, ComponentTraffic] = {}
         self.asked: list[str] = []
+        self.routed: dict[str, str | None] = {}
 
     def traffic(self, component: str) -> ComponentTraffic:
         self.asked.append(component)
         return self.figures[component]  # KeyError: the router routes nothing of it
+
+    def active(self, component: str) -> str | None:
+        return self.routed.get(component)
+
+    def set_active(self, component: str, location: str | None) -> None:
+        self.routed[component] = location
+
+    async def wait_ready(self, component: str, location: str, timeout: float) -> bool:
+        return True
+
+    async def switch(self, component: str, location: str) -> None:
+        self.routed[component] = location
+
+    def set_container(self, component: str, location: str, container: dict) -> None:
+        pass
 
 
 def ros_skill(policy: str) -> dict:

@@ -90,6 +90,24 @@ SAMPLES: dict[Event, dict[str, Any]] = {
         ]
     },
     Event.METRICS_GET: {"names": ["cpu", "ram"], "skill": "people-detector", "since": 0, "limit": 10},
+    Event.VOLUME_CHANGES: {
+        "skill": "people-detector",
+        "volume": "maps",
+        "changes": [
+            {"path": "floor/1.pgm", "size": 5, "mode": 0o644, "hash": "a" * 64, "chunks": ["a" * 64]},
+            {"path": "old.yaml", "deleted": True},
+        ],
+    },
+    Event.VOLUME_CHUNKS_GET: {
+        "skill": "people-detector",
+        "volume": "maps",
+        "chunks": [{"path": "floor/1.pgm", "index": 0, "hash": "a" * 64}],
+    },
+    Event.VOLUME_CHUNKS: {
+        "skill": "people-detector",
+        "volume": "maps",
+        "chunks": [{"hash": "a" * 64, "data": "aGVsbG8="}],
+    },
     Event.ACK: {},
     Event.OFFLOADING_DECISION: {
         "skill": "people-detector",
@@ -130,7 +148,8 @@ def rejection(text: str | bytes, **kwargs: Any) -> ProtocolError:
 
 def test_samples_cover_every_event_and_table() -> None:
     assert set(SAMPLES) == set(Event) == set(PAYLOADS) == set(DIRECTIONS)
-    assert len(Event) == 33
+    # Table 3.3's 31 events, ack, the three of Skill volume sync and the manager's decision log.
+    assert len(Event) == 36
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
     assert all(name.endswith("_get") for name in REPLIES if name not in COMMANDS and "auth" not in name)
 

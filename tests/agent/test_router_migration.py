@@ -1,7 +1,7 @@
 """Migrations through the Skill Router: the real agent, the real cloud, rospy components, a private rosmaster.
 
-Nothing in the agent runs cloud-side components (the cloud does); here the test starts the
-cloud instance itself, in the namespace the router gives it, standing in for the cloud.
+The cloud's worker runs the cloud copy (process runtime); the copy waits for a file before it
+starts publishing, so the test decides when the cloud instance can become ready.
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ from tests.agent.test_controller import agent_settings, eventually, make_robot, 
 pytestmark = [pytest.mark.ros, pytest.mark.django_db(transaction=True), pytest.mark.timeout(180)]
 
 SKILL = "chat"
-CLOUD_NS = f"/bridgeos/{SKILL}/talker/cloud"
 
 
 @pytest.fixture(scope="module")
@@ -31,10 +30,13 @@ def rosmaster(tmp_path_factory) -> Iterator[str]:
 
 
 def chat_skill(home: Path) -> dict:
-    """Return a Skill whose talker is a rospy node the process runtime starts on the robot."""
+    """Return a Skill whose talker is a rospy node; its cloud copy publishes once `home/go` exists."""
 
     def launch(tag: str) -> dict:
         command = [HOST_PYTHON, NODES, "talker", "--tag", tag, "--rate", "100"]
+        if tag == "cloud":
+            wait = f"while [ ! -e {home / 'go'} ]; do sleep 0.1; done; exec "
+            command = ["sh", "-c", wait + " ".join(command)]
         return {"command": command, "env": {"ROS_IP": "127.0.0.1", "ROS_HOME": str(home), "PYTHONWARNINGS": "ignore"}}
 
     config = {
@@ -70,17 +72,18 @@ async def test_a_migration_switches_only_once_the_new_instance_is_ready(cloud, r
             # The robot copy got its namespace from the controller; the router relays it to /chatter.
             await eventually(lambda: len(nodes.messages("listener")) >= 10, 60, "the robot talker on /chatter")
 
-            # No cloud copy comes up: the migration gives up, the robot copy keeps running and routed.
+            # The cloud copy runs but never gets ready: the migration gives up, the robot copy keeps
+            # running and routed.
             with pytest.raises(ProtocolError, match="not ready on the cloud within 3 s; it keeps running on the robot"):
                 await controller.migrate_component(record, "talker", "cloud")
             assert record.locations["talker"] == "robot" and router.active("talker") == "robot"
             heard = len(nodes.messages("listener"))
             await eventually(lambda: len(nodes.messages("listener")) >= heard + 10, 30, "the robot copy still heard")
 
-            # The cloud copy runs (started here, as the cloud would): the switch happens once it is ready.
-            nodes.run("cloud-copy", "talker", "--tag", "cloud", "--rate", "100", namespace=CLOUD_NS)
-            # (Its rospy start may take longer than the 3 s a migration waits on a loaded machine.)
-            assert await router.wait_ready("talker", "cloud", 60)
+            # Now the cloud copy publishes as soon as it starts: the switch happens once it is ready.
+            (tmp_path / "go").touch()
+            # (Its rospy start may take longer than 3 s on a loaded machine.)
+            router.settings.ready_timeout = 60
             assert await controller.migrate_component(record, "talker", "cloud") == "cloud"
             assert router.active("talker") == "cloud" and record.locations["talker"] == "cloud"
             await eventually(lambda: not controller.runtime.get_state().get("components"), 30, "robot copy stopped")

@@ -324,7 +324,7 @@ class SimulatedRobots(RobotProcesses):
 
 
 @pytest.fixture
-def agents(daphne_server, transactional_db, tmp_path) -> Iterator[Agents]:
+def agents(daphne_server, celery_worker_process, transactional_db, tmp_path) -> Iterator[Agents]:
     """Start real robot agents for a test and stop them, and their components, after it."""
     robots = Agents(daphne_server.ws_url, tmp_path)
     yield robots

@@ -162,11 +162,11 @@ def test_migrating_a_component_changes_its_location_badge(browser, agents):
     filter_process = f"{AGENT_SKILL}/filter"
     wait_until(lambda: filter_process in agents.running("alice-bot"), what="the agent to run filter")
 
-    # To the cloud: the agent stops its copy and asks the cloud for one, which waits for the cloud runtime.
+    # To the cloud: the cloud's worker runs a copy, then the agent switches to it and stops its own.
     migrate.click()
     expect(location).to_have_text("cloud")
     expect(location).to_have_class(re.compile(r"\bloc-cloud\b"))
-    expect(status).to_have_text("pending")
+    expect(status).to_have_text("running")
     expect(page.locator(f'tr[data-component="{AGENT_SKILL}/filter"] .outcome')).to_have_text("now runs on the cloud")
     wait_until(
         lambda: Component.objects.get(component_id="filter").active_location == "cloud",

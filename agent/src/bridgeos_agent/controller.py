@@ -53,6 +53,7 @@ from bridgeos_agent.runtime import ComponentSpec, ComponentState, Runtime, Runti
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 from bridgeos_agent.supervisor import SkillPlugin, SkillSupervisor
 from bridgeos_agent.takeover import CloudMonitor, plan_takeover
+from bridgeos_agent.volumesync import VolumeSync
 
 __all__ = ["AgentSettings", "AuthenticationRefused", "RobotController"]
 
@@ -86,6 +87,10 @@ class AgentSettings:
     detect_ros_master: bool = True
     stop_components_on_exit: bool = False
     simulated: SimulatedRobot | None = None
+    # How long a move to the cloud waits for the cloud to report its copy running.
+    cloud_start_timeout: float = 90.0
+    # How often Skill volumes are scanned for changes to send to the cloud (0: never).
+    volume_sync_interval: float = 1.0
     ca_file: Path | None = None  # the CA that signs the cloud's TLS certificate (else pinned, else the system's)
     allow_insecure: bool = False  # plain ws:// to another machine
     vpn_device: str = "bridgeos-vpn"
@@ -102,6 +107,8 @@ class SkillRecord:
     locations: dict[str, str | None] = field(default_factory=dict)  # component -> robot|cloud|None
     statuses: dict[str, CS] = field(default_factory=dict)
     supervisor: SkillSupervisor | None = None
+    # What the cloud reported of each cloud copy: {"runtime", "id", "address", "ports": {"<port>": <port>}}.
+    cloud_containers: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """Return what survives an agent restart."""
@@ -158,6 +165,7 @@ class RobotController:
         self._replaying = False
         self._dedup = protocol.Dedup(capacity=2000)
         self._answers: dict[str, str] = {}  # command id -> the frame that answered it
+        self._handling: set[str] = set()  # ids of frames whose handler has not answered yet
         self._waiters: dict[str, asyncio.Future[Envelope]] = {}
         self._tasks: list[asyncio.Task] = []
         self._handlers: set[asyncio.Task] = set()
@@ -168,6 +176,8 @@ class RobotController:
         self._cloud_monitor: CloudMonitor | None = None
         self._startup_done = False
         self._lock = asyncio.Lock()  # serialises placement decisions so two never claim the same headroom
+        self._cloud_waiters: dict[tuple[str, str], asyncio.Future[tuple[str, str | None]]] = {}
+        self.volumes = VolumeSync(self)
         self._tls_failure: str | None = None
         self._holding = False  # moving to another path: new frames wait in the outbox
         self.network = CloudNetwork(
@@ -203,6 +213,7 @@ class RobotController:
             (self._monitor_loop(), "monitor"),
             (self._takeover_loop(), "takeover"),
             (self._startup(), "startup"),
+            (self.volumes.run(), "volumes"),
         ):
             self._tasks.append(loop.create_task(coroutine, name=name))
         await self.stopped.wait()
@@ -503,6 +514,8 @@ class RobotController:
             self._on_refused(envelope)
             return
         if event in protocol.REQUIRES_ACK and self._dedup.seen(envelope.id):
+            if envelope.id in self._handling:
+                return  # still being handled (a migration takes seconds): its answer comes when done
             # A retransmission of something already handled: answer it the same way again.
             answer = self._answers.get(envelope.id) or protocol.ack_text(envelope.id, now=time.time())
             self._spawn(self._send_text(answer))
@@ -529,6 +542,13 @@ class RobotController:
                 self._spawn(self._set_status(record, data["component"], CS.FAILED, None, payload.message))
 
     async def _handle(self, envelope: Envelope) -> None:
+        self._handling.add(envelope.id)
+        try:
+            await self._handle_once(envelope)
+        finally:
+            self._handling.discard(envelope.id)
+
+    async def _handle_once(self, envelope: Envelope) -> None:
         handler = HANDLERS.get(envelope.event)
         try:
             if handler is None:
@@ -809,15 +829,48 @@ class RobotController:
         )
         self._save_soon()
 
-    async def _start_in_cloud(self, record: SkillRecord, name: str) -> None:
-        """Forward a cloud-side launch to the cloud (thesis: the controller only forwards those)."""
+    async def _start_in_cloud(self, record: SkillRecord, name: str, *, wait: float | None = None) -> None:
+        """Forward a cloud-side launch to the cloud; with ``wait``, return once it runs there, raise if not."""
+        data = {"skill": record.config.skill_id, "component": name, "location": "cloud"}
+        if wait is None:
+            record.locations[name] = "cloud"
+            self._route_first(record, name, "cloud")
+            await self._set_status(record, name, CS.STARTING, "cloud")
+            await self.emit(Event.COMPONENT_START, data)
+            self._save_soon()
+            return
+        key = (record.config.skill_id, name)
+        reported = self._cloud_waiters[key] = asyncio.get_running_loop().create_future()
+        try:
+            await self.emit(Event.COMPONENT_START, data)
+            status, message = await asyncio.wait_for(asyncio.shield(reported), wait)
+        except TimeoutError:
+            await self.emit(Event.COMPONENT_STOP, data)  # a copy that comes up later must not linger
+            raise ProtocolError(f"the cloud did not run {name!r} within {wait:g} s", code="cloud_timeout") from None
+        finally:
+            if self._cloud_waiters.get(key) is reported:
+                del self._cloud_waiters[key]
+        if status != CS.RUNNING:
+            raise ProtocolError(f"the cloud could not run {name!r}: {message or status}", code="launch_failed")
         record.locations[name] = "cloud"
         self._route_first(record, name, "cloud")
-        await self._set_status(record, name, CS.STARTING, "cloud")
-        await self.emit(
-            Event.COMPONENT_START, {"skill": record.config.skill_id, "component": name, "location": "cloud"}
-        )
         self._save_soon()
+
+    def on_cloud_report(self, skill_id: str, name: str, status: str, message: str | None) -> None:
+        """Take in what the cloud says of a component's cloud copy (running, restarting, failed)."""
+        waiter = self._cloud_waiters.get((skill_id, name))
+        if waiter is not None:
+            if not waiter.done() and status in (CS.RUNNING, CS.FAILED):
+                waiter.set_result((status, message))
+            return
+        record = self.skills.get(skill_id)
+        if record is None or record.locations.get(name) != "cloud":
+            return  # a copy being retired, or a move still deciding: nothing changes here
+        record.statuses[name] = CS(status)
+        if status == CS.FAILED:
+            record.locations[name] = None
+            self.say(f"{skill_id}/{name}: its cloud copy failed: {message or 'no reason given'}")
+            self._save_soon()
 
     async def stop_component(self, record: SkillRecord, name: str, *, only: str | None = None) -> None:
         """Stop a component where it runs (or only at ``only``)."""
@@ -847,16 +900,17 @@ class RobotController:
             return target
         await self._set_status(record, name, CS.MIGRATING, current)
         # The old copy keeps serving until the new one runs and the router switches (no downtime window).
-        if target == "robot":
-            try:
+        try:
+            if target == "robot":
                 await self.place_component(record, name, location="robot")
-            except Exception as exc:
-                if current == "cloud":  # the cloud copy keeps serving when the robot copy cannot start
-                    record.locations[name] = "cloud"
-                    await self._set_status(record, name, CS.RUNNING, "cloud", f"move to the robot failed: {exc}")
-                raise
-        else:
-            await self._start_in_cloud(record, name)
+            else:
+                # Nothing switches before the cloud reports its copy running.
+                await self._start_in_cloud(record, name, wait=self.settings.cloud_start_timeout)
+        except Exception as exc:
+            # Rolled back: the component keeps running where it was, and the cloud hears why.
+            record.locations[name] = current
+            await self._set_status(record, name, CS.RUNNING if current else CS.STOPPED, current, f"not moved: {exc}")
+            raise
         router = self._router(record)
         if router is not None and current is not None:
             if not await router.wait_ready(name, target, router.settings.ready_timeout):
@@ -880,6 +934,8 @@ class RobotController:
         await self.emit(
             Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": target}
         )
+        if target == "cloud":
+            await self._set_status(record, name, CS.RUNNING, "cloud")
         return target
 
     async def _abandon_migration(self, record: SkillRecord, name: str, target: str, current: str) -> None:
@@ -1180,20 +1236,65 @@ async def on_component_stop(controller: RobotController, envelope: Envelope, p: 
     await controller.stop_component(record, p.component, only=str(p.location) if p.location else None)
 
 
-@handles(Event.COMPONENT_INFORMATION)
-async def on_component_information(controller: RobotController, envelope: Envelope, p: Any) -> None:
-    record = controller._component(p.skill, p.component)
-    router = controller._router(record)
-    if router is not None:
-        # The Skill Router's HTTP routes reach a cloud instance at its published address and ports.
-        router.set_container(p.component, str(p.location), p.container.model_dump(mode="json", exclude_none=True))
-
-
 @handles(Event.COMPONENT_MIGRATE)
 async def on_component_migrate(controller: RobotController, envelope: Envelope, p: Any) -> None:
     _not_before_config(controller)
     record = controller._component(p.skill, p.component)
     await controller.migrate_component(record, p.component, str(p.location) if p.location else None)
+
+
+@handles(Event.COMPONENT_STATUS)
+async def on_component_status(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # The cloud reports its copy of a component (started, restarting after a crash, failed).
+    if p.location == "cloud" and p.skill in controller.skills:
+        controller.on_cloud_report(p.skill, p.component, str(p.status), p.message)
+
+
+@handles(Event.COMPONENT_INFORMATION)
+async def on_component_information(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # Where an instance is reached (the cloud sends its copies' address and published ports): kept for
+    # the Skill Router's HTTP routes. A Skill or component this robot no longer has is ignored.
+    record = controller.skills.get(p.skill)
+    if record is None or p.component not in record.config.components:
+        return
+    container = p.container.model_dump(mode="json", exclude_none=True)
+    if p.location == "cloud":
+        record.cloud_containers[p.component] = container
+    router = controller._router(record)
+    if router is not None:
+        router.set_container(p.component, str(p.location), container)
+
+
+@handles(Event.METRICS)
+async def on_cloud_metrics(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # The cloud's measurements of this robot's cloud copies, for each Skill's manager.
+    by_skill: dict[str, list[dict[str, Any]]] = {}
+    for point in p.metrics:
+        if point.skill and point.component:
+            by_skill.setdefault(point.skill, []).append(point.model_dump(mode="json", exclude_none=True))
+    for skill_id, points in by_skill.items():
+        record = controller.skills.get(skill_id)
+        manager = record.supervisor.context.get("manager") if record and record.supervisor else None
+        store = getattr(manager, "store", None)
+        if store is not None:
+            store.publish(points)
+
+
+@handles(Event.VOLUME_CHANGES)
+async def on_volume_changes(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    await controller.volumes.receive(p)
+
+
+@handles(Event.VOLUME_CHUNKS_GET)
+async def on_volume_chunks_get(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    return Event.VOLUME_CHUNKS, await controller.volumes.chunks(p)
+
+
+@handles(Event.VOLUME_CHUNKS)
+async def on_volume_chunks(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    waiter = controller._waiters.get(envelope.reply_to or "")
+    if waiter is not None and not waiter.done():
+        waiter.set_result(envelope)
 
 
 @handles(Event.COMPONENT_STATUS_GET)

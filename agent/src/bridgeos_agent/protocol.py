@@ -89,6 +89,12 @@ __all__ = [
     "SkillStatusGet",
     "SkillStatusName",
     "SkillStop",
+    "VolumeChanges",
+    "VolumeChunk",
+    "VolumeChunkRef",
+    "VolumeChunks",
+    "VolumeChunksGet",
+    "VolumeFile",
     "ack_frame",
     "decode",
     "encode",
@@ -141,6 +147,10 @@ class Event(enum.StrEnum):
     COMPONENT_MIGRATE = "component_migrate"
     METRICS = "metrics"
     METRICS_GET = "metrics_get"
+    # Skill volumes kept in step between the robot and the cloud (thesis §3.3.2), not in Table 3.3.
+    VOLUME_CHANGES = "volume_changes"
+    VOLUME_CHUNKS_GET = "volume_chunks_get"
+    VOLUME_CHUNKS = "volume_chunks"
     ACK = "ack"
     # Not in the thesis: the Skill Manager's log of each move it decided (issue 6).
     OFFLOADING_DECISION = "offloading_decision"
@@ -227,6 +237,9 @@ ShortText = Annotated[str, StringConstraints(min_length=1, max_length=256)]
 FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 Timestamp = Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
 Port = Annotated[int, Strict(), Field(ge=1, le=65535)]
+PortText = Annotated[str, StringConstraints(pattern=r"^[1-9][0-9]{0,4}$")]
+PortList = Annotated[list[Port], Field(max_length=64)]
+PortMap = Annotated[dict[PortText, Port], Field(max_length=64)]
 JsonObject = Annotated[dict[str, Any], Field(max_length=1024)]
 
 
@@ -421,7 +434,10 @@ class ContainerInfo(Payload):
     image: ShortText | None = None
     ip: IPvAnyAddress | None = None
     host: ShortText | None = None
-    ports: Annotated[list[Port], Field(max_length=64)] | None = None
+    # Where peers reach it: a host name or address, and its ports, either as a list or as
+    # {"<container port>": <port published on address>} (what the cloud reports for its copies).
+    address: ShortText | None = None
+    ports: PortList | PortMap | None = None
     pid: Annotated[int, Strict(), Field(ge=1)] | None = None
     runtime: ShortText | None = None
     namespace: ShortText | None = None
@@ -496,6 +512,75 @@ class MetricsGet(RobotScoped):
     limit: Annotated[int, Strict(), Field(ge=1, le=MAX_METRICS_PER_FRAME)] | None = None
 
 
+def _relative_path(path: str) -> str:
+    parts = path.split("/")
+    if any(part in ("", ".", "..") for part in parts):
+        raise ValueError("must be a relative path without empty, '.' or '..' parts")
+    return path
+
+
+# A volume file's path inside its volume: relative, "/"-separated, no empty, "." or ".." parts.
+VolumePath = Annotated[str, StringConstraints(pattern=r"^[^\x00]{1,1023}$"), AfterValidator(_relative_path)]
+ChunkHash = Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{64}$")]
+VolumeName = Annotated[str, StringConstraints(pattern=r"^[a-zA-Z0-9][a-zA-Z0-9_.-]{1,127}$")]
+# Chunk data travels base64-encoded: a frame of MAX_CHUNKS_PER_FRAME chunks stays under 1 MiB.
+CHUNK_BYTES = 128 * 1024
+MAX_CHUNKS_PER_FRAME = 5
+MAX_CHUNKS_PER_FILE = 65_536  # 8 GiB at 128 KiB
+
+
+class VolumeFile(Payload):
+    """Describe one changed file of a Skill volume: its new content as chunk hashes, or its deletion."""
+
+    path: VolumePath
+    deleted: bool = False
+    size: Annotated[int, Strict(), Field(ge=0, le=CHUNK_BYTES * MAX_CHUNKS_PER_FILE)] = 0
+    mode: Annotated[int, Strict(), Field(ge=0, le=0o7777)] = 0o644
+    # sha256 of the whole content, and of each CHUNK_BYTES slice of it in order.
+    hash: ChunkHash | None = None
+    chunks: Annotated[list[ChunkHash], Field(max_length=MAX_CHUNKS_PER_FILE)] = Field(default_factory=list)
+
+
+class VolumeChanges(RobotScoped):
+    """Announce what changed in one volume of a Skill since the last announcement."""
+
+    skill: Slug
+    volume: VolumeName
+    changes: Annotated[list[VolumeFile], Field(min_length=1, max_length=1000)]
+
+
+class VolumeChunkRef(Payload):
+    """Name one chunk by the file, its index in the file and its hash."""
+
+    path: VolumePath
+    index: Annotated[int, Strict(), Field(ge=0, lt=MAX_CHUNKS_PER_FILE)]
+    hash: ChunkHash
+
+
+class VolumeChunksGet(RobotScoped):
+    """Ask the other side for chunks of a volume it announced."""
+
+    skill: Slug
+    volume: VolumeName
+    chunks: Annotated[list[VolumeChunkRef], Field(min_length=1, max_length=MAX_CHUNKS_PER_FRAME)]
+
+
+class VolumeChunk(Payload):
+    """Carry one chunk's bytes, base64-encoded."""
+
+    hash: ChunkHash
+    data: Annotated[str, StringConstraints(max_length=(CHUNK_BYTES * 4) // 3 + 4)]
+
+
+class VolumeChunks(RobotScoped):
+    """Answer a chunk request: the chunks found, and the hashes no longer there (the file changed again)."""
+
+    skill: Slug
+    volume: VolumeName
+    chunks: Annotated[list[VolumeChunk], Field(max_length=MAX_CHUNKS_PER_FRAME)] = Field(default_factory=list)
+    missing: Annotated[list[ChunkHash], Field(max_length=MAX_CHUNKS_PER_FRAME)] = Field(default_factory=list)
+
+
 class OffloadingDecision(RobotScoped):
     """Log one move a Skill Manager decided: its inputs, both costs, the prediction and the outcome."""
 
@@ -556,6 +641,9 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.COMPONENT_MIGRATE: ComponentMigrate,
     Event.METRICS: Metrics,
     Event.METRICS_GET: MetricsGet,
+    Event.VOLUME_CHANGES: VolumeChanges,
+    Event.VOLUME_CHUNKS_GET: VolumeChunksGet,
+    Event.VOLUME_CHUNKS: VolumeChunks,
     Event.ACK: Ack,
     Event.OFFLOADING_DECISION: OffloadingDecision,
 }
@@ -600,8 +688,12 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.COMPONENT_STATUS_GET: frozenset({_R2C, _K2C, _C2R}),
     Event.COMPONENT_LOCATION: frozenset({_R2C, _C2K}),
     Event.COMPONENT_MIGRATE: frozenset({_K2C, _C2R, _C2K}),
-    Event.METRICS: frozenset({_R2C, _C2K}),
+    # The cloud sends a robot the stats of its cloud components too.
+    Event.METRICS: frozenset({_R2C, _C2R, _C2K}),
     Event.METRICS_GET: frozenset({_K2C, _C2R}),
+    Event.VOLUME_CHANGES: frozenset({_R2C, _C2R}),
+    Event.VOLUME_CHUNKS_GET: frozenset({_R2C, _C2R}),
+    Event.VOLUME_CHUNKS: frozenset({_R2C, _C2R}),
     Event.ACK: _ALL,
     Event.OFFLOADING_DECISION: frozenset({_R2C, _C2K}),
 }
@@ -630,6 +722,7 @@ REQUIRES_ACK: frozenset[Event] = frozenset(
         Event.COMPONENT_LOCATION,
         Event.COMPONENT_MIGRATE,
         Event.METRICS,
+        Event.VOLUME_CHANGES,
         Event.OFFLOADING_DECISION,
     }
 )
@@ -668,6 +761,7 @@ REPLIES: Mapping[str, frozenset[Event]] = {
     Event.SKILL_CONFIG_GET: _answered_by(Event.SKILL_CONFIG),
     Event.COMPONENT_STATUS_GET: _answered_by(Event.COMPONENT_STATUS),
     Event.METRICS_GET: _answered_by(Event.METRICS),
+    Event.VOLUME_CHUNKS_GET: _answered_by(Event.VOLUME_CHUNKS),
     **{command: _COMMAND_REPLIES for command in COMMANDS},
 }
 

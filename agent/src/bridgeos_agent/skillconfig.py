@@ -55,6 +55,8 @@ IDENTIFIER_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]{0,63}$"
 ENV_NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*$"
 HTTP_PREFIX_PATTERN = r"^/[A-Za-z0-9._~!$&'()*+,;=:@%/-]*$"
 IMAGE_PATTERN = r"^[^\s]{1,255}$"
+# Docker Swarm's constraint syntax: an attribute, == or !=, a value.
+PLACEMENT_PATTERN = r"^[A-Za-z][A-Za-z0-9_.-]{0,127} ?(==|!=) ?[^\s]{1,128}$"
 
 Slug = Annotated[str, StringConstraints(pattern=SLUG_PATTERN)]
 VolumeName = Annotated[str, StringConstraints(pattern=VOLUME_PATTERN)]
@@ -65,6 +67,7 @@ EnvName = Annotated[str, StringConstraints(pattern=ENV_NAME_PATTERN, max_length=
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Port = Annotated[int, Field(ge=1, le=65535)]
+PlacementConstraint = Annotated[str, StringConstraints(pattern=PLACEMENT_PATTERN)]
 
 Location = Literal["robot", "cloud", "either"]
 Policy = Literal["energy", "network", "monetary", "performance", "custom"]
@@ -317,6 +320,11 @@ class LaunchSpec(_Model):
     )
     env: dict[EnvName, str] = Field(default_factory=dict)
     ports: list[Port] = Field(default_factory=list, max_length=64)
+    placement: list[PlacementConstraint] = Field(
+        default_factory=list,
+        max_length=32,
+        description="Swarm placement constraints for the cloud copy, e.g. 'node.labels.gpu==true'.",
+    )
 
     @field_validator("ports")
     @classmethod

@@ -9,6 +9,7 @@ from typing import Any
 from django.contrib.auth import get_user_model
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
+from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot
 from robots.services import create_robot, issue_api_token, rotate_token
 from skills.models import Skill, SkillTemplate
@@ -62,8 +63,13 @@ class Command(BaseCommand):
                 token = rotate_token(robot)
             skills = [config] + ([use_cases[(n - 1) % len(use_cases)]] if options["usecases"] else [])
             for skill in skills:
-                if not Skill.objects.filter(robot=robot, skill_id=skill["skill_id"]).exists():
+                existing = Skill.objects.filter(robot=robot, skill_id=skill["skill_id"]).first()
+                if existing is None:
                     add_skill(robot, skill)
+                elif existing.config != parse_skill_config(skill).model_dump(mode="json"):
+                    # A demo kept from an older run gets the Skill as it is now (e.g. its cloud images).
+                    existing.config = skill
+                    existing.save(update_fields=["config", "updated_at"])
             ids = [skill["skill_id"] for skill in skills]
             robots.append({"id": robot_id, "token": token, "skill": config["skill_id"], "skills": ids})
         self.stdout.write(json.dumps({"robots": robots, "api_token": issue_api_token(owner)[0]}))

@@ -1,0 +1,35 @@
+"""Remove everything this cloud runs on its engine: cloud copies, ROS masters, networks."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from django.core.management.base import BaseCommand
+from django.db import transaction
+
+from skills.cloudruntime import CloudRuntime, cloud_id, runtime_name
+from skills.models import CloudInstance, Component, RobotCloud
+from skills.orchestration import with_runtime
+
+
+class Command(BaseCommand):
+    help = "Stop every cloud copy and ROS master of this cloud and remove its networks (`make run` does on exit)."
+
+    def handle(self, *args: Any, **options: Any) -> None:
+        async def sweep(runtime: CloudRuntime) -> tuple[int, int]:
+            found = await runtime.observe()
+            for item in found:
+                await runtime.remove(item)
+            networks = await runtime.networks()
+            for name in networks.values():
+                await runtime.remove_network_named(name)
+            return len(found), len(networks)
+
+        removed, networks = with_runtime("cloud-down", sweep)
+        with transaction.atomic():
+            CloudInstance.objects.exclude(status="stopped").update(desired="stopped", status="stopped", container={})
+            Component.objects.filter(active_location="cloud").update(status="stopped")
+            RobotCloud.objects.exclude(ros_master_status="stopped").update(ros_master_status="stopped")
+        self.stdout.write(
+            f"cloud {cloud_id()} ({runtime_name()}): removed {removed} copies and ROS masters, {networks} networks"
+        )

@@ -1,0 +1,101 @@
+"""The cloud's side of Skill volume sync, for one robot's connection (see `bridgeos_agent.volumesync`).
+
+The cloud keeps each robot's Skill volumes under BRIDGEOS_CLOUD_VOLUMES_DIR as
+``<robot>/<skill>/<volume>/`` (bind-mounted into the cloud copies at /bridgeos/volumes/<volume>,
+or named by BRIDGEOS_VOLUMES for processes) with their sync indexes in ``<robot>/.index/``.
+The robot's consumer applies what the robot announces and, while any of the robot's volume
+directories exists, scans them every second and announces the cloud copies' writes to the robot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from bridgeos_agent.protocol import VolumeChanges, VolumeChunks, VolumeChunksGet
+from bridgeos_agent.volumesync import VolumeReplica, change_frames, receive_changes
+from bridgeos_cloud.errors import NotFound
+
+from .cloudruntime import volumes_root
+from .models import Skill
+
+__all__ = ["CloudVolumes", "declared_volumes"]
+
+logger = logging.getLogger(__name__)
+
+SCAN_INTERVAL = 1.0
+
+
+def declared_volumes(robot_id: str, skill_id: str) -> list[str]:
+    """Return the volumes a robot's Skill declares, or raise NotFound."""
+    config = Skill.objects.filter(robot_id=robot_id, skill_id=skill_id).values_list("config", flat=True).first()
+    if config is None:
+        raise NotFound(f"robot {robot_id} has no skill {skill_id!r}", field="data.skill")
+    return list(config.get("volumes") or [])
+
+
+class CloudVolumes:
+    """One robot's cloud-side volume replicas."""
+
+    def __init__(self, robot_id: str) -> None:
+        self.robot_id = robot_id
+        self.root = volumes_root() / robot_id
+        self.replicas: dict[tuple[str, str], VolumeReplica] = {}
+
+    def replica(self, skill_id: str, volume: str) -> VolumeReplica:
+        """Return the replica of one of the robot's Skill volumes."""
+        key = (skill_id, volume)
+        if key not in self.replicas:
+            self.replicas[key] = VolumeReplica(
+                self.root / skill_id / volume, self.root / ".index" / skill_id / f"{volume}.json"
+            )
+        return self.replicas[key]
+
+    def exists(self) -> bool:
+        """Tell whether the robot has any volume in the cloud yet."""
+        return self.root.is_dir()
+
+    async def receive(self, payload: VolumeChanges, ask: Callable[[dict[str, Any]], Awaitable[VolumeChunks]]) -> int:
+        """Apply the robot's changes to the cloud copy of a volume it declares, asking it for missing chunks."""
+        from channels.db import database_sync_to_async
+
+        volumes = await database_sync_to_async(declared_volumes)(self.robot_id, payload.skill)
+        if payload.volume not in volumes:
+            raise NotFound(f"skill {payload.skill!r} declares no volume {payload.volume!r}", field="data.volume")
+        replica = self.replica(payload.skill, payload.volume)
+        await asyncio.to_thread(replica.root.mkdir, parents=True, exist_ok=True)
+
+        async def request(refs: list[dict[str, Any]]) -> VolumeChunks:
+            return await ask({"skill": payload.skill, "volume": payload.volume, "chunks": refs})
+
+        return await receive_changes(replica, list(payload.changes), request)
+
+    async def chunks(self, payload: VolumeChunksGet) -> dict[str, Any]:
+        """Read chunks of a cloud volume the robot asks for."""
+        replica = self.replica(payload.skill, payload.volume)
+        refs = [ref.model_dump() for ref in payload.chunks]
+        found, missing = await asyncio.to_thread(replica.read_chunks, refs)
+        return {"skill": payload.skill, "volume": payload.volume, "chunks": found, "missing": missing}
+
+    async def scan(self) -> list[dict[str, Any]]:
+        """Return the data of volume_changes frames for every cloud volume of the robot that changed."""
+        frames = []
+        for skill_dir in await asyncio.to_thread(_subdirs, self.root):
+            if skill_dir.name.startswith("."):
+                continue
+            for volume_dir in await asyncio.to_thread(_subdirs, skill_dir):
+                replica = self.replica(skill_dir.name, volume_dir.name)
+                changes = await asyncio.to_thread(replica.scan)
+                for batch in change_frames(changes):
+                    frames.append({"skill": skill_dir.name, "volume": volume_dir.name, "changes": batch})
+        return frames
+
+
+def _subdirs(path: Path) -> list[Path]:
+    try:
+        return sorted(p for p in path.iterdir() if p.is_dir() and not p.is_symlink())
+    except OSError:
+        return []
