@@ -322,6 +322,9 @@ def write_report(results: dict[str, Result], out_dir: Path, mode: str, started: 
                 file = plot_table_5_2(result.figures, out_dir)
                 if file:
                     lines += ["", f"![Table 5.2]({file})"]
+            matrix = out_dir / "usecases.md"  # every combination, written by benchmarks/usecases.py
+            if matrix.exists():
+                lines += ["", "### Every location combination (thesis Figure 5.3)", "", matrix.read_text().strip()]
     if not plots:
         lines += ["", "_matplotlib is not installed: no plots (`pip install matplotlib`)._"]
     path = out_dir / "report.md"

@@ -123,9 +123,8 @@ class EngineBusy(RuntimeFailure):
 
 @dataclass(frozen=True)
 class CloudSpec(ComponentSpec):
-    """A component's cloud launch: the agent's spec, whether it is a ROS node, and its launch token."""
+    """A component's cloud launch: the agent's spec and its launch token."""
 
-    ros: bool = False
     token: str = ""
 
 

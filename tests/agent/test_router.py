@@ -165,6 +165,31 @@ async def test_switching_the_talker_under_a_1khz_stream_loses_and_duplicates_not
     assert stats["dropped"] == 0
 
 
+async def test_pointclouds_of_the_thesis_size_are_relayed_whole(nodes, make_router):
+    # Thesis §5.3.1: RGB-D pointclouds of 30-40 MB. Each one must arrive whole, in order, once.
+    router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
+    nodes.run("canonical", "listener", "--topic", "/chatter")
+    await eventually(lambda: router.node.publications["/chatter"].connections, what="the canonical listener")
+    nodes.run(
+        "robot",
+        "talker",
+        "--tag",
+        "robot",
+        "--rate",
+        "2",
+        "--count",
+        "4",
+        "--size",
+        str(35 << 20),
+        "--wait",
+        namespace=ns("talker", "robot"),
+    )
+    await eventually(lambda: len(nodes.messages("canonical")) >= 4, timeout=90, what="four 35 MB messages")
+    assert nodes.messages("canonical") == [("robot", seq) for seq in range(1, 5)]
+    stats = router.statistics()["/chatter"]
+    assert stats["dropped"] == 0 and stats["bytes"] >= 4 * (35 << 20)
+
+
 async def test_switching_the_listener_delivers_every_message_exactly_once(nodes, make_router):
     router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
     nodes.run("listener-robot", "listener", namespace=ns("listener", "robot"))

@@ -26,10 +26,12 @@ from bridgeos_agent.runtime import (
 )
 from bridgeos_agent.runtime.docker import DockerRuntime
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
+from tests.agent.roshelpers import Nodes, private_rosmaster
 
 pytestmark = pytest.mark.docker
 
 IMAGE = "bridgeos/base:bookworm"
+ROS_IMAGE = "bridgeos/ros:noetic"
 FAST = RestartPolicy(max_restarts=2, window=60.0, backoff_initial=0.05, backoff_max=1.0, jitter=0.0)
 SLEEP = ["sleep", "3600"]
 CONTRACT = {
@@ -111,6 +113,7 @@ def make_spec(
     resources: ComponentResources | None = None,
     volumes: tuple[str, ...] = (),
     restart: RestartPolicy = FAST,
+    ros: bool = False,
 ) -> ComponentSpec:
     """Build a component spec the way the controller would."""
     return ComponentSpec(
@@ -123,6 +126,7 @@ def make_spec(
         env=env if env is not None else {"BRIDGEOS_SKILL": "people", "BRIDGEOS_COMPONENT": component},
         volumes=volumes,
         restart=restart,
+        ros=ros,
     )
 
 
@@ -180,6 +184,36 @@ async def test_start_runs_a_labelled_limited_container_on_the_robot_network(
     assert host["RestartPolicy"]["Name"] in ("", "no")
     assert list(info["NetworkSettings"]["Networks"]) == [f"bridgeos-{robot}"]
     assert recorder.statuses("detector") == ["starting", "running"]
+
+
+@pytest.mark.ros
+async def test_a_ros_node_in_a_robot_container_talks_to_host_nodes_through_the_robots_master(
+    runtime: DockerRuntime, robot: str, api: APIClient, tmp_path: Path
+) -> None:
+    try:
+        api.inspect_image(ROS_IMAGE)
+    except docker.errors.ImageNotFound:
+        pytest.fail(f"image {ROS_IMAGE} is missing: build it with `make images`", pytrace=False)
+    (tmp_path / "ros").mkdir()
+    with private_rosmaster(tmp_path / "ros") as master:
+        nodes = Nodes(master, tmp_path)
+        try:
+            nodes.run("host-listener", "listener", "--topic", "/robot_chatter")
+            # The controller's contract: the robot's master at its loopback URI, a namespace for the instance.
+            env = {"ROS_MASTER_URI": master, "ROS_IP": "127.0.0.1", "BRIDGEOS_COMPONENT": "talker"}
+            command = ["rostopic", "pub", "-r", "20", "/robot_chatter", "std_msgs/String", "data: container 1"]
+            state = await runtime.start(make_spec(robot, "talker", command, image=ROS_IMAGE, env=env, ros=True))
+            info = api.inspect_container(state.pid_or_container_id)
+            assert info["HostConfig"]["NetworkMode"] == "host"
+            await wait_for(lambda: nodes.messages("host-listener"), timeout=60, what="the container's messages")
+            assert nodes.messages("host-listener")[0] == ("container", 1)
+            # A node that is not ROS stays on the robot's own network.
+            plain = await runtime.start(make_spec(robot, "plain"))
+            assert list(api.inspect_container(plain.pid_or_container_id)["NetworkSettings"]["Networks"]) == [
+                f"bridgeos-{robot}"
+            ]
+        finally:
+            nodes.kill_all()
 
 
 async def test_container_sees_the_env_contract_and_shares_the_skills_volumes(

@@ -801,6 +801,7 @@ class RobotController:
             resources=component.resources,
             env=env,
             volumes=tuple(record.config.volumes),
+            ros=component.ros,
         )
 
     async def _start_on_robot(self, record: SkillRecord, name: str) -> None:

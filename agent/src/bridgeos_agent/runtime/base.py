@@ -107,6 +107,7 @@ class ComponentSpec:
     env: Mapping[str, str]
     volumes: tuple[str, ...] = ()
     restart: RestartPolicy = RestartPolicy()
+    ros: bool = False  # a ROS node: it must reach the robot's ROS master and the Skill Router
 
     @property
     def key(self) -> tuple[str, str]:
@@ -129,6 +130,7 @@ class ComponentSpec:
             "env": dict(self.env),
             "volumes": list(self.volumes),
             "restart": dataclasses.asdict(self.restart),
+            "ros": self.ros,
         }
 
     @classmethod
@@ -144,6 +146,7 @@ class ComponentSpec:
             env=dict(data["env"]),
             volumes=tuple(data.get("volumes", ())),
             restart=RestartPolicy(**data.get("restart", {})),
+            ros=bool(data.get("ros", False)),
         )
 
 

@@ -3,7 +3,9 @@
 What the runtime creates, all labelled ``io.bridgeos.robot=<robot>`` and ``io.bridgeos.managed=1``:
 
 - network ``bridgeos-<robot>``: a user-defined bridge (subnet from the ``subnet`` option,
-  e.g. the robot config's ``subnets.local``), shared by all of the robot's components;
+  e.g. the robot config's ``subnets.local``), shared by all of the robot's components but its
+  ROS nodes, which use the host's network (``ros_network="host"``, the default) so the ROS
+  master and the Skill Router reach them at the address ROS advertises;
 - volume ``bridgeos-<robot>-<skill>-<volume>`` for each of a skill's volumes, mounted at
   ``/bridgeos/volumes/<volume>`` (``BRIDGEOS_VOLUMES=/bridgeos/volumes`` in the env);
 - container ``bridgeos-<robot>-<skill>-<component>``, also labelled ``io.bridgeos.skill``,
@@ -79,6 +81,10 @@ MIB = 1024 * 1024
 MIN_MEMORY = 6 * MIB  # Docker refuses smaller memory limits
 MIN_CPUS = 0.01  # and smaller CPU limits
 STATS_CONCURRENCY = 256  # stats requests in flight at once (one socket each)
+# How ROS nodes are networked: "host" shares the robot's stack, so the ROS master, the Skill
+# Router and the node reach each other at the addresses ROS advertises (a bridge network hides
+# them behind NAT and container hostnames); "bridge" keeps them on the robot network like the rest.
+ROS_NETWORKS = ("host", "bridge")
 DOCKER_NAME = re.compile(r"^[a-zA-Z0-9][a-zA-Z0-9_.-]*$")
 
 
@@ -185,8 +191,11 @@ class DockerRuntime(Runtime):
         docker_url: str | None = None,
         workers: int = 8,
         log_max_bytes: int = 10 * MIB,
+        ros_network: str = "host",
     ) -> None:
         super().__init__(robot, data_dir=data_dir, on_status=on_status)
+        if ros_network not in ROS_NETWORKS:
+            raise ValueError(f"ros_network {ros_network!r}: use one of {', '.join(ROS_NETWORKS)}")
         if not DOCKER_NAME.fullmatch(robot):
             raise ValueError(
                 f"robot id {robot!r} cannot name Docker objects: use letters, digits, '_', '.' or '-', "
@@ -194,6 +203,7 @@ class DockerRuntime(Runtime):
             )
         self.subnet = subnet
         self.docker_url = docker_url
+        self.ros_network = ros_network
         self.log_max_bytes = log_max_bytes
         self.network = f"bridgeos-{robot}"
         self._workers = workers
@@ -542,17 +552,23 @@ class DockerRuntime(Runtime):
             self._volumes.pop(name, None)
             raise
 
+    def _host_networked(self, spec: ComponentSpec) -> bool:
+        """Say whether a component shares the robot's network stack instead of the robot network."""
+        return spec.ros and self.ros_network == "host"
+
     def _container_config(self, api: APIClient, spec: ComponentSpec) -> dict[str, Any]:
         """Build the create-container request for a component."""
         resources = spec.resources
+        host = self._host_networked(spec)
         host_config: dict[str, Any] = {
-            "network_mode": self.network,
+            "network_mode": "host" if host else self.network,
             "init": True,
             "mounts": [
                 Mount(target=f"{VOLUMES_MOUNT}/{volume}", source=self.volume_name(spec.skill, volume), type="volume")
                 for volume in spec.volumes
             ],
-            "extra_hosts": {"host.docker.internal": "host-gateway"},
+            # On the host's stack the robot's own names resolve already.
+            "extra_hosts": None if host else {"host.docker.internal": "host-gateway"},
             "log_config": LogConfig(
                 type=LogConfig.types.JSON, config={"max-size": str(self.log_max_bytes), "max-file": "2"}
             ),
@@ -569,7 +585,7 @@ class DockerRuntime(Runtime):
             "command": spec.launch.command,
             "name": self.container_name(spec.skill, spec.component),
             "environment": {**spec.launch_env(), VOLUMES_ENV: VOLUMES_MOUNT},
-            "ports": list(spec.launch.ports) or None,
+            "ports": None if host else list(spec.launch.ports) or None,
             "labels": {
                 LABEL_ROBOT: self.robot,
                 LABEL_SKILL: spec.skill,
@@ -592,7 +608,8 @@ class DockerRuntime(Runtime):
             )
         api = await self._connect()
         try:
-            await self._ensure_network(api)
+            if not self._host_networked(spec):
+                await self._ensure_network(api)
             for volume in spec.volumes:
                 await self._ensure_volume(api, spec.skill, volume)
         except docker.errors.APIError as exc:

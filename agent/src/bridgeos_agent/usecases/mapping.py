@@ -19,9 +19,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--world", default="office", help="world whose extent to map (office, room)")
     parser.add_argument("--resolution", type=float, default=0.1, help="metres a cell")
     parser.add_argument("--period", type=float, default=1.0, help="seconds between map publications")
+    parser.add_argument("--report-period", type=float, default=5.0, help="seconds between metric reports")
     args = parser.parse_args(argv)
-    if not (0.02 <= args.resolution <= 1 and 0.1 <= args.period <= 3600):
-        parser.error("need 0.02 <= --resolution <= 1 and 0.1 <= --period <= 3600")
+    if not (0.02 <= args.resolution <= 1 and 0.1 <= args.period <= 3600 and 0.1 <= args.report_period <= 3600):
+        parser.error("need 0.02 <= --resolution <= 1 and 0.1 <= --period, --report-period <= 3600")
     try:
         args.world = get_world(args.world)
     except ValueError as exc:
@@ -99,7 +100,10 @@ def main(argv: list[str]) -> int:
 
     rospy.Subscriber("scan", LaserScan, on_scan, queue_size=20)
     rospy.Subscriber("odom", Odometry, on_odom, queue_size=100)
-    timers = [rospy.Timer(rospy.Duration(args.period), publish), rospy.Timer(rospy.Duration(5.0), report)]
+    timers = [
+        rospy.Timer(rospy.Duration(args.period), publish),
+        rospy.Timer(rospy.Duration(args.report_period), report),
+    ]
     print(f"[mapping] {grid.width}x{grid.height} cells of {args.resolution} m", flush=True)
     try:
         rospy.spin()
