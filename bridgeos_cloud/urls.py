@@ -11,8 +11,9 @@ from . import views
 
 urlpatterns = [
     path("", include("dashboard.urls")),
-    path("accounts/login/", auth_views.LoginView.as_view(), name="login"),
+    path("accounts/login/", views.limited_login(auth_views.LoginView.as_view()), name="login"),
     path("accounts/logout/", auth_views.LogoutView.as_view(), name="logout"),
+    path("admin/login/", views.limited_login(admin.site.login)),  # before admin/: same limits as /api/auth
     path("admin/", admin.site.urls),
     path("api/health", views.health, name="health"),
     path("api/", include("robots.api.urls")),

@@ -1,14 +1,21 @@
-"""Site-wide views: the health check."""
+"""Site-wide views: the health check, and the brute-force limit on the login forms."""
 
 from __future__ import annotations
 
+import functools
+import math
+from collections.abc import Callable
+
 from django.conf import settings
 from django.db import connection
+from django.http import HttpRequest, HttpResponse
 from drf_spectacular.utils import OpenApiResponse, extend_schema
 from rest_framework.decorators import api_view, permission_classes
 from rest_framework.permissions import AllowAny
 from rest_framework.request import Request
 from rest_framework.response import Response
+
+from . import bruteforce
 
 
 @extend_schema(
@@ -39,3 +46,29 @@ def _redis_ok() -> bool:
         return bool(redis.Redis.from_url(settings.REDIS_URL, socket_timeout=1).ping())
     except redis.RedisError:
         return False
+
+
+def limited_login(view: Callable[..., HttpResponse]) -> Callable[..., HttpResponse]:
+    """Wrap a login form view with the limits /api/auth has: past them a POST gets 429, right password or not."""
+
+    @functools.wraps(view)
+    def login(request: HttpRequest, *args: object, **kwargs: object) -> HttpResponse:
+        if request.method != "POST":
+            return view(request, *args, **kwargs)
+        username = str(request.POST.get("username", ""))[:200]
+        address = request.META.get("REMOTE_ADDR", "")
+        retry = bruteforce.blocked("user", username, address)
+        if retry:
+            response = HttpResponse(
+                f"Too many failed logins; try again in {math.ceil(retry)} s.\n", status=429, content_type="text/plain"
+            )
+            response["Retry-After"] = str(math.ceil(retry))
+            return response
+        response = view(request, *args, **kwargs)
+        # A login form redirects when it logs in and shows itself again (200) when it does not;
+        # anything else (a CSRF refusal) never reached the password check.
+        if response.status_code in (200, 302):
+            bruteforce.attempted("user", username, address, response.status_code == 302)
+        return response
+
+    return login

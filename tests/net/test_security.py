@@ -233,6 +233,26 @@ def test_dashboard_pages_carry_a_content_security_policy(client):
     assert "Content-Security-Policy" not in client.get("/admin/login/")
 
 
+@pytest.mark.django_db
+@pytest.mark.parametrize("form", ["/accounts/login/", "/admin/login/"])
+def test_the_login_forms_refuse_guessing_like_the_api(client, settings, form):
+    settings.BRIDGEOS = {**settings.BRIDGEOS, "AUTH_FAILURES": 3}
+    username = unique("operator")
+    get_user_model().objects.create_user(username, password="right-password-123", is_staff=True)
+    for _ in range(3):
+        wrong = client.post(form, {"username": username, "password": "wrong"})
+        assert wrong.status_code == 200 and not wrong.wsgi_request.user.is_authenticated
+    blocked = client.post(form, {"username": username, "password": "right-password-123"})
+    assert blocked.status_code == 429 and int(blocked["Retry-After"]) > 0
+    assert b"Too many failed logins" in blocked.content
+    assert "_auth_user_id" not in client.session
+    assert LogEvent.objects.filter(kind="authentication_blocked", data__user=username).exists()
+    # Another operator is not locked out by someone guessing this one's password.
+    other = unique("operator")
+    get_user_model().objects.create_user(other, password="right-password-123", is_staff=True)
+    assert client.post(form, {"username": other, "password": "right-password-123"}).status_code == 302
+
+
 def test_the_tls_port_speaks_tls_only(tls_cloud):
     with socket.create_connection(("127.0.0.1", tls_cloud.port), timeout=10) as sock:
         sock.sendall(b"GET /api/health HTTP/1.1\r\nHost: localhost\r\n\r\n")
