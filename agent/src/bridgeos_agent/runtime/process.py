@@ -567,7 +567,7 @@ class ProcessRuntime(Runtime):
             await asyncio.wait_for(asyncio.shield(proc.exited), timeout)
         # Members that outlive the leader get what is left of the timeout, then SIGKILL.
         # Nothing signals a group's end (they are not our children), so look every 50 ms.
-        while loop.time() < deadline and _signal_group(proc.pid, 0):  # noqa: ASYNC110
+        while loop.time() < deadline and _group_alive(proc.pid):  # noqa: ASYNC110
             await asyncio.sleep(0.05)
         _signal_group(proc.pid, signal.SIGKILL)
         return await asyncio.shield(proc.exited)
@@ -607,6 +607,23 @@ def _signal_group(pgid: int, signum: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def _group_alive(pgid: int) -> bool:
+    """Return whether a process group has a member that is not a zombie.
+
+    A zombie leader waits for its parent to reap it: for a group this runtime adopted, that
+    parent is another process (an earlier agent, a Celery worker), which may never do so.
+    """
+    if not _signal_group(pgid, 0):
+        return False
+    for process in psutil.process_iter(["status"]):
+        try:
+            if process.info["status"] != psutil.STATUS_ZOMBIE and os.getpgid(process.pid) == pgid:
+                return True
+        except (psutil.Error, OSError):
+            continue
+    return False
 
 
 def _log_failure(fd: int, message: str) -> None:
