@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -135,3 +136,42 @@ class Daphne:
             if key in ("VmRSS", "VmHWM"):
                 values[key] = int(rest.split()[0]) / 1024
         return values.get("VmRSS", 0.0), values.get("VmHWM", 0.0)
+
+
+class CeleryWorker:
+    """A Celery worker of the benchmark's own queue, in a process group of its own."""
+
+    def __init__(self, env: dict[str, str], queue: str, log_path: Path, *, concurrency: int = 2) -> None:
+        self.queue = queue
+        self.name = f"{queue}@localhost"
+        command = [str(Path(sys.executable).parent / "celery"), "-A", "bridgeos_cloud", "worker", "-P", "prefork"]
+        command += ["-c", str(concurrency), "-l", "warning", "-n", self.name, "-Q", queue, "--without-gossip"]
+        with log_path.open("wb") as out:
+            self.process = subprocess.Popen(
+                command,
+                cwd=ROOT,
+                env={**os.environ, **env},
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+
+    def wait(self, timeout: float = 60.0) -> None:
+        """Return once the worker answers a ping."""
+        from bridgeos_cloud.celery import app
+
+        deadline = time.monotonic() + timeout
+        while not app.control.ping(destination=[self.name], timeout=0.5):
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("the Celery worker did not start")
+
+    def stop(self) -> None:
+        """Stop the worker and its pool: TERM, then KILL after 30 s."""
+        try:
+            os.killpg(self.process.pid, signal.SIGTERM)
+            self.process.wait(30)
+        except ProcessLookupError:
+            pass
+        except subprocess.TimeoutExpired:
+            os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait(10)

@@ -16,7 +16,7 @@ Everything is real: daphne, PostgreSQL, Redis, a two-process Celery worker, Swar
 agent in this process (process runtime, simulated robot). Services carry a cloud id of the
 benchmark's own and are all removed at the end.
 
-    .venv/bin/python benchmarks/cloud_components.py --quick     # 3 starts, 1 migration, 20 components
+    .venv/bin/python benchmarks/cloud_components.py --quick     # 2 starts, 1 migration, 10 components
     .venv/bin/python benchmarks/cloud_components.py             # 10 starts, 3 migrations, 250 components
 """
 
@@ -26,7 +26,6 @@ import argparse
 import asyncio
 import json
 import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -37,32 +36,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, setup_django
+from _common import CeleryWorker, Daphne, ensure_postgres_database, log, migrate, setup_django
 
 IMAGE = "bridgeos/base:bookworm"
 COMMAND = ["sleep", "3600"]
 SKILL = "bench-cloud"
 THESIS_INIT_S = (0.89, 0.16)
 THESIS_COMPONENTS = 250
-
-
-def worker(env: dict[str, str], queue: str, log_path: Path) -> subprocess.Popen:
-    """Start a two-process Celery worker on the benchmark's queue, in a process group of its own."""
-    command = [str(Path(sys.executable).parent / "celery"), "-A", "bridgeos_cloud", "worker", "-P", "prefork"]
-    command += ["-c", "2", "-l", "warning", "-n", f"{queue}@localhost", "-Q", queue, "--without-gossip"]
-    with log_path.open("wb") as out:
-        return subprocess.Popen(
-            command, cwd=ROOT, env={**os.environ, **env}, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
-        )
-
-
-def wait_worker(queue: str, process: subprocess.Popen) -> None:
-    from bridgeos_cloud.celery import app
-
-    deadline = time.monotonic() + 60
-    while not app.control.ping(destination=[f"{queue}@localhost"], timeout=0.5):
-        if process.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError("the Celery worker did not start")
 
 
 def skill_config(count: int, *, movable: bool = False) -> dict:
@@ -363,7 +343,7 @@ def summary(values: list[float]) -> tuple[float | None, float | None]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="3 starts, 1 migration, 20 components: under a minute")
+    parser.add_argument("--quick", action="store_true", help="2 starts, 1 migration, 10 components: under a minute")
     parser.add_argument("--starts", type=int, default=10, help="API starts and bare service creates to time")
     parser.add_argument("--migrations", type=int, default=3, help="robot→cloud→robot round trips")
     parser.add_argument("--components", type=int, default=THESIS_COMPONENTS, help="cloud components of one Skill")
@@ -371,7 +351,7 @@ def main() -> int:
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/9")
     args = parser.parse_args()
     if args.quick:
-        args.starts, args.migrations, args.components = 3, 1, 20
+        args.starts, args.migrations, args.components = 2, 1, 10
     if min(args.starts, args.migrations, args.components) < 1:
         parser.error("every count must be at least 1")
     if subprocess.run(["docker", "image", "inspect", IMAGE], capture_output=True).returncode != 0:
@@ -403,10 +383,10 @@ def main() -> int:
     log(f"load average before: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")
     api_token, tokens = prepare(args)
     daphne = Daphne(env, data / "daphne.log")
-    celery = worker(env, queue, data / "worker.log")
+    celery = CeleryWorker(env, queue, data / "worker.log")
     try:
         daphne.wait()
-        wait_worker(queue, celery)
+        celery.wait()
         log("bare `docker service create` of the same service, timed to its task running")
         network = f"bos-bench-bare-{cloud_id}"
         subprocess.run(
@@ -430,11 +410,7 @@ def main() -> int:
         log(f"bare: first {bare_first:.3f} s, then {statistics.mean(bare):.3f} s")
         results = asyncio.run(run(args, env, daphne, api_token, tokens, data))
     finally:
-        os.killpg(celery.pid, signal.SIGTERM)
-        try:
-            celery.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(celery.pid, signal.SIGKILL)
+        celery.stop()
         daphne.stop()
         log("removing the benchmark's services")
         remove_everything(cloud_id)

@@ -1,7 +1,7 @@
 """Offloading quality: the Skill Manager against every static placement and the hindsight oracle (issue 10).
 
-A real cloud (daphne started here, PostgreSQL, Redis), the real Robot Controller with the process
-runtime and the real Skill Manager run a Skill of four movable components on a simulated robot
+A real cloud (daphne started here, PostgreSQL, Redis, a Celery worker starting cloud copies with
+the process runtime), the real Robot Controller with the process runtime and the real Skill Manager run a Skill of four movable components on a simulated robot
 (``monitor.SimulatedRobot``) whose background CPU load and link bandwidth follow scripted phases
 (idle or busy robot, good or poor link), with noise. The components burn the CPU they declare, so
 the runtime's measurements are real. The Skill's custom policy costs each component as a delay:
@@ -17,7 +17,7 @@ oracle (goal <= 1.05), time to adapt after each change (goal <= 10 s; adapted = 
 costing at most 5 % more than the phase's best), migrations, and flaps (a move reversed within 60 s
 with no change of conditions in between; goal <= 1 per 10 minutes).
 
-    .venv/bin/python benchmarks/offloading_quality.py --quick     # 4 phases of 12 s, under a minute
+    .venv/bin/python benchmarks/offloading_quality.py --quick     # 4 phases of 10 s, under a minute
     .venv/bin/python benchmarks/offloading_quality.py             # 8 phases of 60 s
 
 The last line is one JSON object with the figures.
@@ -40,7 +40,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, setup_django
+from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, log, migrate, setup_django
 
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.heuristics import Resources
@@ -352,12 +352,12 @@ def stop_quickly(daphne: Daphne) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="4 phases of 12 s: under a minute in all")
+    parser.add_argument("--quick", action="store_true", help="4 phases of 10 s: under a minute in all")
     parser.add_argument("--phase-s", type=float, help="seconds per phase (default 60, --quick 10)")
     parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
     args = parser.parse_args()
-    phase_s = args.phase_s or (12.0 if args.quick else 60.0)
+    phase_s = args.phase_s or (10.0 if args.quick else 60.0)
     if phase_s < 2 * DECISION_INTERVAL:
         parser.error(f"--phase-s must be at least {2 * DECISION_INTERVAL} s")
     script = Script(QUICK_SCRIPT if args.quick else FULL_SCRIPT, phase_s)
@@ -365,11 +365,22 @@ def main() -> None:
     log(f"machine load {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f} on {os.cpu_count()} cores")
 
     data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-offloading-"))
-    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": str(data_dir)}
+    cloud = f"bench-offload-{os.getpid()}"
+    env = {
+        "DATABASE_URL": args.database_url,
+        "REDIS_URL": args.redis_url,
+        "BRIDGEOS_DATA_DIR": str(data_dir),
+        # The cloud side is real: a Celery worker starts each cloud copy with the process runtime.
+        "BRIDGEOS_CLOUD_ID": cloud,
+        "BRIDGEOS_CLOUD_RUNTIME": "process",
+        "BRIDGEOS_CLOUD_ROS_MASTERS": "0",
+        "CELERY_TASK_DEFAULT_QUEUE": f"{cloud}-q",
+    }
     ensure_postgres_database(args.database_url)
     migrate(env)
     setup_django(env)
     from django.contrib.auth import get_user_model
+    from django.core.management import call_command
 
     from monitoring.models import Event
     from robots.models import Robot
@@ -384,15 +395,19 @@ def main() -> None:
     add_skill(robot, config.model_dump(mode="json"))
 
     daphne = Daphne(env, data_dir / "daphne.log")
+    celery = CeleryWorker(env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log")
     try:
         daphne.wait()
-        log(f"daphne pid {daphne.pid} on port {daphne.port}")
+        celery.wait()
+        log(f"daphne pid {daphne.pid} on port {daphne.port}, Celery worker pid {celery.process.pid}")
         run = asyncio.run(run_scenario(daphne.ws_url, token, script, data_dir / "agent", config))
     except BaseException:
         log(f"daphne log tail:\n{daphne.log_tail()}")
         raise
     finally:
+        celery.stop()
         stop_quickly(daphne)
+        call_command("cloud_down", stdout=open(os.devnull, "w"))  # no cloud copy outlives the run
     log("costing every placement")
     logged = list(Event.objects.filter(robot_id=ROBOT_ID, kind="offloading_decision").values_list("data", flat=True))
     shutil.rmtree(data_dir, ignore_errors=True)
