@@ -16,7 +16,7 @@ Everything is real: daphne, PostgreSQL, Redis, a two-process Celery worker, Swar
 agent in this process (process runtime, simulated robot). Services carry a cloud id of the
 benchmark's own and are all removed at the end.
 
-    .venv/bin/python benchmarks/cloud_components.py --quick     # 2 starts, 1 migration, 10 components
+    .venv/bin/python benchmarks/cloud_components.py --quick     # 1 start, 1 migration, 10 components
     .venv/bin/python benchmarks/cloud_components.py             # 10 starts, 3 migrations, 250 components
 """
 
@@ -343,7 +343,7 @@ def summary(values: list[float]) -> tuple[float | None, float | None]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="2 starts, 1 migration, 10 components: under a minute")
+    parser.add_argument("--quick", action="store_true", help="1 start, 1 migration, 10 components: under a minute")
     parser.add_argument("--starts", type=int, default=10, help="API starts and bare service creates to time")
     parser.add_argument("--migrations", type=int, default=3, help="robot→cloud→robot round trips")
     parser.add_argument("--components", type=int, default=THESIS_COMPONENTS, help="cloud components of one Skill")
@@ -351,7 +351,7 @@ def main() -> int:
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/9")
     args = parser.parse_args()
     if args.quick:
-        args.starts, args.migrations, args.components = 2, 1, 10
+        args.starts, args.migrations, args.components = 1, 1, 10
     if min(args.starts, args.migrations, args.components) < 1:
         parser.error("every count must be at least 1")
     if subprocess.run(["docker", "image", "inspect", IMAGE], capture_output=True).returncode != 0:
