@@ -22,7 +22,7 @@ from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot
 from robots.services import create_robot, issue_api_token, update_robot_config
-from skills.models import Component
+from skills.models import CloudInstance, Component
 from skills.services import add_skill
 from tests.agent.conftest import Cloud
 from tests.conftest import BIN
@@ -300,7 +300,12 @@ async def test_a_component_that_does_not_fit_moves_a_movable_one_to_the_cloud(cl
         assert where == "robot"
         assert record.locations == {"worker-0": "cloud", "worker-1": "robot"}
         assert set(running_workers(controller)) == {"worker-1"}
-        assert record.statuses["worker-1"] == CS.RUNNING
+        assert record.statuses == {"worker-0": CS.RUNNING, "worker-1": CS.RUNNING}
+        # The moved component was migrated, not dropped: its cloud copy ran before the robot's stopped.
+        instance = await sync_to_async(CloudInstance.objects.get)(
+            component__skill__robot_id="ctl-6", component__component_id="worker-0"
+        )
+        assert instance.status == "running"
 
 
 async def test_the_robot_reports_its_ros_master_or_gets_the_clouds(cloud, tmp_path):

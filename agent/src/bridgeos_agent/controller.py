@@ -718,11 +718,9 @@ class RobotController:
                     f"to the cloud first ({decision.reason})"
                 )
                 for moved in (decision.component_id, *decision.links):
-                    # The cloud copy is asked for first, then the robot copy makes room.
-                    await self._start_in_cloud(replaced, moved)
-                    self._route(replaced, moved, "cloud")
-                    await self.runtime.stop(decision.skill_id, moved)
-                    self._usage.pop((decision.skill_id, moved), None)
+                    # A migration: the robot copy serves until its cloud copy runs and the router
+                    # switches; if the cloud cannot run it, it stays and this placement fails saying why.
+                    await self.migrate_component(replaced, moved, "cloud")
             elif isinstance(decision, Cloud):
                 if location == "robot":
                     raise ProtocolError(f"no room on the robot for {name!r}: {decision.reason}", code="no_resources")
