@@ -1,10 +1,11 @@
 """Offloading quality: the Skill Manager against every static placement and the hindsight oracle (issue 10).
 
-A real cloud (daphne started here, PostgreSQL, Redis, a Celery worker starting cloud copies with
-the process runtime), the real Robot Controller with the process runtime and the real Skill Manager run a Skill of four movable components on a simulated robot
-(``monitor.SimulatedRobot``) whose background CPU load and link bandwidth follow scripted phases
-(idle or busy robot, good or poor link), with noise. The components burn the CPU they declare, so
-the runtime's measurements are real. The Skill's custom policy costs each component as a delay:
+A real cloud (daphne started here, PostgreSQL, Redis, a Celery worker starting cloud copies
+with the process runtime), the real Robot Controller with the process runtime and the real
+Skill Manager run a Skill of four movable components on a simulated robot
+(``monitor.SimulatedRobot``) whose background CPU load and link bandwidth follow scripted
+phases (idle or busy robot, good or poor link), with noise. The components burn the CPU they
+declare, so the runtime's measurements are real. The Skill's custom policy costs each component as a delay:
 on the robot its CPU over the robot's free CPU, in the cloud a round trip plus its data over the
 link's bandwidth (``POLICY`` below). The manager decides every half second (threshold 2 and
 hysteresis 1, in the policy's units, a few percent of a cost; cooldown 8 s).

@@ -259,6 +259,8 @@ BRIDGEOS = {
     "CLOUD_ID": env_str("BRIDGEOS_CLOUD_ID", ""),
     # The address robots reach cloud containers' published ports and host-network services at.
     "CLOUD_HOST": env_str("BRIDGEOS_CLOUD_HOST", "127.0.0.1"),
+    # This cloud's own HTTP address as its cloud copies reach it: their BRIDGEOS_MANAGER_URL starts here.
+    "CLOUD_URL": env_str("BRIDGEOS_CLOUD_URL", "http://127.0.0.1:8000"),
     # A dedicated ROS master per robot that has none (default: with the swarm and docker runtimes).
     "CLOUD_ROS_MASTERS": env_str("BRIDGEOS_CLOUD_ROS_MASTERS", ""),
     "CLOUD_ROS_MASTER_PORTS": env_str("BRIDGEOS_CLOUD_ROS_MASTER_PORTS", "41311-41999"),

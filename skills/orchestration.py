@@ -125,6 +125,18 @@ def request_start(component: Component) -> CloudInstance:
     return instance
 
 
+def running_copy(token: str) -> tuple[str, str, str] | None:
+    """Return (robot, skill, component) of the cloud copy a launch token names, while it is wanted running."""
+    if not token:
+        return None
+    found = (
+        CloudInstance.objects.filter(token=token, desired=RUNNING)
+        .values_list("component__skill__robot_id", "component__skill__skill_id", "component__component_id")
+        .first()
+    )
+    return tuple(found) if found else None
+
+
 def request_stop(component: Component) -> CloudInstance:
     """Want the component's cloud copy gone; a task removes it once this transaction commits."""
     instance, _ = CloudInstance.objects.select_for_update().get_or_create(component=component)
@@ -273,6 +285,8 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
     master = robot.ros_master or settings.BRIDGEOS["CLOUD_ROS_MASTER"]
     if master:
         env["ROS_MASTER_URI"] = master
+    # The Skill's manager runs on the robot: the cloud relays this copy's calls to it (skills.api.manager).
+    env["BRIDGEOS_MANAGER_URL"] = f"{settings.BRIDGEOS['CLOUD_URL'].rstrip('/')}/api/cloud/manager/{instance.token}"
     if declared.ros:
         env["ROS_NAMESPACE"] = instance_namespace(skill.skill_id, component.component_id, "cloud")
         env.update(_ros_address(robot.id, skill.skill_id, component.component_id))

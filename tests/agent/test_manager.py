@@ -338,6 +338,50 @@ async def test_components_reach_their_manager_and_a_recommendation_moves_one(clo
         await controller.stop_skill(SKILL)
 
 
+async def test_a_cloud_copy_reaches_its_skills_manager_through_the_cloud(cloud, tmp_path):
+    import httpx
+
+    from skills.models import CloudInstance
+    from skills.orchestration import cloud_spec
+
+    config = movable_skill(interval=0.3, threshold=1e6)
+    token, _ = await make_robot("man-9", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-9", token, tmp_path / "agent"))
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config))
+        record.supervisor.context["manager"].recommend("worker-1", "cloud")
+        await eventually(lambda: record.locations["worker-1"] == "cloud", what="worker-1 moved")
+
+        @sync_to_async
+        def launch() -> tuple[str, str]:
+            instance = CloudInstance.objects.select_related("component__skill__robot").get(
+                component__skill__robot_id="man-9", component__component_id="worker-1"
+            )
+            return instance.token, cloud_spec(instance).env["BRIDGEOS_MANAGER_URL"]
+
+        launch_token, url = await launch()
+        # The copy's env names the cloud's relay with its launch token (BRIDGEOS_CLOUD_URL's default host).
+        assert url == f"http://127.0.0.1:8000/api/cloud/manager/{launch_token}"
+        base = f"{cloud.url}/api/cloud/manager/{launch_token}"
+        async with httpx.AsyncClient(timeout=20) as http:
+            listed = await http.get(f"{base}/components")
+            assert listed.status_code == 200, listed.text
+            where = {c["id"]: c["active_location"] for c in listed.json()["components"]}
+            assert where == {"worker-0": "robot", "worker-1": "cloud"}
+            posted = await http.post(f"{base}/metrics/frames_done", json={"value": 7})
+            assert posted.status_code < 300, posted.text
+            again = await http.get(f"{base}/metrics/frames_done")
+            assert again.status_code == 200 and "7" in again.text
+            # What the manager refuses, it refuses to the cloud copy too, and nothing else is reachable.
+            refused = await http.get(f"{base}/components/nope")
+            assert refused.status_code == 404
+            assert (await http.get(f"{base}/secrets")).status_code == 400
+            assert (await http.get(f"{cloud.url}/api/cloud/manager/0123456789abcdef/components")).status_code == 404
+            assert (await http.post(f"{base}/metrics", content=b"not json")).status_code == 400
+        await controller.stop_skill(SKILL)
+
+
 @sync_to_async
 def _published(robot_id: str) -> list[Metric]:
     rows = list(Metric.objects.filter(robot_id=robot_id, name="peers_seen", skill=SKILL))

@@ -109,6 +109,14 @@ SAMPLES: dict[Event, dict[str, Any]] = {
         "chunks": [{"hash": "a" * 64, "data": "aGVsbG8="}],
     },
     Event.ACK: {},
+    Event.COMPONENTS_API: {
+        "skill": "people-detector",
+        "method": "POST",
+        "path": "/components/detector/location",
+        "query": "",
+        "body": {"location": "cloud"},
+    },
+    Event.COMPONENTS_API_REPLY: {"skill": "people-detector", "status": 200, "body": {"location": "cloud"}},
     Event.OFFLOADING_DECISION: {
         "skill": "people-detector",
         "component": "detector",
@@ -148,10 +156,13 @@ def rejection(text: str | bytes, **kwargs: Any) -> ProtocolError:
 
 def test_samples_cover_every_event_and_table() -> None:
     assert set(SAMPLES) == set(Event) == set(PAYLOADS) == set(DIRECTIONS)
-    # Table 3.3's 31 events, ack, the three of Skill volume sync and the manager's decision log.
-    assert len(Event) == 36
+    # Table 3.3's 31 events, ack, the three of Skill volume sync, the manager's decision log and the
+    # cloud copies' Components API relay (request and reply).
+    assert len(Event) == 38
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
-    assert all(name.endswith("_get") for name in REPLIES if name not in COMMANDS and "auth" not in name)
+    # Requests are named *_get, but for the relayed Components API call, which may POST.
+    requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {Event.COMPONENTS_API}
+    assert all(name.endswith("_get") for name in requests)
 
 
 @pytest.mark.parametrize("event", list(Event))

@@ -1352,6 +1352,32 @@ async def on_metrics_get(controller: RobotController, envelope: Envelope, p: Any
     return Event.METRICS, {"metrics": points[: p.limit or len(points)]}
 
 
+@handles(Event.COMPONENTS_API)
+async def on_components_api(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    record = controller.skills.get(p.skill)
+    env = record.supervisor.context.get("env", {}) if record is not None and record.supervisor is not None else {}
+    url = env.get("BRIDGEOS_MANAGER_URL")
+    if not url:
+        raise ProtocolError(f"skill {p.skill!r} runs no manager on this robot", field="data.skill", code="not_found")
+    status, body = await call_components_api(url, p.method, p.path, p.query, p.body)
+    return Event.COMPONENTS_API_REPLY, {"skill": p.skill, "status": status, "body": body}
+
+
+async def call_components_api(
+    base: str, method: str, path: str, query: str, body: Mapping[str, Any] | None
+) -> tuple[int, Any]:
+    """Call a Skill's Components API on this robot; return its status and JSON answer."""
+    import aiohttp
+
+    url = base.rstrip("/") + path + (f"?{query}" if query else "")
+    timeout = aiohttp.ClientTimeout(total=10)
+    async with aiohttp.ClientSession(timeout=timeout) as session, session.request(method, url, json=body) as answer:
+        try:
+            return answer.status, await answer.json(content_type=None)
+        except ValueError:
+            return answer.status, {"error": (await answer.text())[:2000]}
+
+
 def ws_scheme(ws: Any) -> str:
     """Name the scheme of a live connection (WSS or plain WS)."""
     return "WSS" if getattr(ws, "transport", None) and ws.transport.get_extra_info("sslcontext") else "WS"

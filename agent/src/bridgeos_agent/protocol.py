@@ -53,6 +53,8 @@ __all__ = [
     "ComponentStatusGet",
     "ComponentStatusName",
     "ComponentStop",
+    "ComponentsApi",
+    "ComponentsApiReply",
     "ConnectionEstablished",
     "ConnectionLost",
     "ContainerInfo",
@@ -154,6 +156,9 @@ class Event(enum.StrEnum):
     ACK = "ack"
     # Not in the thesis: the Skill Manager's log of each move it decided (issue 6).
     OFFLOADING_DECISION = "offloading_decision"
+    # Not in the thesis: a cloud copy's Components API call, relayed to its Skill's manager.
+    COMPONENTS_API = "components_api"
+    COMPONENTS_API_REPLY = "components_api_reply"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -581,6 +586,25 @@ class VolumeChunks(RobotScoped):
     missing: Annotated[list[ChunkHash], Field(max_length=MAX_CHUNKS_PER_FRAME)] = Field(default_factory=list)
 
 
+class ComponentsApi(RobotScoped):
+    """Carry a cloud copy's Components API call (thesis Table 3.2) to its Skill's manager on the robot."""
+
+    skill: Slug
+    method: Literal["GET", "POST"]
+    # Only the API's own routes: /components[/ID[/location]], /metrics[/NAME].
+    path: Annotated[str, StringConstraints(pattern=r"^/(components|metrics)(/[A-Za-z0-9_.-]{1,128}){0,2}$")]
+    query: Annotated[str, StringConstraints(max_length=1024)] = ""
+    body: JsonObject | None = None
+
+
+class ComponentsApiReply(RobotScoped):
+    """Carry the manager's answer to a relayed Components API call."""
+
+    skill: Slug
+    status: Annotated[int, Field(ge=100, le=599)]
+    body: Any = None
+
+
 class OffloadingDecision(RobotScoped):
     """Log one move a Skill Manager decided: its inputs, both costs, the prediction and the outcome."""
 
@@ -646,6 +670,8 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.VOLUME_CHUNKS: VolumeChunks,
     Event.ACK: Ack,
     Event.OFFLOADING_DECISION: OffloadingDecision,
+    Event.COMPONENTS_API: ComponentsApi,
+    Event.COMPONENTS_API_REPLY: ComponentsApiReply,
 }
 
 
@@ -696,6 +722,8 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.VOLUME_CHUNKS: frozenset({_R2C, _C2R}),
     Event.ACK: _ALL,
     Event.OFFLOADING_DECISION: frozenset({_R2C, _C2K}),
+    Event.COMPONENTS_API: frozenset({_C2R}),
+    Event.COMPONENTS_API_REPLY: frozenset({_R2C}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,
@@ -762,6 +790,7 @@ REPLIES: Mapping[str, frozenset[Event]] = {
     Event.COMPONENT_STATUS_GET: _answered_by(Event.COMPONENT_STATUS),
     Event.METRICS_GET: _answered_by(Event.METRICS),
     Event.VOLUME_CHUNKS_GET: _answered_by(Event.VOLUME_CHUNKS),
+    Event.COMPONENTS_API: _answered_by(Event.COMPONENTS_API_REPLY),
     **{command: _COMMAND_REPLIES for command in COMMANDS},
 }
 
