@@ -54,7 +54,7 @@ from bridgeos_agent.runtime.base import (
     absent,
     check_ids,
 )
-from bridgeos_agent.runtime.docker import MIB, MIN_CPUS, MIN_MEMORY, VOLUMES_MOUNT, _get_json, _usage
+from bridgeos_agent.runtime.docker import MIB, MIN_CPUS, MIN_MEMORY, VOLUMES_MOUNT, _get_json, _usage, open_client
 
 from .cloudruntime import (
     KIND_COMPONENT,
@@ -598,18 +598,11 @@ class SwarmRuntime(CloudRuntime):
 
     async def _connect(self) -> APIClient:
         if self._api is None:
-            options: dict[str, Any] = docker.utils.kwargs_from_env()
-            if self.docker_url:
-                options["base_url"] = self.docker_url
-            url = options.get("base_url") or "unix:///var/run/docker.sock"
-            self._socket_path = url.removeprefix("unix://") if url.startswith("unix://") else None
-            options.update(version="auto", max_pool_size=self._workers + 2)
             try:
-                self._api = await asyncio.get_running_loop().run_in_executor(
-                    self._executor, functools.partial(APIClient, **options)
-                )
+                self._api, self._socket_path = await open_client(self.docker_url, self._workers, self._executor)
             except docker.errors.DockerException as exc:
-                raise RuntimeFailure(f"cannot reach the Docker engine at {url}: {exc}") from None
+                where = self.docker_url or "DOCKER_HOST or /var/run/docker.sock"
+                raise RuntimeFailure(f"cannot reach the Docker engine at {where}: {exc}") from None
         return self._api
 
 

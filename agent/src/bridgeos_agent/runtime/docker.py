@@ -176,6 +176,23 @@ class _DeathFollower:
             await asyncio.to_thread(self._thread.join, 5.0)
 
 
+async def open_client(
+    docker_url: str | None, workers: int, executor: ThreadPoolExecutor
+) -> tuple[APIClient, str | None]:
+    """Connect to the engine (``docker_url``, else DOCKER_HOST, else its socket) with a pool for ``workers``.
+
+    Return the client and the engine's unix socket path (None over TCP); raise DockerException.
+    """
+    options: dict[str, Any] = docker.utils.kwargs_from_env()
+    if docker_url:
+        options["base_url"] = docker_url
+    url = options.get("base_url") or "unix:///var/run/docker.sock"
+    socket_path = url.removeprefix("unix://") if url.startswith("unix://") else None
+    options.update(version="auto", max_pool_size=workers + 2)
+    api = await asyncio.get_running_loop().run_in_executor(executor, functools.partial(APIClient, **options))
+    return api, socket_path
+
+
 class DockerRuntime(Runtime):
     """Launch components as Docker containers (the robot's production runtime)."""
 
@@ -452,16 +469,8 @@ class DockerRuntime(Runtime):
             return self._api
         async with self._connect_lock:
             if self._api is None:
-                options: dict[str, Any] = docker.utils.kwargs_from_env()
-                if self.docker_url:
-                    options["base_url"] = self.docker_url
-                url = options.get("base_url") or "unix:///var/run/docker.sock"
-                self._socket_path = url.removeprefix("unix://") if url.startswith("unix://") else None
-                options.update(version="auto", max_pool_size=self._workers + 2)
                 try:
-                    api = await asyncio.get_running_loop().run_in_executor(
-                        self._executor, functools.partial(APIClient, **options)
-                    )
+                    api, self._socket_path = await open_client(self.docker_url, self._workers, self._executor)
                 except docker.errors.DockerException as exc:
                     raise RuntimeFailure(self._unreachable(exc)) from None
                 self._follower = _DeathFollower(
