@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import secrets
 from pathlib import Path
 
@@ -14,6 +15,11 @@ from .env import env_bool, env_float, env_int, env_list, env_str
 BASE_DIR = Path(__file__).resolve().parent.parent
 DATA_DIR = Path(env_str("BRIDGEOS_DATA_DIR", str(BASE_DIR / ".data")))
 DATA_DIR.mkdir(parents=True, exist_ok=True)
+# Every daphne and Celery process writes its Prometheus values here and any one serves their
+# sum on /metrics (monitoring/prometheus.py says why). Set before anything imports prometheus_client;
+# `make run` empties it at start so a dead process's counters from an earlier run do not linger.
+os.environ.setdefault("PROMETHEUS_MULTIPROC_DIR", str(DATA_DIR / "prometheus"))
+Path(os.environ["PROMETHEUS_MULTIPROC_DIR"]).mkdir(parents=True, exist_ok=True)
 
 
 def _secret_key() -> str:
@@ -62,6 +68,8 @@ INSTALLED_APPS = [
 ]
 
 MIDDLEWARE = [
+    # Outermost, so a request's latency includes every other middleware.
+    "monitoring.middleware.RequestLatency",
     "django.middleware.security.SecurityMiddleware",
     "bridgeos_cloud.middleware.CompressLargeResponses",
     "whitenoise.middleware.WhiteNoiseMiddleware",
@@ -237,6 +245,9 @@ SPECTACULAR_SETTINGS = {
 
 # bridgeOS knobs.
 BRIDGEOS = {
+    # Who may scrape /metrics: these addresses (CIDRs), or anyone sending `Authorization: Bearer <token>`.
+    "METRICS_ALLOW": env_list("BRIDGEOS_METRICS_ALLOW", ["127.0.0.1/32", "::1/128"]),
+    "METRICS_TOKEN": env_str("BRIDGEOS_METRICS_TOKEN", ""),
     "METRIC_RETENTION_DAYS": env_float("BRIDGEOS_METRIC_RETENTION_DAYS", 30.0),
     # Per WebSocket connection: frames per second on average, and the burst allowed above it.
     "ROBOT_FRAMES_PER_S": env_float("BRIDGEOS_ROBOT_FRAMES_PER_S", 200.0),

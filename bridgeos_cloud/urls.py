@@ -7,6 +7,8 @@ from django.contrib.auth import views as auth_views
 from django.urls import include, path
 from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
 
+from monitoring import views as monitoring_views
+
 from . import views
 
 urlpatterns = [
@@ -16,6 +18,7 @@ urlpatterns = [
     path("admin/login/", views.limited_login(admin.site.login)),  # before admin/: same limits as /api/auth
     path("admin/", admin.site.urls),
     path("api/health", views.health, name="health"),
+    path("metrics", monitoring_views.metrics, name="metrics"),
     path("api/", include("robots.api.urls")),
     path("api/", include("skills.api.urls")),
     path("api/", include("monitoring.api.urls")),

@@ -18,7 +18,7 @@ from bridgeos_cloud.errors import NotFound
 from robots import services as robots
 from skills import services as skills
 
-from . import services
+from . import prometheus, services
 from .live import LIVE_GROUP
 
 log = logging.getLogger(__name__)
@@ -74,6 +74,7 @@ class ClientConsumer(ProtocolConsumer):
         self.user = user
         await self.refresh_visible(force=True)
         await self.channel_layer.group_add(LIVE_GROUP, self.channel_name)
+        prometheus.LIVE_CLIENTS.inc()
         await self.answer(envelope, Event.AUTHENTICATION_SUCCESS, {"user": user.get_username()[:150]})
         return True
 
@@ -90,6 +91,7 @@ class ClientConsumer(ProtocolConsumer):
 
     async def closed(self, code: int) -> None:
         if self.user is not None:
+            prometheus.LIVE_CLIENTS.dec()
             await self.channel_layer.group_discard(LIVE_GROUP, self.channel_name)
 
     # ---------------------------------------------------------------- who may see what

@@ -22,6 +22,7 @@ import psycopg
 from django.conf import settings
 from django.db import IntegrityError, InterfaceError, OperationalError, connections, transaction
 
+from . import prometheus
 from .models import Metric
 
 if TYPE_CHECKING:
@@ -309,6 +310,7 @@ class MetricWriter:
         self.pending_rows = 0  # added, neither committed nor failed yet
         self._buffer: list[_Entry] = []
         self._buffered_rows = 0
+        self._buffered_since = 0.0  # monotonic time the oldest buffered frame arrived
         self._sink: _Sink | None = None
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -333,6 +335,8 @@ class MetricWriter:
             future.set_exception(exc)
             return future
         rows = len(points)
+        if not self._buffer:
+            self._buffered_since = time.monotonic()
         self._buffer.append(_Entry(robot_id, payload, rows, future))
         self._buffered_rows += rows
         self.pending_rows += rows
@@ -395,6 +399,8 @@ class MetricWriter:
     async def _flush(self) -> None:
         entries, self._buffer = self._buffer, []
         rows, self._buffered_rows = self._buffered_rows, 0
+        since = self._buffered_since
+        prometheus.INGEST_PENDING_ROWS.set(self.pending_rows)
         started = time.perf_counter()
         try:
             written, failed = await self._write(entries)
@@ -403,10 +409,14 @@ class MetricWriter:
             raise
         except Exception as exc:
             logger.warning("Writing %d metric rows failed: %r", rows, exc)
+            prometheus.copy_failed()
             self._fail(entries, exc)
         else:
             self.batches += 1
             self.rows_written += sum(entry.rows for entry in written)
+            prometheus.batch_written(sum(entry.rows for entry in written), since)
+            if failed:
+                prometheus.copy_failed(len(failed))
             for entry, error in failed.items():
                 if not entry.future.done():
                     entry.future.set_exception(error)
@@ -416,6 +426,7 @@ class MetricWriter:
                     entry.future.set_result(None)
         finally:
             self.pending_rows -= rows
+            prometheus.INGEST_PENDING_ROWS.set(self.pending_rows)
             self.last_flush_seconds = time.perf_counter() - started
 
     def _fail(self, entries: list[_Entry], exc: BaseException) -> None:

@@ -19,6 +19,8 @@ from asgiref.sync import async_to_sync
 from channels.layers import BaseChannelLayer, get_channel_layer
 from django.db import transaction
 
+from . import prometheus
+
 if TYPE_CHECKING:
     from bridgeos_agent.protocol import MetricPoint
 
@@ -81,6 +83,7 @@ class LiveFeed:
             return
         await layer.group_send(LIVE_GROUP, {"type": "live.metrics", "robots": robots})
         self.messages_sent += 1
+        prometheus.LIVE_MESSAGES.inc()
 
     async def _run(self) -> None:
         while True:
@@ -89,6 +92,7 @@ class LiveFeed:
                 await self.send()
             except Exception:
                 # Live values are expendable: the next round carries fresher ones.
+                prometheus.LIVE_DROPS.inc()
                 logger.exception("Sending live metrics failed")
 
 

@@ -18,6 +18,7 @@ from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
 from bridgeos_cloud import bruteforce
 from bridgeos_cloud.consumers import CLOSE_TOO_MANY_FAILURES, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
+from monitoring import prometheus
 from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
 from monitoring.services import record_event
@@ -76,6 +77,7 @@ class RobotConsumer(ProtocolConsumer):
 
     async def dispatch_envelope(self, envelope: Envelope) -> None:
         """Route one valid frame from the robot to its handler."""
+        prometheus.frame_received()
         event = envelope.event
         if envelope.reply_to is not None and envelope.reply_to in self.requests:
             await self.forward_reply(envelope)
@@ -99,6 +101,7 @@ class RobotConsumer(ProtocolConsumer):
             return
         needs_ack = event in protocol.REQUIRES_ACK
         if needs_ack and self.dedup.seen(envelope.id):
+            prometheus.dedup_hit()
             await self.ack(envelope)
             return
         try:
@@ -274,6 +277,7 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
     points = payload.metrics
     if not points:
         return True
+    prometheus.points_received(len(points))
     robot_id = consumer.robot_id
     store = applied_ids()
     written = store.in_flight(robot_id, envelope.id)

@@ -23,6 +23,7 @@ from django.utils import timezone
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
 from bridgeos_agent.robotconfig import merge_config_changes
+from monitoring import prometheus
 from monitoring.choices import Level
 from monitoring.live import publish_on_commit
 from monitoring.services import record_event
@@ -185,9 +186,11 @@ async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any],
     Raises ProtocolError for a malformed command, RobotOffline when the robot is not
     connected and CommandTimeout when no reply came within ``wait`` seconds.
     """
+    started = time.monotonic()
     envelope = protocol.make(event, data, now=time.time())
     channel = await sync_to_async(robot_channel)(robot_id)
     if channel is None:
+        prometheus.command_finished("offline", started)
         raise RobotOffline(robot_id)
     layer = get_channel_layer()
     # The default prefix matters: channels-redis reads all of a process's channels of one prefix
@@ -206,10 +209,14 @@ async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any],
         async with asyncio.timeout(wait):
             message = await layer.receive(reply_channel)
     except TimeoutError:
+        prometheus.command_finished("timeout", started)
         raise CommandTimeout(f"robot {robot_id} did not answer {event} within {wait:g} s") from None
     if message.get("offline"):
+        prometheus.command_finished("offline", started)
         raise RobotOffline(robot_id)
-    return protocol.decode(message["frame"])
+    reply = protocol.decode(message["frame"])
+    prometheus.command_finished("refused" if reply.event == Event.ERROR_MESSAGE else "accepted", started)
+    return reply
 
 
 # --------------------------------------------------------------------------- who sees what

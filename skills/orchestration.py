@@ -36,6 +36,7 @@ from bridgeos_agent.protocol import Event, Location, MetricPoint
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.runtime.base import ComponentState, RuntimeFailure, Status
 from bridgeos_agent.skillconfig import parse_skill_config
+from monitoring import prometheus
 from monitoring.choices import Level
 from monitoring.live import publish_on_commit
 from monitoring.services import record_event
@@ -636,6 +637,7 @@ def _reconcile(now: float) -> dict[str, int]:
     done["masters"] = _reconcile_masters(masters)
     _remove_orphan_networks()
     done["metrics"] = collect_stats({key[0] for key in wanted})
+    prometheus.reconciled(done)
     return done
 
 

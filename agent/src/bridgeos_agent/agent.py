@@ -21,7 +21,7 @@ from urllib.parse import urlsplit
 import psutil
 import websockets
 
-from bridgeos_agent import __version__, protocol, tls
+from bridgeos_agent import __version__, metrics, protocol, tls
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.monitor import SimulatedRobot
 from bridgeos_agent.protocol import Event
@@ -84,7 +84,19 @@ def run_agent(args: argparse.Namespace) -> int:
         loop = asyncio.get_running_loop()
         for signum in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(signum, controller.stop)
-        return await controller.run()
+        exporter = None
+        if args.metrics:
+            try:
+                exporter = await metrics.serve(controller, args.metrics)
+            except OSError as exc:
+                logging.getLogger("bridgeos_agent").error("cannot serve metrics on %s: %s", args.metrics, exc)
+                return 1
+            logging.getLogger("bridgeos_agent").info("metrics on http://%s/metrics", args.metrics)
+        try:
+            return await controller.run()
+        finally:
+            if exporter is not None:
+                await exporter.cleanup()
 
     return asyncio.run(main())
 

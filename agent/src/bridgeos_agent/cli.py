@@ -77,6 +77,17 @@ def _positive(option: str) -> Any:
     return check
 
 
+def _metrics_address(value: str) -> str:
+    """Accept HOST:PORT for --metrics."""
+    from bridgeos_agent.metrics import parse_address
+
+    try:
+        parse_address(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--metrics {exc}") from None
+    return value
+
+
 def _device(value: str) -> str:
     """Accept a network device name (at most 15 letters, digits, '-', '_' or '.')."""
     if not value or len(value) > 15 or not all(ch.isalnum() or ch in "-_." for ch in value):
@@ -211,6 +222,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("BRIDGEOS_FIREWALL", "auto"),
         help="the robot's nftables rules: apply when root else print (auto, default), apply, print or off "
         "(env BRIDGEOS_FIREWALL)",
+    )
+    run.add_argument(
+        "--metrics",
+        type=_metrics_address,
+        default=os.environ.get("BRIDGEOS_METRICS") or None,
+        metavar="HOST:PORT",
+        help="serve Prometheus metrics on http://HOST:PORT/metrics, unauthenticated: keep HOST on loopback "
+        "or a monitoring network (env BRIDGEOS_METRICS)",
     )
     run.add_argument("-q", "--quiet", action="store_true", help="print warnings and errors only")
     run.set_defaults(run_parser=run)

@@ -40,6 +40,7 @@ from bridgeos_agent.allocation import (
 )
 from bridgeos_agent.errors import field_errors
 from bridgeos_agent.heuristics import Resources, Weights
+from bridgeos_agent.metrics import AgentMetrics
 from bridgeos_agent.monitor import Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
 from bridgeos_agent.network import VPN, CloudNetwork, Target
 from bridgeos_agent.outbox import Outbox
@@ -135,6 +136,7 @@ class RobotController:
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.say = say or (lambda line: logger.info("%s", line))
         self.outbox = Outbox(self.data_dir / "outbox.sqlite3", max_bytes=settings.outbox_max_bytes)
+        self.metrics = AgentMetrics(settings.robot)  # what --metrics serves (bridgeos_agent.metrics)
         self.runtime = runtime or create_runtime(
             settings.runtime,
             settings.robot,
@@ -401,6 +403,7 @@ class RobotController:
         self.ws = ws
         self.network.path = path
         self.connected.set()
+        self.metrics.connected()
         self.say(f"connected to the cloud ({'through the VPN' if path == VPN else 'over ' + ws_scheme(ws)})")
         self._contact()
         await self._replay_backlog()
@@ -907,12 +910,14 @@ class RobotController:
                 await self._start_in_cloud(record, name, wait=self.settings.cloud_start_timeout)
         except Exception as exc:
             # Rolled back: the component keeps running where it was, and the cloud hears why.
+            self.metrics.migrated(record.config.skill_id, "failed")
             record.locations[name] = current
             await self._set_status(record, name, CS.RUNNING if current else CS.STOPPED, current, f"not moved: {exc}")
             raise
         router = self._router(record)
         if router is not None and current is not None:
             if not await router.wait_ready(name, target, router.settings.ready_timeout):
+                self.metrics.migrated(record.config.skill_id, "abandoned")
                 await self._abandon_migration(record, name, target, current)
                 raise ProtocolError(
                     f"component {name!r} was not ready on the {target} within {router.settings.ready_timeout:g} s; "
@@ -935,6 +940,7 @@ class RobotController:
         )
         if target == "cloud":
             await self._set_status(record, name, CS.RUNNING, "cloud")
+        self.metrics.migrated(record.config.skill_id, "done")
         return target
 
     async def _abandon_migration(self, record: SkillRecord, name: str, target: str, current: str) -> None:
@@ -993,6 +999,8 @@ class RobotController:
         record = self.skills.get(state.skill)
         if record is None or state.component not in record.config.components:
             return
+        if state.status == Status.RESTARTING:
+            self.metrics.component_restarted(state.skill, state.component)
         mapped = {
             Status.RUNNING: CS.RUNNING,
             Status.STARTING: CS.STARTING,

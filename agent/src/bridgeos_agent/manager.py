@@ -274,6 +274,7 @@ class SkillManager:
         now = time.time()
         for decision in decisions:
             self.last[decision.component] = decision
+        self.controller.metrics.decided(self.skill_id, decisions)
         # A move is logged as an offloading_decision event once carried out; a stay, as a point when it changed.
         readings = [
             (DECISION_METRIC, float(d.estimated_reward), self.skill_id, d.component) for d in decisions if not d.migrate

@@ -112,6 +112,11 @@ class Outbox:
         frames, metric_frames = self._db.execute("SELECT count(*), coalesce(sum(metrics), 0) FROM outbox").fetchone()
         return OutboxStats(frames, metric_frames, self._bytes, self.thinned_frames)
 
+    def oldest_ts(self) -> float | None:
+        """Return when the oldest held frame was made (its envelope's ts), or None when empty."""
+        row = self._db.execute("SELECT json_extract(frame, '$.ts') FROM outbox ORDER BY seq LIMIT 1").fetchone()
+        return None if row is None or row[0] is None else float(row[0])
+
     def close(self) -> None:
         """Close the database file."""
         self._db.close()

@@ -1,0 +1,250 @@
+"""The cloud's Prometheus metrics: one definition of every family, and the `/metrics` exposition.
+
+Several daphne processes and Celery workers (prefork children included) serve one cloud, so
+the counters, gauges and histograms live in prometheus_client's multiprocess mode: every
+process writes its values to mmap'd files under PROMETHEUS_MULTIPROC_DIR (set by settings to
+`<data dir>/prometheus` unless given), and a scrape of any process's `/metrics` sums them. A
+per-process port would need Prometheus to discover every daphne and every prefork child.
+
+State that lives in PostgreSQL (robots connected, cloud copies by state) is read from the
+database at scrape time instead of being counted, so it is right whichever process changed it.
+
+Hot-path calls (`frame_received`, `points_received`, `dedup_hit`) touch label children
+created once at import: an increment is an mmap write, no dict lookup, no lock of ours.
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest, multiprocess
+from prometheus_client.core import GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+NAMESPACE = "bridgeos"
+COMMAND_OUTCOMES = ("accepted", "refused", "offline", "timeout")
+RECONCILER_ACTIONS = ("restarted", "crashed", "removed", "relaunched", "masters")
+# Seconds; commands wait up to BRIDGEOS_COMMAND_WAIT_S (5 s by default) for the robot.
+COMMAND_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+BATCH_BUCKETS = (1, 10, 100, 500, 1000, 2500, 5000, 10000, 25000, 50000)
+LAG_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+TASK_BUCKETS = (0.01, 0.05, 0.1, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0)
+
+
+def multiprocess_dir() -> Path | None:
+    """Return the directory the processes share their values in, or None in single-process mode."""
+    value = os.environ.get("PROMETHEUS_MULTIPROC_DIR")
+    return Path(value) if value else None
+
+
+# --------------------------------------------------------------------------- robot door and ingest
+
+FRAMES_RECEIVED = Counter("frames_received", "WebSocket frames received from robots.", namespace=NAMESPACE)
+POINTS_RECEIVED = Counter("metric_points_received", "Metric points received from robots.", namespace=NAMESPACE)
+DEDUP_HITS = Counter("dedup_hits", "Robot frames dropped as duplicates of applied ones.", namespace=NAMESPACE)
+INGEST_BATCH_ROWS = Histogram(
+    "ingest_batch_rows", "Metric rows written per batch.", namespace=NAMESPACE, buckets=BATCH_BUCKETS
+)
+INGEST_LAG = Histogram(
+    "ingest_lag_seconds",
+    "Time from a batch's oldest frame arriving to its rows being committed.",
+    namespace=NAMESPACE,
+    buckets=LAG_BUCKETS,
+)
+INGEST_ROWS_WRITTEN = Counter("ingest_rows_written", "Metric rows committed.", namespace=NAMESPACE)
+INGEST_COPY_ERRORS = Counter(
+    "ingest_copy_errors", "Batches or frames the database refused or failed to write.", namespace=NAMESPACE
+)
+INGEST_PENDING_ROWS = Gauge(
+    "ingest_pending_rows",
+    "Metric rows received but not yet committed.",
+    namespace=NAMESPACE,
+    multiprocess_mode="livesum",
+)
+
+# --------------------------------------------------------------------------- commands relayed to robots
+
+COMMANDS = Counter("commands", "Commands relayed to robots, by outcome.", ["outcome"], namespace=NAMESPACE)
+COMMAND_SECONDS = Histogram(
+    "command_seconds",
+    "Time from relaying a command to its outcome.",
+    ["outcome"],
+    namespace=NAMESPACE,
+    buckets=COMMAND_BUCKETS,
+)
+_commands = {outcome: (COMMANDS.labels(outcome), COMMAND_SECONDS.labels(outcome)) for outcome in COMMAND_OUTCOMES}
+
+# --------------------------------------------------------------------------- live feed to dashboards
+
+LIVE_CLIENTS = Gauge(
+    "live_clients", "Dashboards and apps connected to /ws/client/.", namespace=NAMESPACE, multiprocess_mode="livesum"
+)
+LIVE_MESSAGES = Counter("live_messages", "Coalesced live-feed messages sent to the live group.", namespace=NAMESPACE)
+LIVE_DROPS = Counter(
+    "live_drops", "Live-feed messages that could not be sent (the values are dropped).", namespace=NAMESPACE
+)
+
+# --------------------------------------------------------------------------- Celery and orchestration
+
+TASKS = Counter("celery_tasks", "Celery tasks finished, by task and outcome.", ["task", "outcome"], namespace=NAMESPACE)
+TASK_SECONDS = Histogram(
+    "celery_task_seconds", "Celery task run time.", ["task"], namespace=NAMESPACE, buckets=TASK_BUCKETS
+)
+RECONCILER_ACTIONS_TOTAL = Counter(
+    "reconciler_actions", "What the reconciler did to cloud copies, by action.", ["action"], namespace=NAMESPACE
+)
+_reconciler = {action: RECONCILER_ACTIONS_TOTAL.labels(action) for action in RECONCILER_ACTIONS}
+
+# --------------------------------------------------------------------------- HTTP
+
+HTTP_SECONDS = Histogram(
+    "http_request_seconds",
+    "HTTP request latency by route pattern, method and status class.",
+    ["route", "method", "status"],
+    namespace=NAMESPACE,
+)
+
+
+# --------------------------------------------------------------------------- recording (one-line calls)
+
+
+def frame_received() -> None:
+    """Count one frame from a robot."""
+    FRAMES_RECEIVED.inc()
+
+
+def points_received(count: int) -> None:
+    """Count the metric points of one frame."""
+    POINTS_RECEIVED.inc(count)
+
+
+def dedup_hit() -> None:
+    """Count a duplicate frame dropped by the dedup window."""
+    DEDUP_HITS.inc()
+
+
+def batch_written(rows: int, oldest_added: float) -> None:
+    """Record a committed batch: its size and how long its oldest frame waited (monotonic clock)."""
+    INGEST_BATCH_ROWS.observe(rows)
+    INGEST_ROWS_WRITTEN.inc(rows)
+    INGEST_LAG.observe(time.monotonic() - oldest_added)
+
+
+def copy_failed(count: int = 1) -> None:
+    """Count batches or frames the database did not take."""
+    INGEST_COPY_ERRORS.inc(count)
+
+
+def command_finished(outcome: str, started: float) -> None:
+    """Record a relayed command's outcome and latency (started on the monotonic clock)."""
+    counter, histogram = _commands[outcome]
+    counter.inc()
+    histogram.observe(time.monotonic() - started)
+
+
+def reconciled(done: dict[str, int]) -> None:
+    """Count what one reconciler round did."""
+    for action, child in _reconciler.items():
+        if done.get(action):
+            child.inc(done[action])
+
+
+# --------------------------------------------------------------------------- state read at scrape time
+
+
+class DatabaseCollector(Collector):
+    """Report the state PostgreSQL holds: robots connected and last seen, cloud copies by state."""
+
+    def collect(self) -> Iterator[Metric]:
+        from robots.models import Robot
+        from skills.choices import COMPONENT_STATUS_CHOICES
+        from skills.models import CloudInstance
+
+        connected = GaugeMetricFamily(
+            "bridgeos_robot_connected", "1 while the robot's agent is connected.", labels=["robot"]
+        )
+        last_seen = GaugeMetricFamily(
+            "bridgeos_robot_last_seen_timestamp_seconds",
+            "When the robot was last connected (Unix time).",
+            labels=["robot"],
+        )
+        total = 0
+        for robot_id, is_connected, seen in Robot.objects.values_list("id", "connected", "last_seen").iterator():
+            connected.add_metric([robot_id], 1.0 if is_connected else 0.0)
+            total += is_connected
+            if seen is not None:
+                last_seen.add_metric([robot_id], seen.timestamp())
+        yield GaugeMetricFamily("bridgeos_robots_connected", "Robots whose agent is connected.", value=total)
+        yield connected
+        yield last_seen
+
+        counts = dict.fromkeys((value for value, _ in COMPONENT_STATUS_CHOICES), 0)
+        restarts = 0
+        for status, copy_restarts in CloudInstance.objects.values_list("status", "restarts").iterator():
+            counts[status] = counts.get(status, 0) + 1
+            restarts += copy_restarts
+        copies = GaugeMetricFamily("bridgeos_cloud_copies", "Cloud copies of components by state.", labels=["state"])
+        for state, count in counts.items():
+            copies.add_metric([state], count)
+        yield copies
+        yield GaugeMetricFamily(
+            "bridgeos_cloud_copy_restarts",
+            "Restarts of cloud copies since each was last started on request (crash-loop signal).",
+            value=restarts,
+        )
+
+
+def exposition() -> bytes:
+    """Return every process's metrics and the database's state in the Prometheus text format."""
+    registry = CollectorRegistry()
+    if multiprocess_dir() is not None:
+        multiprocess.MultiProcessCollector(registry)
+    else:
+        from prometheus_client import REGISTRY
+
+        registry = REGISTRY
+    output = generate_latest(registry)
+    database = CollectorRegistry()
+    database.register(DatabaseCollector())
+    return output + generate_latest(database)
+
+
+def _forget_this_process() -> None:
+    """Drop this process's live gauges (connected clients, pending rows) when it exits."""
+    if multiprocess_dir() is not None:
+        multiprocess.mark_process_dead(os.getpid())
+
+
+atexit.register(_forget_this_process)
+
+
+# --------------------------------------------------------------------------- Celery
+
+
+def watch_celery_tasks() -> None:
+    """Count and time every Celery task by name and outcome (connected once, in the Celery app)."""
+    from celery import signals
+
+    started: dict[str, float] = {}
+
+    @signals.task_prerun.connect(weak=False)
+    def _started(task_id: str | None = None, **_: object) -> None:
+        if task_id:
+            started[task_id] = time.perf_counter()
+
+    @signals.task_postrun.connect(weak=False)
+    def _finished(task_id: str | None = None, task: object = None, state: str | None = None, **_: object) -> None:
+        began = started.pop(task_id or "", None)
+        name = getattr(task, "name", None) or "unknown"
+        TASKS.labels(name, (state or "unknown").lower()).inc()
+        if began is not None:
+            TASK_SECONDS.labels(name).observe(time.perf_counter() - began)
+
+    @signals.worker_process_shutdown.connect(weak=False)
+    def _child_exits(**_: object) -> None:
+        # Prefork children leave with os._exit, past atexit.
+        _forget_this_process()
