@@ -57,7 +57,11 @@ def main() -> int:
     data_root = Path(os.environ.get("BRIDGEOS_DATA_DIR", ROOT / ".data")) / "agents"
     data_root.mkdir(parents=True, exist_ok=True)
     agents = []
-    for robot in fleet["robots"]:
+    # Each agent serves Prometheus metrics on its own loopback port; Prometheus finds them in this file.
+    metrics_base = int(os.environ.get("BRIDGEOS_DEMO_METRICS_PORT", "9101"))
+    targets = [f"127.0.0.1:{metrics_base + n}" for n in range(len(fleet["robots"]))]
+    (data_root / "prometheus-targets.json").write_text(json.dumps([{"targets": targets}]))
+    for robot, metrics_address in zip(fleet["robots"], targets, strict=True):
         log = (data_root / f"{robot['id']}.log").open("ab")
         env = {**os.environ, "BRIDGEOS_TOKEN": robot["token"]}  # through the env: not visible in `ps`
         agents.append(
@@ -77,6 +81,8 @@ def main() -> int:
                     "--sim-ram",
                     "2048",
                     "--stop-components-on-exit",
+                    "--metrics",
+                    metrics_address,
                 ],
                 env=env,
                 stdout=log,

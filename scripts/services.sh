@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure the real services bridgeOS runs and tests against are up.
 #
-#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus
 #   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
 #
 # Idempotent: a part already up is left alone. Missing software is installed with apt
@@ -11,7 +11,12 @@
 set -euo pipefail
 
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-ALL_PARTS=(postgres redis docker swarm ros images chromium vpn)
+ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus)
+# Debian's prometheus scrapes `make run`'s cloud and demo agents (docker/prometheus/prometheus.yml);
+# the tests start their own with a temporary config and use promtool from the same package.
+PROMETHEUS_PORT=9090
+PROMETHEUS_DIR=/var/lib/bridgeos/prometheus
+PROMETHEUS_LOG=/var/log/bridgeos-prometheus.log
 # The private networks' tests and benchmark: OpenVPN, nftables, ip netns (iproute2) and ping.
 VPN_TOOLS=(openvpn:openvpn nft:nftables ip:iproute2 ping:iputils-ping)
 # The dashboard's browser tests drive Debian's Chromium through Playwright (never Playwright's download).
@@ -81,6 +86,7 @@ wants images && ! have debootstrap && APT_NEEDED+=(debootstrap)
 numpy_ok() { ros_env /usr/bin/python3 -c 'import numpy' >/dev/null 2>&1; }
 wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok && numpy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
 wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
+wants prometheus && { have prometheus && have promtool || APT_NEEDED+=(prometheus); }
 if wants vpn; then
     for tool in "${VPN_TOOLS[@]}"; do have "${tool%%:*}" || APT_NEEDED+=("${tool#*:}"); done
 fi
@@ -238,6 +244,30 @@ part_vpn() {
         missing vpn "$t" "not installed (the VPN tests skip): sudo apt-get install ${absent[*]}"; return
     fi
     report vpn "$t" "$(openvpn --version 2>/dev/null | head -1 | cut -d' ' -f1-2), $(nft --version 2>/dev/null)"
+}
+
+part_prometheus() {
+    local t; t=$(now)
+    if ! have prometheus || ! have promtool; then
+        missing prometheus "$t" "not installed (the observability tests need it): sudo apt-get install prometheus"; return
+    fi
+    local did
+    if port_open "$PROMETHEUS_PORT"; then
+        did="already running on :$PROMETHEUS_PORT"
+    else
+        mkdir -p "$PROMETHEUS_DIR" 2>/dev/null || { missing prometheus "$t" "cannot create $PROMETHEUS_DIR (run as root)"; return; }
+        # Debian's package would run it under systemd; here it runs like the other parts, detached.
+        setsid nohup prometheus --config.file="$ROOT_DIR/docker/prometheus/prometheus.yml" \
+            --storage.tsdb.path="$PROMETHEUS_DIR" --web.listen-address="127.0.0.1:$PROMETHEUS_PORT" \
+            >>"$PROMETHEUS_LOG" 2>&1 </dev/null &
+        did="started on 127.0.0.1:$PROMETHEUS_PORT (log $PROMETHEUS_LOG)"
+        [[ $INSTALLED == *" prometheus "* ]] && did="installed prometheus, $did"
+    fi
+    if wait_for 30 port_open "$PROMETHEUS_PORT"; then
+        report prometheus "$t" "$did, $(prometheus --version 2>&1 | head -1 | cut -d' ' -f1-3)"
+    else
+        missing prometheus "$t" "$did, but :$PROMETHEUS_PORT never opened; see $PROMETHEUS_LOG"
+    fi
 }
 
 for part in "${ALL_PARTS[@]}"; do

@@ -62,6 +62,7 @@ class Prometheus:
             if token and job == "bridgeos-cloud":
                 entry += f"    authorization:\n      credentials: {token}\n"
             scrape.append(entry)
+        workdir.mkdir(parents=True, exist_ok=True)
         config = workdir / "prometheus.yml"
         config.write_text(
             "global:\n  scrape_interval: 1s\n  evaluation_interval: 1s\n"
