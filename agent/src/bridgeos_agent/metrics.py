@@ -9,10 +9,11 @@ so routing a message costs nothing extra.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
@@ -25,6 +26,7 @@ from bridgeos_agent import __version__
 
 if TYPE_CHECKING:
     from bridgeos_agent.controller import RobotController
+    from bridgeos_agent.outbox import Outbox
 
 PREFIX = "bridgeos_agent"
 
@@ -73,33 +75,38 @@ class AgentMetrics:
 
 
 class AgentCollector(Collector):
-    """Turn one controller's state and counters into metric families at scrape time."""
+    """Turn the agent's counters, outbox, link and Skill routers into metric families at scrape time."""
 
-    def __init__(self, controller: RobotController) -> None:
-        self.controller = controller
+    def __init__(
+        self,
+        counts: AgentMetrics,
+        outbox: Outbox,
+        link: asyncio.Event,
+        routers: Callable[[], Iterable[tuple[str, Any]]],
+    ) -> None:
+        self.counts = counts
+        self.outbox = outbox
+        self.link = link
+        self.routers = routers  # (skill, router) of every Skill that runs one, asked at each scrape
 
     def collect(self) -> Iterator[Metric]:
-        controller = self.controller
-        counts: AgentMetrics = controller.metrics
+        counts = self.counts
         robot = counts.robot
         info = GaugeMetricFamily(f"{PREFIX}_info", "The agent's version.", labels=["robot", "version"])
         info.add_metric([robot, __version__], 1)
         yield info
         yield from self._outbox(robot)
         link = GaugeMetricFamily(f"{PREFIX}_link_up", "1 while connected to the cloud.", labels=["robot"])
-        link.add_metric([robot], 1.0 if controller.connected.is_set() else 0.0)
+        link.add_metric([robot], 1.0 if self.link.is_set() else 0.0)
         yield link
         reconnects = CounterMetricFamily(
             f"{PREFIX}_reconnects", "Connections to the cloud after the first.", labels=["robot"]
         )
         reconnects.add_metric([robot], max(0, counts.connections - 1))
         yield reconnects
-        yield _counter(
-            f"{PREFIX}_decisions", "Offloading decisions by outcome.", ["skill", "outcome"], robot, counts.decisions
-        )
-        yield _counter(
-            f"{PREFIX}_migrations", "Component migrations by outcome.", ["skill", "outcome"], robot, counts.migrations
-        )
+        outcome = ["skill", "outcome"]
+        yield _counter(f"{PREFIX}_decisions", "Offloading decisions by outcome.", outcome, robot, counts.decisions)
+        yield _counter(f"{PREFIX}_migrations", "Component migrations by outcome.", outcome, robot, counts.migrations)
         yield _counter(
             f"{PREFIX}_component_restarts",
             "Restarts of crashed components on the robot.",
@@ -110,9 +117,8 @@ class AgentCollector(Collector):
         yield from self._routers(robot)
 
     def _outbox(self, robot: str) -> Iterator[Metric]:
-        outbox = self.controller.outbox
-        stats = outbox.stats()
-        oldest = outbox.oldest_ts()
+        stats = self.outbox.stats()
+        oldest = self.outbox.oldest_ts()
         for name, doc, value in (
             ("outbox_frames", "Frames kept until the cloud acknowledges them.", stats.frames),
             ("outbox_bytes", "Bytes of the frames the outbox keeps.", stats.bytes),
@@ -137,11 +143,8 @@ class AgentCollector(Collector):
         dropped = CounterMetricFamily(
             f"{PREFIX}_router_dropped", "Messages dropped on the way to a slow peer, per topic.", labels=labels
         )
-        for skill_id, record in list(self.controller.skills.items()):
-            supervisor = record.supervisor
-            router = supervisor.context.get("router") if supervisor is not None else None
-            if router is None:
-                continue
+        for skill_id, router in self.routers():
+            # The router's own counters, kept for the Skill manager: routing pays nothing for them.
             for name, figures in router.statistics().items():
                 if figures.get("kind") == "topic":
                     messages.add_metric([robot, skill_id, name], figures["messages"])
@@ -159,18 +162,31 @@ def _counter(
     return family
 
 
-def registry_for(controller: RobotController) -> CollectorRegistry:
-    """Return a registry with the controller's metrics and this process's CPU and memory."""
+def controller_collector(controller: RobotController) -> AgentCollector:
+    """Return the collector of one Robot Controller's metrics."""
+
+    def routers() -> Iterator[tuple[str, Any]]:
+        for skill_id, record in list(controller.skills.items()):
+            router = record.supervisor.context.get("router") if record.supervisor is not None else None
+            if router is not None:
+                yield skill_id, router
+
+    return AgentCollector(controller.metrics, controller.outbox, controller.connected, routers)
+
+
+def registry_for(collector: Collector) -> CollectorRegistry:
+    """Return a registry with the agent's collector and this process's CPU and memory."""
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(AgentCollector(controller))
+    registry.register(collector)
     ProcessCollector(namespace=PREFIX, registry=registry)
     return registry
 
 
-async def serve(controller: RobotController, address: str) -> web.AppRunner:
+async def serve(controller: RobotController | AgentCollector, address: str) -> web.AppRunner:
     """Serve /metrics on HOST:PORT from the agent's event loop; the caller cleans the runner up."""
     host, port = parse_address(address)
-    registry = registry_for(controller)
+    collector = controller if isinstance(controller, AgentCollector) else controller_collector(controller)
+    registry = registry_for(collector)
 
     async def metrics(request: web.Request) -> web.Response:
         # Built on the loop's thread: the outbox's SQLite connection belongs to it.
