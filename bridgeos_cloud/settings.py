@@ -154,6 +154,8 @@ USE_TZ = True
 STATIC_URL = "static/"
 STATICFILES_DIRS = [BASE_DIR / "static"]
 STATIC_ROOT = DATA_DIR / "staticfiles"
+# Empty unless collectstatic ran; it exists so whitenoise does not warn about it on every start.
+STATIC_ROOT.mkdir(exist_ok=True)
 # Serve straight from the app and project folders, so `make run` needs no collectstatic.
 WHITENOISE_USE_FINDERS = True
 WHITENOISE_AUTOREFRESH = DEBUG

@@ -1,10 +1,22 @@
 #!/usr/bin/env bash
 # `make run`: migrate, make an operator account, start daphne (and a Celery worker if Redis answers).
+# The terminal gets one status line per part and the login; every part's own output (access
+# logs, the worker's banner, the demo fleet's moves) goes to a file under .data/logs named here.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=.venv/bin/python
 HOST="${BRIDGEOS_HOST:-127.0.0.1}"
 PORT="${BRIDGEOS_PORT:-8000}"
+DATA_DIR="${BRIDGEOS_DATA_DIR:-.data}"
+LOGS="$DATA_DIR/logs"
+mkdir -p "$LOGS"
+status() { printf '  %-12s %s\n' "$1:" "$2"; }
+
+# Prometheus values of the processes of an earlier run would linger in the sums: start empty
+# (monitoring/prometheus.py). Every process of this run shares the directory.
+export PROMETHEUS_MULTIPROC_DIR="${PROMETHEUS_MULTIPROC_DIR:-$DATA_DIR/prometheus}"
+rm -rf "$PROMETHEUS_MULTIPROC_DIR"
+mkdir -p "$PROMETHEUS_MULTIPROC_DIR"
 
 # Redis is the embedded default's optional extra: use it when it answers, else stay in-process.
 if [ -z "${REDIS_URL:-}" ] && $PY - <<'PY' 2>/dev/null
@@ -24,42 +36,55 @@ if [ -z "${BRIDGEOS_CLOUD_RUNTIME:-}" ]; then
     export BRIDGEOS_CLOUD_RUNTIME=process
   fi
 fi
-echo "== cloud runtime: $BRIDGEOS_CLOUD_RUNTIME"
-echo "== database: ${DATABASE_URL:-SQLite file in ${BRIDGEOS_DATA_DIR:-.data}}"
-$PY manage.py migrate --no-input -v 0
-login=$($PY manage.py ensure_operator)
+echo "bridgeOS Cloud: starting (logs in $LOGS/)"
+status database "${DATABASE_URL:-SQLite file in $DATA_DIR}"
+$PY manage.py migrate --no-input -v 0 >>"$LOGS/manage.log" 2>&1 || { echo "migrate failed, see $LOGS/manage.log" >&2; tail -5 "$LOGS/manage.log" >&2; exit 1; }
+login=$($PY manage.py ensure_operator 2>>"$LOGS/manage.log")
+status runtime "cloud copies run as $BRIDGEOS_CLOUD_RUNTIME"
 
 pids=()
 fleet=""
 stop() {
   trap - INT TERM EXIT
-  echo; echo "== stopping"
+  echo; echo "bridgeOS Cloud: stopping"
   # The demo robots first (they stop their components), then what the cloud runs for them.
   if [ -n "$fleet" ]; then kill "$fleet" 2>/dev/null || true; wait "$fleet" 2>/dev/null || true; fi
-  $PY manage.py cloud_down || true
+  $PY manage.py cloud_down >>"$LOGS/manage.log" 2>&1 || true
   for pid in "${pids[@]}"; do kill "$pid" 2>/dev/null || true; done
   wait 2>/dev/null || true
 }
 trap stop INT TERM EXIT
 
 if [ -n "${REDIS_URL:-}" ]; then
-  echo "== celery worker on $REDIS_URL"
-  .venv/bin/celery -A bridgeos_cloud worker --beat -l warning -c 2 &
+  .venv/bin/celery -A bridgeos_cloud worker --beat -l warning -c 2 \
+    --schedule "$DATA_DIR/celerybeat-schedule" >>"$LOGS/celery.log" 2>&1 &
   pids+=($!)
+  status celery "worker and beat on $REDIS_URL (log $LOGS/celery.log)"
 else
-  echo "== no Redis: in-memory channel layer, tasks run in-process"
+  status celery "no Redis: in-memory channel layer, tasks run in-process"
 fi
 
-scripts/daphne -b "$HOST" -p "$PORT" &
+scripts/daphne -b "$HOST" -p "$PORT" >>"$LOGS/daphne.log" 2>&1 &
 pids+=($!)
 
 for _ in $(seq 1 100); do
   if $PY -c "import urllib.request; urllib.request.urlopen('http://$HOST:$PORT/api/health', timeout=1)" 2>/dev/null; then break; fi
   sleep 0.1
 done
-.venv/bin/python scripts/demo_fleet.py &
+status daphne "http://$HOST:$PORT/ (access log $LOGS/daphne.log)"
+.venv/bin/python scripts/demo_fleet.py >>"$LOGS/demo_fleet.log" 2>&1 &
 fleet=$!
 pids+=($fleet)
+if [ "${BRIDGEOS_DEMO_ROBOTS:-3}" -gt 0 ]; then
+  status demo "${BRIDGEOS_DEMO_ROBOTS:-3} simulated robot(s) (log $LOGS/demo_fleet.log, agents in $DATA_DIR/agents/)"
+else
+  status demo "off (BRIDGEOS_DEMO_ROBOTS=0)"
+fi
+if (exec 3<>/dev/tcp/127.0.0.1/9090) 2>/dev/null; then
+  status metrics "http://$HOST:$PORT/metrics, Prometheus at http://127.0.0.1:9090/ (scripts/services.sh prometheus)"
+else
+  status metrics "http://$HOST:$PORT/metrics (no Prometheus on :9090: scripts/services.sh prometheus)"
+fi
 
 cat <<MSG
 
@@ -67,7 +92,6 @@ cat <<MSG
     Dashboard: http://$HOST:$PORT/
     Admin:     http://$HOST:$PORT/admin/
     API docs:  http://$HOST:$PORT/api/docs/
-    Demo fleet: ${BRIDGEOS_DEMO_ROBOTS:-3} simulated robots (BRIDGEOS_DEMO_ROBOTS=0 for none)
     $login
   Press Ctrl-C to stop.
 
