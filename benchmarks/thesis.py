@@ -266,4 +266,9 @@ BENCHMARKS: dict[str, list[Figure]] = {
         _f("first_render_s", "fleet page first render", "s", goal=1.0, goal_source="issue 9"),
         _f("update_lag_s", "metric to row lag p95", "s", goal=1.0, goal_source="issue 9"),
     ],
+    "metrics_overhead": [
+        _f("ingest_overhead_pct", "ingest CPU per point, metrics on vs off", "%", goal=3, goal_source="issue 21"),
+        _f("router_overhead_pct", "router msgs/s lost to /metrics scrapes", "%", goal=3, goal_source="issue 21"),
+        _f("scrape_ms", "cloud /metrics scrape, 1,000 robots", "ms", goal=50, goal_source="issue 21"),
+    ],
 }
