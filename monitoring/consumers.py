@@ -123,10 +123,18 @@ class ClientConsumer(ProtocolConsumer):
                 )
 
     async def live_event(self, message: dict[str, Any]) -> None:
-        """Pass on a state change of a robot this user may see."""
-        # A robot connecting may be one added since this client connected: always recheck then.
-        recheck = message["frame"].get("event") == Event.CONNECTION_ESTABLISHED
-        if await self.sees(message["robot"], recheck=recheck):
+        """Pass on a state change of a robot this user may see (of no robot: staff only)."""
+        robot_id = message["robot"]
+        if message.get("owner") is not None:
+            # The robot is gone from the database, so its owner is named in the message.
+            allowed = self.visible is None or message["owner"] == self.user.pk
+        elif robot_id is None:
+            allowed = self.visible is None
+        else:
+            # A robot connecting may be one added since this client connected: always recheck then.
+            recheck = message["frame"].get("event") == Event.CONNECTION_ESTABLISHED
+            allowed = await self.sees(robot_id, recheck=recheck)
+        if allowed:
             await self.send_text(json.dumps(message["frame"], separators=(",", ":")))
 
     # ---------------------------------------------------------------- commands

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import time
 import weakref
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -19,10 +20,15 @@ from asgiref.sync import async_to_sync
 from channels.layers import BaseChannelLayer, get_channel_layer
 from django.db import transaction
 
+from bridgeos_agent import protocol
+from bridgeos_agent.protocol import Event as ProtocolEvent
+
 from . import prometheus
 
 if TYPE_CHECKING:
     from bridgeos_agent.protocol import MetricPoint
+
+    from .models import Event
 
 logger = logging.getLogger(__name__)
 
@@ -122,11 +128,14 @@ def get_live_feed() -> LiveFeed:
     return feed
 
 
-async def publish(robot_id: str, frame: dict[str, Any]) -> None:
-    """Send a state event of a robot to the live group."""
+async def publish(robot_id: str | None, frame: dict[str, Any], *, owner_id: int | None = None) -> None:
+    """Send a state event of a robot to the live group (no robot: for staff only; an owner: for them too)."""
     layer = get_channel_layer()
     if layer is not None:
-        await layer.group_send(LIVE_GROUP, {"type": "live.event", "robot": robot_id, "frame": frame})
+        message = {"type": "live.event", "robot": robot_id, "frame": frame}
+        if owner_id is not None:
+            message["owner"] = owner_id
+        await layer.group_send(LIVE_GROUP, message)
 
 
 def publish_on_commit(robot_id: str, frame: dict[str, Any], *, using: str | None = None) -> None:
@@ -138,3 +147,30 @@ def publish_on_commit(robot_id: str, frame: dict[str, Any], *, using: str | None
     # robust: the change is committed already, so a broadcast failure must not fail the caller. (A named
     # function, not a partial: Django logs a robust callback's failure by its __qualname__.)
     transaction.on_commit(send, using=using, robust=True)
+
+
+def publish_log_event_on_commit(event: Event, *, owner_id: int | None = None) -> None:
+    """Push an event-log entry to the dashboards that may see it, once its transaction commits.
+
+    An entry about a robot that is gone (``robot_deleted``) names it in its data; ``owner_id``
+    lets its owner hear of it although the robot no longer says whose it was.
+    """
+    robot_id = event.robot_id or (event.data or {}).get("robot")
+    data = {
+        "robot": robot_id,
+        "id": event.id,
+        "ts": event.ts.isoformat().replace("+00:00", "Z"),
+        "level": event.level,
+        "source": event.source,
+        "kind": event.kind,
+        "skill": event.skill,
+        "component": event.component,
+        "message": event.message[:4000],
+        "data": event.data or {},
+    }
+    frame = json.loads(protocol.encode(protocol.make(ProtocolEvent.LOG_EVENT, data, now=time.time())))
+
+    def send() -> None:
+        async_to_sync(publish)(robot_id, frame, owner_id=owner_id)
+
+    transaction.on_commit(send, using=event._state.db, robust=True)

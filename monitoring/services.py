@@ -10,6 +10,7 @@ from django.db import connection, transaction
 from django.utils import timezone
 
 from .choices import Level, Source
+from .live import publish_log_event_on_commit
 from .models import Event, Metric
 
 
@@ -24,9 +25,10 @@ def record_event(
     component: str = "",
     data: dict[str, Any] | None = None,
     ts: datetime | None = None,
+    owner_id: int | None = None,
 ) -> Event:
-    """Append one entry to the event log (at ``ts``, by default now)."""
-    return Event.objects.create(
+    """Append one entry to the event log (at ``ts``, by default now) and push it to dashboards on commit."""
+    event = Event.objects.create(
         ts=ts or timezone.now(),
         robot_id=robot_id,
         level=level,
@@ -37,6 +39,8 @@ def record_event(
         message=message,
         data=data or {},
     )
+    publish_log_event_on_commit(event, owner_id=owner_id)
+    return event
 
 
 def prune_metrics(older_than: timedelta | None = None, *, now: datetime | None = None, batch: int = 50_000) -> int:

@@ -295,8 +295,10 @@ def delete_robot(robot: Robot) -> None:
     with transaction.atomic():
         channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot_id)
         _revoke_on_commit(channel)
+        owner_id = robot.owner_id
         robot.delete()
-        record_event(f"Robot {robot_id} deleted", kind="robot_deleted", data={"robot": robot_id})
+        # Pushed live to its owner and staff: open dashboards drop the robot at once.
+        record_event(f"Robot {robot_id} deleted", kind="robot_deleted", data={"robot": robot_id}, owner_id=owner_id)
 
 
 def fleet_state(robots: QuerySet[Robot]) -> list[dict[str, Any]]:

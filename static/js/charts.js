@@ -14,6 +14,24 @@ const compact = new Intl.NumberFormat(undefined, { notation: "compact", maximumF
 const axisNumber = (v) => (Math.abs(v) >= 10000 ? compact.format(v) : fmtNumber(v));
 const PALETTE = ["#2563eb", "#db2777", "#059669", "#d97706", "#7c3aed", "#0891b2", "#dc2626", "#4d7c0f"];
 
+const AXIS_FONT = "11px system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif";
+let measurer = null;
+
+/** Width in CSS pixels of a text in the axis font. */
+function textWidth(text) {
+  measurer ??= document.createElement("canvas").getContext("2d");
+  measurer.font = AXIS_FONT;
+  return measurer.measureText(text).width;
+}
+
+// The widest time label (with seconds, in this locale) plus a gap: ticks never come closer, so
+// labels cannot run into each other at any card width (uPlot's default spacing is 50 px).
+let timeLabelSpace = null;
+export function timeAxisSpace() {
+  timeLabelSpace ??= Math.ceil(textWidth(clockSeconds.format(new Date(2000, 11, 31, 22, 58, 58)))) + 18;
+  return timeLabelSpace;
+}
+
 function cssVar(name, fallback) {
   return getComputedStyle(document.documentElement).getPropertyValue(name).trim() || fallback;
 }
@@ -121,7 +139,12 @@ export class TimeChart {
   }
 
   options(labels) {
-    const axis = { stroke: cssVar("--muted", "#667"), grid: { stroke: cssVar("--line", "#ddd"), width: 1 }, ticks: { show: false } };
+    const axis = {
+      stroke: cssVar("--muted", "#667"),
+      font: AXIS_FONT,
+      grid: { stroke: cssVar("--line", "#ddd"), width: 1 },
+      ticks: { show: false },
+    };
     const unit = this.unit;
     return {
       width: Math.max(200, this.plotNode.clientWidth),
@@ -140,6 +163,7 @@ export class TimeChart {
       axes: [
         {
           ...axis,
+          space: timeAxisSpace,
           // Ticks under a minute apart need their seconds, or two ticks read the same.
           values: (u, ticks, axisIdx, space, incr) =>
             ticks.map((t) => (incr < 60 ? clockSeconds : clock).format(new Date(t * 1000))),

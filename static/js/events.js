@@ -1,4 +1,4 @@
-// Events and logs: the filtered event log, older pages on demand, and a live tail of new events.
+// Events and logs: the filtered event log, older pages on demand, and new events pushed live over /ws/client/.
 
 import { get, seg } from "./api.js";
 import { startLive } from "./live.js";
@@ -6,7 +6,7 @@ import { coalesce, el, errorText, fmtDateTime, fmtTime, isoSeconds } from "./uti
 
 const PAGE = 100;
 const MAX_ROWS = 1000;
-const TAIL_MS = 3000;
+const LEVELS = ["debug", "info", "warning", "error"];
 
 const form = document.getElementById("event-filters");
 const tbody = document.getElementById("event-rows");
@@ -52,16 +52,18 @@ function row(event, fresh) {
   const ts = isoSeconds(event.ts);
   const robotCell = event.robot ? el("a", { href: `/robots/${seg(event.robot)}/` }, event.robot) : el("span", { class: "muted" }, "—");
   const data = event.data && Object.keys(event.data).length ? JSON.stringify(event.data) : "";
+  // The data in a disclosure rather than a hover title, so a keyboard reaches it too.
+  const details = data ? el("details", { class: "event-data" }, el("summary", {}, "data"), el("code", {}, data)) : null;
   return el(
     "tr",
-    { class: fresh ? "new" : "", dataset: { event: String(event.id) } },
+    { class: fresh ? "new" : "", tabindex: "0", dataset: { event: String(event.id) } },
     el("td", { class: "c-time", title: fmtDateTime(ts) }, el("time", { datetime: event.ts }, fmtTime(ts))),
     el("td", { class: "c-level" }, el("span", { class: `badge level-${event.level}` }, event.level)),
     el("td", {}, robotCell),
     el("td", {}, event.skill || ""),
     el("td", {}, event.component || ""),
     el("td", {}, el("code", {}, event.kind || "—")),
-    el("td", { class: "c-message", title: data || null }, event.message),
+    el("td", { class: "c-message" }, event.message, details),
   );
 }
 
@@ -115,21 +117,9 @@ async function older() {
   updateFoot(Boolean(answer.data.next));
 }
 
-let tailing = false;
-
-/** Fetch events newer than the newest shown and put them on top. */
-async function tail() {
-  if (!tailBox.checked || tailing || filters().until || document.hidden) return;
-  tailing = true;
-  const mine = generation;
-  const answer = await get(query(newest ? { since: newest, limit: PAGE } : { limit: PAGE }));
-  tailing = false;
-  if (mine !== generation || !answer.ok) return;
-  const events = answer.data.results.filter((event) => !seen.has(event.id));
-  if (!events.length) return;
+/** Put fresh events on top, dropping the oldest rows past MAX_ROWS. */
+function prepend(events) {
   for (const event of events) seen.add(event.id);
-  newest = answer.data.results[0].ts;
-  oldest ??= answer.data.results.at(-1).ts;
   total += events.length;
   tbody.prepend(...events.map((event) => row(event, true)));
   while (tbody.rows.length > MAX_ROWS) {
@@ -140,6 +130,42 @@ async function tail() {
   }
   oldest = tbody.rows[tbody.rows.length - 1]?.querySelector("time")?.getAttribute("datetime") ?? oldest;
   updateFoot();
+}
+
+/** Tell whether a pushed event passes the filters, as the API would filter it. */
+function matches(event) {
+  const wanted = filters();
+  for (const name of ["robot", "skill", "component"]) {
+    if (wanted[name] && event[name] !== wanted[name]) return false;
+  }
+  if (wanted.level && LEVELS.indexOf(event.level) < LEVELS.indexOf(wanted.level)) return false;
+  if (wanted.since && new Date(event.ts) < new Date(wanted.since)) return false;
+  return true;
+}
+
+/** Show an event the cloud pushed as it was written (log_event frame). */
+function onLogEvent(frame) {
+  const event = frame.data;
+  if (!tailBox.checked || filters().until || seen.has(event.id) || !matches(event)) return;
+  if (!newest || event.ts > newest) newest = event.ts;
+  prepend([event]);
+}
+
+let tailing = false;
+
+/** Fetch events newer than the newest shown and put them on top (after a reconnect: frames may be lost). */
+async function tail() {
+  if (!tailBox.checked || tailing || filters().until || document.hidden) return;
+  tailing = true;
+  const mine = generation;
+  const answer = await get(query(newest ? { since: newest, limit: PAGE } : { limit: PAGE }));
+  tailing = false;
+  if (mine !== generation || !answer.ok) return;
+  const events = answer.data.results.filter((event) => !seen.has(event.id));
+  if (!events.length) return;
+  newest = answer.data.results[0].ts;
+  oldest ??= answer.data.results.at(-1).ts;
+  prepend(events);
 }
 
 /** Keep the filters in the address, so a filtered view can be bookmarked or shared. */
@@ -174,13 +200,12 @@ tailBox.addEventListener("change", () => {
 });
 olderButton.addEventListener("click", older);
 
-// A state change of any robot (connect, status, location) usually comes with new events.
+// Every new entry of the event log arrives as a log_event frame; nothing is polled. After a
+// reconnect the page asks the API once for what it may have missed.
 const tailSoon = coalesce(tail, 400);
 const live = startLive();
-live.on("*", tailSoon);
+live.on("log_event", onLogEvent);
 live.onResync(tailSoon);
-setInterval(tail, TAIL_MS);
-document.addEventListener("visibilitychange", tailSoon);
 
 restore();
 load();

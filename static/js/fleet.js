@@ -175,21 +175,30 @@ function wire(live) {
     robot.offloading = frame.data.mode;
     touch(robot.id);
   });
+  // A deleted robot leaves the table at once (the cloud pushes its event-log entry).
+  live.on("log_event", (frame) => {
+    if (frame.data.kind === "robot_deleted") forget(frame.data.robot);
+  });
   // Frames may have been missed while reconnecting: reload the fleet's state.
   live.onResync(async () => {
     const answer = await get("/api/robot");
     if (!answer.ok) return;
     const current = new Set(answer.data.map((raw) => raw.id));
     for (const id of robots.keys()) {
-      if (!current.has(id)) {
-        robots.delete(id);
-        rows.delete(id);
-        orderDirty = true;
-      }
+      if (!current.has(id)) forget(id);
     }
     for (const raw of answer.data) upsert(raw);
     schedule();
   });
+}
+
+/** Drop a robot that no longer exists from the table. */
+function forget(id) {
+  if (!robots.delete(id)) return;
+  rows.delete(id);
+  dirty.delete(id);
+  orderDirty = true;
+  schedule();
 }
 
 // --------------------------------------------------------------------------- order: filter and sort
@@ -339,7 +348,10 @@ function renderWindow(now) {
     children.push(entry.tr);
   }
   if (last < order.length - 1) children.push(spacer((order.length - 1 - last) * height));
+  // Moving a row out and back in blurs it: a keyboard user must keep their place through re-sorts.
+  const focused = tbody.contains(document.activeElement) ? document.activeElement : null;
   tbody.replaceChildren(...children);
+  if (focused?.isConnected && document.activeElement !== focused) focused.focus({ preventScroll: true });
   rendered = { first, last };
   windowDirty = false;
   // Spacers sized with a guessed row height misplace the window: measure, and redo it once.
@@ -438,11 +450,34 @@ function controls() {
   };
   window.addEventListener("scroll", rewindow, { passive: true });
   window.addEventListener("resize", rewindow, { passive: true });
+  tbody.addEventListener("keydown", moveFocus);
   // "3 min ago" ages without any frame arriving.
   setInterval(() => {
     for (const id of order.slice(rendered.first, rendered.last + 1)) dirty.add(id);
     schedule();
   }, 15000);
+}
+
+/** Arrow keys move between robots' rows, rendering the next ones when they are off screen. */
+function moveFocus(event) {
+  if (event.key !== "ArrowDown" && event.key !== "ArrowUp") return;
+  const row = event.target.closest("tr[data-robot]");
+  if (!row) return;
+  const step = event.key === "ArrowDown" ? 1 : -1;
+  const next = order[order.indexOf(row.dataset.robot) + step];
+  if (next === undefined) return;
+  event.preventDefault();
+  const focusNext = (tries) => {
+    const link = tbody.querySelector(`tr[data-robot="${CSS.escape(next)}"] a.robot-link`);
+    if (link) {
+      link.focus({ preventScroll: true });
+      link.closest("tr").scrollIntoView({ block: "nearest" });
+    } else if (tries > 0) {
+      window.scrollBy(0, step * measureRowHeight());
+      requestAnimationFrame(() => requestAnimationFrame(() => focusNext(tries - 1)));
+    }
+  };
+  focusNext(4);
 }
 
 // --------------------------------------------------------------------------- start

@@ -252,6 +252,7 @@ async function removeSkill(button, sid) {
 /** Reload the robot's state (after a reconnect, or when its skills changed under us). */
 const reload = debounce(async () => {
   const answer = await get(`${base}/info`);
+  if (answer.status === 404) return gone();
   if (!answer.ok) return;
   robot = { ...answer.data, skills: withNames(answer.data.skills) };
   lastSeen = isoSeconds(robot.last_seen);
@@ -604,6 +605,23 @@ live.onResync(() => {
   reload();
   loadDecisions();
 });
+live.on("log_event", (frame) => frame.data.kind === "robot_deleted" && mine(frame) && gone());
+
+/** The robot was deleted: say so instead of its page, which has nothing left to show. */
+function gone() {
+  const main = document.getElementById("content");
+  if (main.dataset.gone) return;
+  main.dataset.gone = "true";
+  main.replaceChildren(
+    el(
+      "section",
+      { class: "card gone", role: "status" },
+      el("h1", {}, `Robot ${robotId} was deleted`),
+      el("p", {}, "Its skills, components, metrics and events went with it. ", el("a", { href: "/" }, "Back to the fleet")),
+    ),
+  );
+  document.title = `${robotId} (deleted) · bridgeOS Cloud`;
+}
 
 // --------------------------------------------------------------------------- start
 

@@ -117,6 +117,18 @@ SAMPLES: dict[Event, dict[str, Any]] = {
         "body": {"location": "cloud"},
     },
     Event.COMPONENTS_API_REPLY: {"skill": "people-detector", "status": 200, "body": {"location": "cloud"}},
+    Event.LOG_EVENT: {
+        "robot": "r1",
+        "id": 7,
+        "ts": "2026-11-27T13:00:00.000001Z",
+        "level": "error",
+        "source": "robot",
+        "kind": "error_message",
+        "skill": "",
+        "component": "",
+        "message": "Robot reported: no room",
+        "data": {"code": "no_room"},
+    },
     Event.OFFLOADING_DECISION: {
         "skill": "people-detector",
         "component": "detector",
@@ -157,8 +169,8 @@ def rejection(text: str | bytes, **kwargs: Any) -> ProtocolError:
 def test_samples_cover_every_event_and_table() -> None:
     assert set(SAMPLES) == set(Event) == set(PAYLOADS) == set(DIRECTIONS)
     # Table 3.3's 31 events, ack, the three of Skill volume sync, the manager's decision log and the
-    # cloud copies' Components API relay (request and reply).
-    assert len(Event) == 38
+    # cloud copies' Components API relay (request and reply), and the event log's live entries.
+    assert len(Event) == 39
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
     # Requests are named *_get, but for the relayed Components API call, which may POST.
     requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {Event.COMPONENTS_API}

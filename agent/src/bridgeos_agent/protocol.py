@@ -159,6 +159,8 @@ class Event(enum.StrEnum):
     # Not in the thesis: a cloud copy's Components API call, relayed to its Skill's manager.
     COMPONENTS_API = "components_api"
     COMPONENTS_API_REPLY = "components_api_reply"
+    # Not in the thesis: an entry of the cloud's event log, pushed to dashboards as it is written (issue 21).
+    LOG_EVENT = "log_event"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -629,6 +631,20 @@ class OffloadingDecision(RobotScoped):
     duration_s: Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
 
 
+class LogEvent(RobotScoped):
+    """Carry one entry of the cloud's event log to dashboards, shaped like the REST API's events."""
+
+    id: Annotated[int, Strict(), Field(ge=1)]
+    ts: Annotated[str, StringConstraints(min_length=1, max_length=64)]  # ISO 8601, as /api/events
+    level: Literal["debug", "info", "warning", "error"]
+    source: ShortText
+    kind: Annotated[str, StringConstraints(max_length=64)]
+    skill: LabelValue
+    component: LabelValue
+    message: Annotated[str, StringConstraints(max_length=4000)]
+    data: dict[str, Any]
+
+
 class Ack(Payload):
     """Acknowledge the frame named by the envelope's ``reply_to``."""
 
@@ -672,6 +688,7 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.OFFLOADING_DECISION: OffloadingDecision,
     Event.COMPONENTS_API: ComponentsApi,
     Event.COMPONENTS_API_REPLY: ComponentsApiReply,
+    Event.LOG_EVENT: LogEvent,
 }
 
 
@@ -724,6 +741,7 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.OFFLOADING_DECISION: frozenset({_R2C, _C2K}),
     Event.COMPONENTS_API: frozenset({_C2R}),
     Event.COMPONENTS_API_REPLY: frozenset({_R2C}),
+    Event.LOG_EVENT: frozenset({_C2K}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,
