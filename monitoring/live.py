@@ -132,7 +132,7 @@ async def publish(robot_id: str | None, frame: dict[str, Any], *, owner_id: int 
     """Send a state event of a robot to the live group (no robot: for staff only; an owner: for them too)."""
     layer = get_channel_layer()
     if layer is not None:
-        message = {"type": "live.event", "robot": robot_id, "frame": frame}
+        message: dict[str, Any] = {"type": "live.event", "robot": robot_id, "frame": frame}
         if owner_id is not None:
             message["owner"] = owner_id
         await layer.group_send(LIVE_GROUP, message)

@@ -35,6 +35,18 @@ def ros_ready() -> str | None:
     return None
 
 
+def free_ports(count: int) -> list[int]:
+    """Return ports nobody listens on right now, all different."""
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for sock in sockets:
+            sock.bind(("127.0.0.1", 0))
+        return [sock.getsockname()[1] for sock in sockets]
+    finally:
+        for sock in sockets:
+            sock.close()
+
+
 def main() -> int:
     count = int(os.environ.get("BRIDGEOS_DEMO_ROBOTS", "3"))
     host, port = os.environ.get("BRIDGEOS_HOST", "127.0.0.1"), os.environ.get("BRIDGEOS_PORT", "8000")
@@ -57,9 +69,15 @@ def main() -> int:
     data_root = Path(os.environ.get("BRIDGEOS_DATA_DIR", ROOT / ".data")) / "agents"
     data_root.mkdir(parents=True, exist_ok=True)
     agents = []
-    # Each agent serves Prometheus metrics on its own loopback port; Prometheus finds them in this file.
-    metrics_base = int(os.environ.get("BRIDGEOS_DEMO_METRICS_PORT", "9101"))
-    targets = [f"127.0.0.1:{metrics_base + n}" for n in range(len(fleet["robots"]))]
+    # Each agent serves Prometheus metrics on its own loopback port (from BRIDGEOS_DEMO_METRICS_PORT
+    # on, else free ones); Prometheus finds them in this file.
+    metrics_base = os.environ.get("BRIDGEOS_DEMO_METRICS_PORT")
+    ports = (
+        [int(metrics_base) + n for n in range(len(fleet["robots"]))]
+        if metrics_base
+        else free_ports(len(fleet["robots"]))
+    )
+    targets = [f"127.0.0.1:{port}" for port in ports]
     (data_root / "prometheus-targets.json").write_text(json.dumps([{"targets": targets}]))
     for robot, metrics_address in zip(fleet["robots"], targets, strict=True):
         log = (data_root / f"{robot['id']}.log").open("ab")
