@@ -49,7 +49,12 @@ def test_make_run_prints_status_lines_and_keeps_the_parts_output_in_files(tmp_pa
             lines.append(line)
             if "Press Ctrl-C" in line:
                 break
-        time.sleep(5)  # the demo robot connects and starts its Skill meanwhile: none of it may reach the terminal
+        # The demo robot connects and starts its Skill meanwhile: none of it may reach the terminal.
+        access_log = data / "logs" / "daphne.log"
+        deadline = time.monotonic() + 90
+        while "/skill/" not in access_log.read_text() and time.monotonic() < deadline:
+            assert process.poll() is None, "make run ended early:\n" + "".join(lines)
+            time.sleep(0.5)
     finally:
         os.killpg(process.pid, signal.SIGINT)
         rest, _ = process.communicate(timeout=60)
@@ -63,4 +68,4 @@ def test_make_run_prints_status_lines_and_keeps_the_parts_output_in_files(tmp_pa
     for name in ("daphne.log", "celery.log", "demo_fleet.log"):
         assert str(logs / name) in output
         assert (logs / name).stat().st_size > 0, name
-    assert "/ws/robot/" in (logs / "daphne.log").read_text()
+    assert "/skill/" in (logs / "daphne.log").read_text()  # the demo fleet started its robot's Skill
