@@ -89,7 +89,11 @@ LIVE_DROPS = Counter(
 
 TASKS = Counter("celery_tasks", "Celery tasks finished, by task and outcome.", ["task", "outcome"], namespace=NAMESPACE)
 TASK_SECONDS = Histogram(
-    "celery_task_seconds", "Celery task run time.", ["task"], namespace=NAMESPACE, buckets=TASK_BUCKETS
+    "celery_task_seconds",
+    "Celery task run time by task and outcome.",
+    ["task", "outcome"],
+    namespace=NAMESPACE,
+    buckets=TASK_BUCKETS,
 )
 RECONCILER_ACTIONS_TOTAL = Counter(
     "reconciler_actions", "What the reconciler did to cloud copies, by action.", ["action"], namespace=NAMESPACE
@@ -243,9 +247,10 @@ def watch_celery_tasks() -> None:
     def _finished(task_id: str | None = None, task: object = None, state: str | None = None, **_: object) -> None:
         began = started.pop(task_id or "", None)
         name = getattr(task, "name", None) or "unknown"
-        TASKS.labels(name, (state or "unknown").lower()).inc()
+        outcome = (state or "unknown").lower()
+        TASKS.labels(name, outcome).inc()
         if began is not None:
-            TASK_SECONDS.labels(name).observe(time.perf_counter() - began)
+            TASK_SECONDS.labels(name, outcome).observe(time.perf_counter() - began)
 
     @signals.worker_process_shutdown.connect(weak=False)
     def _child_exits(**_: object) -> None:
