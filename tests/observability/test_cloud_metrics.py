@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import subprocess
+from types import SimpleNamespace
 
 import pytest
 from asgiref.sync import sync_to_async
@@ -115,3 +117,46 @@ async def test_commands_are_counted_by_outcome(daphne_server):
     assert value(after, "bridgeos_command_seconds_sum", outcome="timeout") >= 5
     await robot.close()
     await client.close()
+
+
+@pytest.fixture
+def second_daphne(daphne_server, tmp_path):
+    """Start a second daphne on the same database and the same Prometheus directory; yield its port."""
+    from django.conf import settings as django_settings
+
+    from tests.conftest import BIN, ROOT, free_port, service_env, wait_for_port
+
+    port = free_port()
+    env = service_env(django_settings.DATABASES["default"]["NAME"])
+    assert env["PROMETHEUS_MULTIPROC_DIR"]  # shared by every process of this cloud
+    with (tmp_path / "second.log").open("wb") as out:
+        second = subprocess.Popen(
+            [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(port)],
+            cwd=ROOT,
+            env={**env, "VIRTUAL_ENV": str(BIN.parent)},
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+    try:
+        wait_for_port(port, second)
+        yield port
+    finally:
+        second.terminate()
+        second.wait(timeout=15)
+
+
+@pytest.mark.asyncio
+async def test_any_daphne_serves_the_sum_of_all_processes(daphne_server, second_daphne):
+    owner, _ = await make_owner("owner-two")
+    token = await make_robot("prom-two", owner)
+    before = await sync_to_async(scrape)(daphne_server)
+    # The robot talks to the second daphne; the first one's /metrics counts its points.
+    link = await robot_link(SimpleNamespace(ws_url=f"ws://127.0.0.1:{second_daphne}"), "prom-two", token)
+    envelope = await link.send(Event.METRICS, {"metrics": [{"name": "cpu", "value": 1.0, "ts": 1_700_000_000}]})
+    await link.wait_acked(envelope)
+    await link.close()
+    after = await sync_to_async(scrape)(daphne_server)
+    grown = value(after, "bridgeos_metric_points_received_total") - value(
+        before, "bridgeos_metric_points_received_total"
+    )
+    assert grown == 1
