@@ -12,7 +12,8 @@ import aiohttp
 from aiohttp import web
 
 from bridgeos_agent.rosnames import canonical_name
-from bridgeos_agent.rosnode import Publication, RosNode
+from bridgeos_agent.rosnode import RosNode
+from bridgeos_agent.rostopics import Publication
 from bridgeos_agent.router.settings import RouterSettings, Where
 from bridgeos_agent.skillconfig import HttpRoute, ServiceRoute, SkillConfig, TopicRoute
 

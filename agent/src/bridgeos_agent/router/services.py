@@ -6,7 +6,7 @@ import asyncio
 import functools
 
 from bridgeos_agent.rosnames import instance_name
-from bridgeos_agent.rosnode import read_header
+from bridgeos_agent.rostopics import read_header
 from bridgeos_agent.router.routes import RoutedService, RouterBase
 from bridgeos_agent.router.settings import Where
 from bridgeos_agent.skillconfig import ServiceRoute

@@ -6,7 +6,7 @@ import functools
 import time
 
 from bridgeos_agent.rosnames import canonical_name, instance_name
-from bridgeos_agent.rosnode import Inbound, Outbound, Publication, Subscription, iter_frames
+from bridgeos_agent.rostopics import Inbound, Outbound, Publication, Subscription, iter_frames
 from bridgeos_agent.router.routes import Delivery, RoutedTopic, RouterBase
 from bridgeos_agent.router.settings import locations
 from bridgeos_agent.skillconfig import TopicRoute
