@@ -7,9 +7,9 @@ import contextlib
 import logging
 import re
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 from bridgeos_agent.rosnames import canonical_name, instance_name
 from bridgeos_agent.rosnode import MasterError, RosNode
@@ -18,7 +18,7 @@ from bridgeos_agent.router.services import ServiceRouting
 from bridgeos_agent.router.settings import LOCATIONS, RouterSettings, Where, locations, router_settings_from_env
 from bridgeos_agent.router.statistics import STATISTICS_TOPIC, RouterStatistics
 from bridgeos_agent.router.topics import TopicRouting
-from bridgeos_agent.skillconfig import SkillConfig
+from bridgeos_agent.skillconfig import ServiceRoute, SkillConfig, TopicRoute
 from bridgeos_agent.tcpros import TOPIC_STATISTICS_DEFINITION, TOPIC_STATISTICS_MD5, TOPIC_STATISTICS_TYPE
 
 if TYPE_CHECKING:
@@ -27,6 +27,8 @@ if TYPE_CHECKING:
 __all__ = ["SkillRouter", "skill_router_plugin"]
 
 logger = logging.getLogger(__name__)
+
+R = TypeVar("R", TopicRoute, ServiceRoute)
 
 
 class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
@@ -246,25 +248,27 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
             if self.ros_routes:
                 await self.enable_ros(self.ros_master)
             return
-        before = {canonical_name(t.name): t for t in old.topics}
-        after = {canonical_name(t.name): t for t in config.router.topics}
-        for name, route in before.items():
-            if after.get(name) != route:
-                self._remove_topic(name)
-        for name, route in after.items():
-            if before.get(name) != route:
-                self._add_topic(route)
-        before_s = {canonical_name(s.name): s for s in old.services}
-        after_s = {canonical_name(s.name): s for s in config.router.services}
-        for name, service in before_s.items():
-            if after_s.get(name) != service:
-                self._remove_service(name)
-        for name, service in after_s.items():
-            if before_s.get(name) != service:
-                self._add_service(service)
+        gone, new = _changes(old.topics, config.router.topics)
+        for name in gone:
+            self._remove_topic(name)
+        for route in new:
+            self._add_topic(route)
+        gone, new_services = _changes(old.services, config.router.services)
+        for name in gone:
+            self._remove_service(name)
+        for service in new_services:
+            self._add_service(service)
         errors = await self.node.settle()
         if errors:
             logger.warning("skill %s: %d ROS registration(s) failed, e.g. %s", self.skill, len(errors), errors[0])
+
+
+def _changes(before: Iterable[R], after: Iterable[R]) -> tuple[list[str], list[R]]:
+    """Return the canonical names of the routes gone or changed, and the routes new or changed."""
+    was = {canonical_name(route.name): route for route in before}
+    now = {canonical_name(route.name): route for route in after}
+    gone = [name for name, route in was.items() if now.get(name) != route]
+    return gone, [route for name, route in now.items() if was.get(name) != route]
 
 
 async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
