@@ -147,12 +147,7 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
         if self.node is not None:
             node, self.node = self.node, None
             await node.close()
-        if self._runner is not None:
-            await self._runner.cleanup()
-            self._runner = None
-        if self._session is not None:
-            await self._session.close()
-            self._session = None
+        await self._stop_http()
 
     def _spawn(self, coroutine: Any) -> None:
         task = asyncio.get_running_loop().create_task(coroutine)

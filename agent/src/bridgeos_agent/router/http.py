@@ -62,6 +62,15 @@ class HttpRouting(RouterBase):
             self.state_dir.mkdir(parents=True, exist_ok=True)
             (self.state_dir / f"{self.skill}.port").write_text(str(port))
 
+    async def _stop_http(self) -> None:
+        """Close the HTTP server and the client session of the proxy."""
+        runner, self._runner = self._runner, None
+        if runner is not None:
+            await runner.cleanup()
+        session, self._session = self._session, None
+        if session is not None:
+            await session.close()
+
     def _saved_port(self) -> int:
         if self.state_dir is None:
             return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Literal
 
 __all__ = ["LOCATIONS", "RouterSettings", "Where", "locations", "router_settings_from_env"]
@@ -13,35 +14,26 @@ Where = Literal["robot", "cloud"]
 LOCATIONS: tuple[Where, ...] = ("robot", "cloud")
 
 
+@dataclass(kw_only=True)
 class RouterSettings:
     """Where the router listens and what it advertises (from the environment by default)."""
 
-    def __init__(
-        self,
-        *,
-        http_host: str = "0.0.0.0",
-        http_advertise: str = "127.0.0.1",
-        ros_host: str = "127.0.0.1",
-        ready_timeout: float = 30.0,
-        statistics_period: float = 1.0,
-        drain_timeout: float = 10.0,
-    ) -> None:
-        for name, value in (("http_host", http_host), ("http_advertise", http_advertise), ("ros_host", ros_host)):
+    http_host: str = "0.0.0.0"
+    http_advertise: str = "127.0.0.1"
+    ros_host: str = "127.0.0.1"
+    ready_timeout: float = 30.0
+    statistics_period: float = 1.0
+    drain_timeout: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name in ("http_host", "http_advertise", "ros_host"):
+            value = getattr(self, name)
             if not value or any(c.isspace() for c in value) or "/" in value:
                 raise ValueError(f"router setting {name}: {value!r} is not a host name or address")
-        for name, seconds in (
-            ("ready_timeout", ready_timeout),
-            ("statistics_period", statistics_period),
-            ("drain_timeout", drain_timeout),
-        ):
+        for name in ("ready_timeout", "statistics_period", "drain_timeout"):
+            seconds = getattr(self, name)
             if not (math.isfinite(seconds) and seconds > 0):
                 raise ValueError(f"router setting {name}: must be a positive number of seconds, not {seconds!r}")
-        self.http_host = http_host
-        self.http_advertise = http_advertise
-        self.ros_host = ros_host
-        self.ready_timeout = ready_timeout
-        self.statistics_period = statistics_period
-        self.drain_timeout = drain_timeout
 
 
 def router_settings_from_env(env: Mapping[str, str] | None = None) -> RouterSettings:
