@@ -558,10 +558,9 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         state.message = None
         state.started_at = time.time()
 
-    async def _death(self, rec: _Container) -> int | None:
-        """Wait for the container to die."""
-        assert rec.exited is not None  # supervised only once created
-        return await asyncio.shield(rec.exited)
+    def _exited(self, rec: _Container) -> asyncio.Future[int | None] | None:
+        """Return the future of the container's death."""
+        return rec.exited
 
     def _command(self, rec: _Container) -> list[str] | None:
         """Return the container's command (docker-init runs it: a missing one shows as exit 127)."""

@@ -86,8 +86,8 @@ class SupervisedRuntime(Runtime, Generic[R]):
         """Launch a crashed component again and mark it running; raise RuntimeFailure saying why not."""
 
     @abstractmethod
-    async def _death(self, rec: R) -> int | None:
-        """Wait for the component's current launch to end; return its exit code if known."""
+    def _exited(self, rec: R) -> asyncio.Future[int | None] | None:
+        """Return the future resolved with the exit code when the current launch ends, if any."""
 
     @abstractmethod
     async def _end(self, rec: R, timeout: float) -> None:
@@ -228,7 +228,9 @@ class SupervisedRuntime(Runtime, Generic[R]):
     async def _supervise(self, rec: R) -> None:
         """Relaunch a component that crashes, with backoff, until the policy gives up."""
         state = rec.state
-        code = await self._death(rec)
+        # Awaited here rather than in a helper coroutine: one frame less per supervised component.
+        exited = self._exited(rec)
+        code = await asyncio.shield(exited) if exited is not None else None
         while True:
             self._reap(rec)
             state.exit_code = code
@@ -258,4 +260,5 @@ class SupervisedRuntime(Runtime, Generic[R]):
                 continue
             state.restarts += 1
             self._notify(state)
-            code = await self._death(rec)
+            exited = self._exited(rec)
+            code = await asyncio.shield(exited) if exited is not None else None

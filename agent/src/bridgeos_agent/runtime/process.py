@@ -266,9 +266,9 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         """Spawn the crashed component again."""
         self._launch(rec)
 
-    async def _death(self, rec: _Component) -> int | None:
-        """Wait for the component's process to exit."""
-        return await asyncio.shield(rec.proc.exited) if rec.proc is not None else None
+    def _exited(self, rec: _Component) -> asyncio.Future[int | None] | None:
+        """Return the future of the component's process exit."""
+        return rec.proc.exited if rec.proc is not None else None
 
     def _reap(self, rec: _Component) -> None:
         """Kill what the exited leader left behind."""
