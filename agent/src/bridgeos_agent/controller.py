@@ -21,7 +21,7 @@ from typing import Any
 from bridgeos_agent import handlers
 from bridgeos_agent.cloudrole import CloudRole
 from bridgeos_agent.logonce import LogOnce
-from bridgeos_agent.monitor import Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
+from bridgeos_agent.monitor import RESOURCES, Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
 from bridgeos_agent.network import CloudNetwork
 from bridgeos_agent.outbox import Outbox
 from bridgeos_agent.placement import Placement
@@ -285,7 +285,7 @@ class RobotController:
         first = not self.config_from_cloud.is_set()
         self.config = config
         self.cloud_role.set_lost_after(config.connection_lost_after)
-        for name in ("cpu", "gpu", "ram", "bandwidth", "io"):
+        for name in RESOURCES:
             setattr(self.monitor.robot, name, getattr(config.resources, name))
         if source == "cloud":
             self.config_from_cloud.set()

@@ -21,7 +21,7 @@ import time
 from typing import TYPE_CHECKING, Any, cast
 
 from bridgeos_agent.componentsapi import ComponentsAPI, MetricStore
-from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, decide_batch
+from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, Side, decide_batch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Reporter
 from bridgeos_agent.policies import Metrics, PolicyCosts, PolicyEstimator
@@ -103,14 +103,14 @@ class SkillManager:
         port_file = self.model_dir / "api.port"
         saved = int(port_file.read_text()) if port_file.exists() else 0
         for port in dict.fromkeys((saved, 0)):
-            self.api = ComponentsAPI(self, port=port)
+            self.api = api = ComponentsAPI(self, port=port)
             try:
-                url = await self.api.start()
+                url = await api.start()
                 break
             except OSError:
                 continue
         self.model_dir.mkdir(parents=True, exist_ok=True)
-        port_file.write_text(str(self.api.port))
+        port_file.write_text(str(api.port))
         return url
 
     @property
@@ -162,8 +162,7 @@ class SkillManager:
 
     def _traffic(self, name: str) -> ComponentTraffic | None:
         """Ask the Skill's router what it measured of a component's traffic (None: no router or no routes)."""
-        supervisor = self.record.supervisor
-        router = supervisor.context.get("router") if supervisor is not None else None
+        router = self.record.context("router")
         if router is None:
             return None
         try:
@@ -197,7 +196,10 @@ class SkillManager:
         costed, inputs, costs = [], [], {}
         for name in names:
             config = record.config.components[name]
-            location = record.locations[name]
+            where = record.locations[name]
+            if where is None:
+                continue  # movable() returned only running components; nothing runs in between
+            location: Side = "cloud" if where == "cloud" else "robot"
             needs = Resources.of(config.resources)
             measured = host.usage.get((self.skill_id, name))
             # The runtime measures CPU and RAM only: bandwidth, GPU and I/O stay as declared.
@@ -352,7 +354,7 @@ class SkillManager:
     async def run(self, supervisor: SkillSupervisor) -> None:
         """Serve the Components API and decide every ``decision_interval`` seconds until the Skill stops."""
         url = await self.start_api()
-        supervisor.context.setdefault("env", {})["BRIDGEOS_MANAGER_URL"] = url
+        cast("dict[str, str]", supervisor.context.setdefault("env", {}))["BRIDGEOS_MANAGER_URL"] = url
         supervisor.mark_ready("manager")
         try:
             while True:
@@ -438,7 +440,7 @@ def _share(free: float | None, capacity: float) -> float:
 async def skill_manager_plugin(supervisor: SkillSupervisor) -> None:
     """Run a Skill's manager as a supervisor plug-in (its host, the controller, is in the supervisor's context)."""
     host = cast("SkillHost", supervisor.context["controller"])
-    manager = supervisor.context.get("manager")
+    manager = cast("SkillManager | None", supervisor.context.get("manager"))
     if manager is None:  # a restart after a crash keeps the manager's state
         manager = supervisor.context["manager"] = SkillManager(host, supervisor.skill)
     await manager.run(supervisor)

@@ -13,6 +13,7 @@ import contextlib
 from typing import TYPE_CHECKING, Any
 
 from bridgeos_agent.allocation import (
+    ActiveLocation,
     AllocationDecision,
     AllocationSettings,
     Cloud,
@@ -23,6 +24,7 @@ from bridgeos_agent.allocation import (
     allocation_state,
 )
 from bridgeos_agent.heuristics import Resources, Weights
+from bridgeos_agent.monitor import RESOURCES
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
@@ -34,9 +36,23 @@ from bridgeos_agent.state import SkillRecord, previous_placement
 if TYPE_CHECKING:
     from bridgeos_agent.controller import RobotController
 
-__all__ = ["Placement"]
+__all__ = ["Placement", "check_location", "migration_target"]
 
-RESOURCE_NAMES = ("cpu", "gpu", "ram", "bandwidth", "io")
+
+def check_location(name: str, required: str, location: str) -> None:
+    """Refuse to start a component where its Skill config does not let it run."""
+    if location == "cloud":
+        if required == "robot":
+            raise ProtocolError(f"component {name!r} may only run on the robot", field="data.location")
+    elif required == "cloud":
+        raise ProtocolError(f"component {name!r} may only run in the cloud", field="data.location")
+
+
+def migration_target(name: str, required: str, current: str | None, target: str | None) -> str:
+    """Return where a migration goes (``target``, else the other side); refuse a component that may not move."""
+    if required != "either":
+        raise ProtocolError(f"component {name!r} may only run on the {required}", field="data.component")
+    return target or ("robot" if current == "cloud" else "cloud")
 
 
 class Placement:
@@ -69,10 +85,10 @@ class Placement:
         state = allocation_state(total, Resources(**free), configs, self.active(), measurements)
         return allocate(state, skill_id, component_id, self.allocation_settings())
 
-    def active(self, *, running_skills_only: bool = False) -> dict[tuple[str, str], str]:
+    def active(self, *, running_skills_only: bool = False) -> dict[tuple[str, str], ActiveLocation]:
         """Map each (skill, component) that runs somewhere to where it runs."""
         return {
-            (skill, name): where
+            (skill, name): "cloud" if where == "cloud" else "robot"
             for skill, record in self.controller.skills.items()
             if not running_skills_only or record.status in (SS.RUNNING, SS.STARTING)
             for name, where in record.locations.items()
@@ -81,7 +97,7 @@ class Placement:
 
     def reserved(self) -> dict[str, float]:
         """Sum the declared needs of every component running on the robot."""
-        used = dict.fromkeys(RESOURCE_NAMES, 0.0)
+        used = dict.fromkeys(RESOURCES, 0.0)
         for record in self.controller.skills.values():
             for name, where in record.locations.items():
                 if where == "robot":
@@ -107,13 +123,10 @@ class Placement:
         """Start a component where it should run; return that location."""
         component = record.config.components[name]
         target = location or self._preferred_location(component.location, record.config.skill_id, name)
+        check_location(name, component.location, target)
         if target == "cloud":
-            if component.location == "robot":
-                raise ProtocolError(f"component {name!r} may only run on the robot", field="data.location")
             await self.start_in_cloud(record, name)
             return "cloud"
-        if component.location == "cloud":
-            raise ProtocolError(f"component {name!r} may only run in the cloud", field="data.location")
         async with self._lock:
             decision = self.allocate(record.config.skill_id, name)
             if isinstance(decision, Replace):
@@ -279,9 +292,7 @@ class Placement:
         controller = self.controller
         component = record.config.components[name]
         current = record.locations.get(name)
-        if component.location != "either":
-            raise ProtocolError(f"component {name!r} may only run on the {component.location}", field="data.component")
-        target = target or ("robot" if current == "cloud" else "cloud")
+        target = migration_target(name, component.location, current, target)
         if target == current:
             return target
         await self.set_status(record, name, CS.MIGRATING, current)

@@ -29,10 +29,12 @@ from bridgeos_agent.tasks import TaskOwner
 if TYPE_CHECKING:
     from bridgeos_agent.controller import AgentSettings
 
-__all__ = ["RETRY_CODES", "AuthenticationRefused", "Reply", "Session", "ws_scheme"]
+__all__ = ["EXIT_REFUSED", "RETRY_CODES", "AuthenticationRefused", "Reply", "Session", "ws_scheme"]
 
 logger = logging.getLogger("bridgeos_agent")
 
+# The agent's exit code when the cloud refuses the robot's id or token.
+EXIT_REFUSED = 3
 # Error codes from the cloud that mean "try again later": the frame stays owed.
 RETRY_CODES = frozenset({"unavailable", "internal_error", "rate_limited"})
 # A sent frame is retransmitted after 5 s, then 10, 20 and every 30 s until acked (±10% jitter).
@@ -167,7 +169,7 @@ class Session:
                 await self._serve(ws, target.path)
             except AuthenticationRefused as exc:
                 self.say(f"the cloud refused this robot: {exc}. Check --robot and --token.")
-                self._stop(3)
+                self._stop(EXIT_REFUSED)
                 return
             except websockets.ConnectionClosed:
                 pass

@@ -258,7 +258,7 @@ class HttpRoute(_Model):
 
     component: Slug
     prefix: Annotated[str, StringConstraints(pattern=HTTP_PREFIX_PATTERN, max_length=256)] = "/"
-    methods: list[HttpMethod] = Field(default_factory=lambda: ["GET"], min_length=1)
+    methods: list[HttpMethod] = Field(default_factory=lambda: list[HttpMethod](["GET"]), min_length=1)
     port: Port | None = Field(
         default=None,
         description="Component port to forward to; the first port of its launch spec if unset.",

@@ -355,9 +355,10 @@ class VolumeSync:
         async def request(refs: list[dict[str, Any]]) -> VolumeChunks:
             data = {"skill": payload.skill, "volume": payload.volume, "chunks": refs}
             reply = await self.host.request(Event.VOLUME_CHUNKS_GET, data, timeout=30.0)
-            if reply is None or reply.event != Event.VOLUME_CHUNKS:
+            chunks = parse_payload(reply) if reply is not None and reply.event == Event.VOLUME_CHUNKS else None
+            if not isinstance(chunks, VolumeChunks):
                 raise ProtocolError("the cloud did not send the chunks asked for", code="unavailable")
-            return parse_payload(reply)
+            return chunks
 
         return await receive_changes(replica, list(payload.changes), request)
 
@@ -398,10 +399,11 @@ async def local_volume_path(runtime: Any, skill_id: str, volume: str) -> Path | 
     if hasattr(runtime, "volume_name"):
         # A Docker volume: its mountpoint on this host (readable as root).
         def mountpoint() -> Path | None:
-            import docker
+            import docker.client
+            import docker.errors
 
             try:
-                client = docker.from_env()
+                client = docker.client.from_env()
                 path = client.api.inspect_volume(runtime.volume_name(skill_id, volume))["Mountpoint"]
             except (docker.errors.DockerException, OSError, KeyError) as exc:
                 logger.debug("volume %s/%s: no Docker mountpoint: %s", skill_id, volume, exc)
