@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import CHUNK_BYTES, MAX_CHUNKS_PER_FRAME, VolumeChunks, VolumeFile
 
 if TYPE_CHECKING:
@@ -303,6 +304,7 @@ class VolumeSync:
         self.host = host
         self.replicas: dict[tuple[str, str], VolumeReplica] = {}
         self._unreachable: set[tuple[str, str]] = set()
+        self._failures: dict[tuple[str, str], LogOnce] = {}  # per volume: a scan failing every second is said once
         self.chunks_sent = 0  # chunks read for the cloud: what volume sync cost in data
 
     async def run(self) -> None:
@@ -322,10 +324,19 @@ class VolumeSync:
                 if all(c.location == "robot" for c in record.config.components.values()):
                     continue
                 for volume in record.config.volumes:
-                    try:
-                        await self.announce(skill_id, volume)
-                    except Exception:
-                        logger.exception("volume sync of %s/%s failed", skill_id, volume)
+                    await self._sync(skill_id, volume)
+
+    async def _sync(self, skill_id: str, volume: str) -> None:
+        """Announce one volume's changes; a failure is said once until it syncs again, and retried next scan."""
+        key = (skill_id, volume)
+        try:
+            await self.announce(skill_id, volume)
+        except Exception as exc:
+            # Any failure of one volume (disk, a file vanishing, the link) must not stop the others.
+            self._failures.setdefault(key, LogOnce(logger, f"volume sync of {skill_id}/{volume}")).failed(exc)
+        else:
+            if key in self._failures:
+                self._failures.pop(key).worked()
 
     async def announce(self, skill_id: str, volume: str) -> int:
         """Send one volume's changes since the last scan; return how many files changed."""
