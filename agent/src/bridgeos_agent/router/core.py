@@ -22,6 +22,7 @@ from bridgeos_agent.skillconfig import ServiceRoute, SkillConfig, TopicRoute
 from bridgeos_agent.tcpros import TOPIC_STATISTICS_DEFINITION, TOPIC_STATISTICS_MD5, TOPIC_STATISTICS_TYPE
 
 if TYPE_CHECKING:
+    from bridgeos_agent.hosts import SkillHost
     from bridgeos_agent.supervisor import SkillSupervisor
 
 __all__ = ["SkillRouter", "skill_router_plugin"]
@@ -268,7 +269,7 @@ def _changes(before: Iterable[R], after: Iterable[R]) -> tuple[list[str], list[R
 
 async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
     """Run a Skill's router as a supervisor plug-in (the controller is in the supervisor's context)."""
-    controller: Any = supervisor.context["controller"]
+    controller = cast("SkillHost", supervisor.context["controller"])
     record = controller.skills[supervisor.skill]
     router = SkillRouter(
         record.config,
