@@ -135,8 +135,8 @@ def manager_steps(seconds: int, data_dir: Path) -> tuple[float, float, int]:
         for i, name in enumerate(components):
             record.locations[name] = "robot" if i % 2 else "cloud"
             if i % 2:
-                controller._usage[("bench", name)] = Usage(cpu=rng.uniform(0, 0.02), ram=rng.uniform(4, 12))
-        controller.monitor.sample(controller._reserved())
+                controller.usage[("bench", name)] = Usage(cpu=rng.uniform(0, 0.02), ram=rng.uniform(4, 12))
+        controller.monitor.sample(controller.placement.reserved())
         clock = [0.0]
         manager = SkillManager(controller, "bench", clock=lambda: clock[0])
         moves = 0

@@ -31,7 +31,8 @@ from bridgeos_agent.runtime.base import (
     absent,
     check_ids,
 )
-from bridgeos_agent.runtime.docker import VOLUMES_MOUNT, DockerRuntime, _usage
+from bridgeos_agent.runtime.docker import VOLUMES_MOUNT, DockerRuntime
+from bridgeos_agent.runtime.usage import cpu_share, docker_usage
 
 from .cloudruntime import (
     KIND_COMPONENT,
@@ -115,13 +116,11 @@ class CloudDockerRuntime(DockerRuntime, CloudRuntime):
         samples = await asyncio.gather(
             *(self._call(api.stats, c["Id"], stream=False) for c in containers), return_exceptions=True
         )
-        from .swarm import _cpu_share
-
         for container, raw in zip(containers, samples, strict=True):
             if isinstance(raw, BaseException):
                 continue
-            usage, _ = _usage(raw)
-            usage.cpu = _cpu_share(raw)
+            usage, _ = docker_usage(raw)
+            usage.cpu = cpu_share(raw)
             result[(container["Labels"].get(LABEL_SKILL, ""), container["Labels"].get(LABEL_COMPONENT, ""))] = usage
         return result
 

@@ -31,7 +31,9 @@ from bridgeos_agent.runtime.base import (
     absent,
     check_ids,
 )
-from bridgeos_agent.runtime.process import ProcessRuntime, _adopt, _measure, _signal_group
+from bridgeos_agent.runtime.groups import adopt, signal_group
+from bridgeos_agent.runtime.process import ProcessRuntime
+from bridgeos_agent.runtime.usage import measure
 
 from .cloudruntime import (
     KIND_COMPONENT,
@@ -87,7 +89,7 @@ class CloudProcessRuntime(ProcessRuntime, CloudRuntime):
         check_ids(skill, component)
         await self._terminate_found(KIND_COMPONENT, skill, component, timeout)
         with contextlib.suppress(KeyError):
-            del self._components[(skill, component)]
+            del self._records[(skill, component)]
         return ComponentState(skill=skill, component=component, status=Status.STOPPED)
 
     async def status(self, skill: str, component: str) -> ComponentState:
@@ -103,10 +105,10 @@ class CloudProcessRuntime(ProcessRuntime, CloudRuntime):
         if not found:
             return {}
         targets = [((p.skill, p.component), p.pid, {}) for p in found]
-        first = await asyncio.to_thread(_measure, targets)
+        first = await asyncio.to_thread(measure, targets)
         await asyncio.sleep(window)
         second = await asyncio.to_thread(
-            _measure, [(key, pid, first[key][1]) for key, pid, _ in targets if key in first]
+            measure, [(key, pid, first[key][1]) for key, pid, _ in targets if key in first]
         )
         usages = {}
         for key, (usage, _) in second.items():
@@ -223,7 +225,7 @@ class CloudProcessRuntime(ProcessRuntime, CloudRuntime):
 
     async def _terminate_found(self, kind: str, skill: str, component: str, timeout: float) -> None:
         # The copy of our own launch is supervised here: cancel that first, so the exit is no crash.
-        comp = self._components.get((skill, component))
+        comp = self._records.get((skill, component))
         if comp is not None and comp.supervisor is not None:
             comp.supervisor.cancel()
             await asyncio.wait([comp.supervisor])
@@ -235,9 +237,9 @@ class CloudProcessRuntime(ProcessRuntime, CloudRuntime):
             create_time = psutil.Process(pid).create_time()
         except psutil.Error:
             return
-        proc = _adopt(pid, create_time)
+        proc = adopt(pid, create_time)
         if proc is None:
-            _signal_group(pid, signal.SIGKILL)
+            signal_group(pid, signal.SIGKILL)
             return
         self._watcher.watch(proc)
         await self._terminate(proc, timeout)

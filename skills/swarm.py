@@ -54,7 +54,9 @@ from bridgeos_agent.runtime.base import (
     absent,
     check_ids,
 )
-from bridgeos_agent.runtime.docker import MIB, MIN_CPUS, MIN_MEMORY, VOLUMES_MOUNT, _get_json, _usage, open_client
+from bridgeos_agent.runtime.docker import MIN_CPUS, MIN_MEMORY, VOLUMES_MOUNT
+from bridgeos_agent.runtime.engine import open_client
+from bridgeos_agent.runtime.usage import MIB, cpu_share, docker_usage, get_json
 
 from .cloudruntime import (
     KIND_COMPONENT,
@@ -182,8 +184,8 @@ class SwarmRuntime(CloudRuntime):
             if isinstance(sample, BaseException):
                 continue
             raw, _ = sample
-            usage, _ = _usage(raw)
-            usage.cpu = _cpu_share(raw)
+            usage, _ = docker_usage(raw)
+            usage.cpu = cpu_share(raw)
             result[key] = usage
         return result
 
@@ -587,7 +589,7 @@ class SwarmRuntime(CloudRuntime):
             raw = await self._call(api.stats, container_id, stream=False)
             return raw, time.time()
         url = f"/v{api.api_version}/containers/{container_id}/stats?stream=0"
-        return await _get_json(self._socket_path, url), time.time()
+        return await get_json(self._socket_path, url), time.time()
 
     async def _call(self, function: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         loop = asyncio.get_running_loop()
@@ -642,15 +644,3 @@ def _task_state(skill: str, component: str, task: Mapping[str, Any]) -> Componen
         exit_code=code if mapped is not Status.RUNNING else None,
         message=message if mapped is not Status.RUNNING else None,
     )
-
-
-def _cpu_share(raw: Mapping[str, Any]) -> float:
-    """Return cores used between Docker's two stats samples."""
-    cpu = raw.get("cpu_stats") or {}
-    pre = raw.get("precpu_stats") or {}
-    used = ((cpu.get("cpu_usage") or {}).get("total_usage", 0)) - ((pre.get("cpu_usage") or {}).get("total_usage", 0))
-    system = cpu.get("system_cpu_usage", 0) - pre.get("system_cpu_usage", 0)
-    online = cpu.get("online_cpus") or os.cpu_count() or 1
-    if used <= 0 or system <= 0:
-        return 0.0
-    return used / system * online

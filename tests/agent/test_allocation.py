@@ -16,7 +16,7 @@ from bridgeos_agent.allocation import (
     AllocationSettings,
     AllocationState,
     Cloud,
-    ComponentState,
+    ComponentSnapshot,
     Deploy,
     Location,
     Measurement,
@@ -31,14 +31,14 @@ from bridgeos_agent.robotconfig import Heuristic, RobotConfig, RobotResources
 from bridgeos_agent.skillconfig import load_sample_skill_config
 
 
-def running(usage: Resources, location: Location = "either", **more: Any) -> ComponentState:
+def running(usage: Resources, location: Location = "either", **more: Any) -> ComponentSnapshot:
     """A component running on the robot and using what it requires."""
-    return ComponentState(location, "robot", usage, usage, **more)
+    return ComponentSnapshot(location, "robot", usage, usage, **more)
 
 
-def stopped(required: Resources, location: Location = "either", **more: Any) -> ComponentState:
+def stopped(required: Resources, location: Location = "either", **more: Any) -> ComponentSnapshot:
     """A component running nowhere yet."""
-    return ComponentState(location, None, required, **more)
+    return ComponentSnapshot(location, None, required, **more)
 
 
 # A robot with 8 cores, no GPU, 8192 MiB, 100 Mbit/s and 100 MB/s, of which
@@ -48,9 +48,9 @@ FREE = Resources(cpu=0.5, gpu=0, ram=512, bandwidth=60, io=50)
 DETECTOR = Resources(cpu=2, ram=1024, bandwidth=20, io=10)
 
 
-def robot(**skills: Mapping[str, ComponentState]) -> AllocationState:
+def robot(**skills: Mapping[str, ComponentSnapshot]) -> AllocationState:
     """The robot of these tests running a navigation and a vision Skill (plus any given)."""
-    base: dict[str, Mapping[str, ComponentState]] = {
+    base: dict[str, Mapping[str, ComponentSnapshot]] = {
         "nav": {
             "mapper": running(Resources(cpu=2.5, ram=1536, bandwidth=10, io=10)),
             "planner": running(Resources(cpu=3.5, ram=2560, bandwidth=10, io=10)),
@@ -59,7 +59,7 @@ def robot(**skills: Mapping[str, ComponentState]) -> AllocationState:
             "camera": running(Resources(cpu=0.5, ram=256, bandwidth=10, io=2), "robot"),
             "detector": stopped(DETECTOR),
             "lidar": stopped(DETECTOR, "robot"),
-            "uploader": ComponentState("cloud", "cloud", Resources(cpu=1)),
+            "uploader": ComponentSnapshot("cloud", "cloud", Resources(cpu=1)),
         },
     }
     base.update(skills)
@@ -324,12 +324,12 @@ def test_the_snapshot_is_built_from_skill_configs_and_measurements() -> None:
     components = state.skills["people-detection"]
     assert state.total == Resources(2, 0, 2048, 100, 100)
     # pointcloud was not measured yet: it is assumed to use what it requires.
-    assert components["pointcloud"] == ComponentState(
+    assert components["pointcloud"] == ComponentSnapshot(
         "robot", "robot", Resources(0.3, 0, 128, 40, 2), Resources(0.3, 0, 128, 40, 2)
     )
     assert components["sampler"].usage == measured
     assert (components["sampler"].local_bandwidth, components["sampler"].volume_bytes) == (20, 1000)
-    assert components["detector"] == ComponentState("either", None, Resources(1.5, 0, 768, 10, 1))
+    assert components["detector"] == ComponentSnapshot("either", None, Resources(1.5, 0, 768, 10, 1))
     # The detector needs 1.5 cores with 0.5 free; moving the sampler frees 0.25 more: not enough.
     decision = allocate(state, "people-detection", "detector", AllocationSettings(threshold=math.inf))
     assert isinstance(decision, Cloud)
@@ -369,13 +369,13 @@ PLACES: dict[Location, list[ActiveLocation]] = {
 
 
 @st.composite
-def skills(draw: st.DrawFn, name: str) -> dict[str, ComponentState]:
+def skills(draw: st.DrawFn, name: str) -> dict[str, ComponentSnapshot]:
     """A Skill of one to four components with random links, placements and measurements."""
     ids = [f"{name}{i}" for i in range(draw(st.integers(1, 4)))]
     components = {}
     for index, cid in enumerate(ids):
         required_location = draw(st.sampled_from(LOCATIONS))
-        components[cid] = ComponentState(
+        components[cid] = ComponentSnapshot(
             required_location=required_location,
             active_location=draw(st.sampled_from(PLACES[required_location])),
             required=draw(resources(3, often_none=True)),
@@ -405,7 +405,7 @@ def requests(draw: st.DrawFn) -> Request:
     if draw(st.booleans()):
         # A big movable component that frees enough for any request, so replacements compete.
         big = draw(st.builds(Resources, *[st.integers(12, 20).map(float)] * 5))
-        snapshot["v"] = {"v0": ComponentState("either", "robot", big, big, ros_bytes=draw(st.integers(0, 2 * GIB)))}
+        snapshot["v"] = {"v0": ComponentSnapshot("either", "robot", big, big, ros_bytes=draw(st.integers(0, 2 * GIB)))}
     choice = AllocationSettings(
         draw(st.sampled_from(sorted(HEURISTICS))),
         draw(st.sampled_from([0.0, 0.25, 0.5, 1.0, 10.0, math.inf, math.inf])),
@@ -416,7 +416,7 @@ def requests(draw: st.DrawFn) -> Request:
     return state, skill_id, component_id, choice
 
 
-def closure(components: Mapping[str, ComponentState], start: str) -> set[str]:
+def closure(components: Mapping[str, ComponentSnapshot], start: str) -> set[str]:
     """Everything reachable from start over links followed both ways."""
     seen, todo = {start}, [start]
     while todo:

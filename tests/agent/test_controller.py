@@ -410,8 +410,15 @@ def test_the_agent_exits_cleanly_on_sigterm(daphne_server, tmp_path):
     while not Robot.objects.get(id="sig-1").connected:
         assert time.monotonic() < deadline and process.poll() is None, "the agent did not connect"
         time.sleep(0.1)
+    # The cloud marks the robot connected before the agent logs it: wait for the agent's own line.
+    seen = []
+    while not any("connected to the cloud" in line for line in seen):
+        line = process.stderr.readline()
+        assert line, f"the agent exited before saying it connected: {''.join(seen)}"
+        seen.append(line)
     process.terminate()
     _, err = process.communicate(timeout=30)
+    err = "".join(seen) + err
     assert process.returncode == 0, err
     assert "connected to the cloud" in err and "stopped" in err
     assert sys.executable  # the agent ran from this venv's console script

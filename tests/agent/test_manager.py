@@ -192,7 +192,7 @@ async def test_the_router_s_bytes_and_the_declared_bandwidth_of_a_measured_compo
         router = record.supervisor.context["router"] = Router()
         # The runtime measures the running processes (CPU and RAM); their bandwidth stays as declared.
         await eventually(
-            lambda: {("workers", "worker-0"), ("workers", "worker-1")} <= set(controller._usage),
+            lambda: {("workers", "worker-0"), ("workers", "worker-1")} <= set(controller.usage),
             what="components measured by the runtime",
         )
         # worker-0 talks mostly to the cloud, worker-1 only to robot peers.

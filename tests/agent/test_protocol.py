@@ -24,7 +24,7 @@ from bridgeos_agent.protocol import (
     Envelope,
     Event,
     IdGenerator,
-    Metrics,
+    MetricsPayload,
     ProtocolError,
     Reliable,
     ack_frame,
@@ -206,7 +206,7 @@ def test_envelope_without_ts_and_reply_to_is_accepted() -> None:
 def test_pinned_metrics_shape_decodes() -> None:
     text = frame("metrics", {"metrics": [{"name": "cpu", "value": 1, "ts": 2, "labels": {"core": "0"}}]})
     payload = parse_payload(decode(text))
-    assert isinstance(payload, Metrics)
+    assert isinstance(payload, MetricsPayload)
     assert payload.metrics[0].value == 1.0 and payload.metrics[0].labels == {"core": "0"}
 
 

@@ -8,19 +8,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridgeos_agent.allocation import ActiveLocation, ComponentState, Location
+from bridgeos_agent.allocation import ActiveLocation, ComponentSnapshot, Location
 from bridgeos_agent.heuristics import ZERO, Resources
 from bridgeos_agent.takeover import CloudMonitor, plan_revert, plan_takeover
 
 
-def in_cloud(required: Resources, location: Location = "either") -> ComponentState:
+def in_cloud(required: Resources, location: Location = "either") -> ComponentSnapshot:
     """A component running in the cloud."""
-    return ComponentState(location, "cloud", required)
+    return ComponentSnapshot(location, "cloud", required)
 
 
-def on_robot(required: Resources, location: Location = "either") -> ComponentState:
+def on_robot(required: Resources, location: Location = "either") -> ComponentSnapshot:
     """A component running on the robot."""
-    return ComponentState(location, "robot", required, required)
+    return ComponentSnapshot(location, "robot", required, required)
 
 
 # --------------------------------------------------------------------------- plan_takeover
@@ -64,7 +64,7 @@ def test_a_skill_with_a_running_cloud_only_component_is_skipped_entirely() -> No
 def test_a_stopped_cloud_only_component_does_not_block_the_skill() -> None:
     skills = {
         "vision": {
-            "trainer": ComponentState("cloud", None, Resources(gpu=1)),
+            "trainer": ComponentSnapshot("cloud", None, Resources(gpu=1)),
             "detector": in_cloud(Resources(cpu=1)),
         }
     }
@@ -75,7 +75,7 @@ def test_components_running_nowhere_or_on_the_robot_are_left_alone() -> None:
     skills = {
         "nav": {
             "mapper": on_robot(Resources(cpu=1)),
-            "planner": ComponentState("either", None, Resources(cpu=1)),
+            "planner": ComponentSnapshot("either", None, Resources(cpu=1)),
         }
     }
     assert plan_takeover(skills, Resources(cpu=4)) == {}
@@ -179,7 +179,7 @@ LOCATIONS: dict[Location, list[ActiveLocation]] = {
 REQUIRED_LOCATIONS: list[Location] = ["either", "either", "robot", "cloud"]
 
 
-Fleet = dict[str, dict[str, ComponentState]]
+Fleet = dict[str, dict[str, ComponentSnapshot]]
 
 
 @st.composite
@@ -191,7 +191,7 @@ def fleets(draw: st.DrawFn) -> Fleet:
         for c in range(draw(st.integers(1, 4))):
             required_location = draw(st.sampled_from(REQUIRED_LOCATIONS))
             active = draw(st.sampled_from(LOCATIONS[required_location]))
-            components[f"c{c}"] = ComponentState(required_location, active, draw(resources))
+            components[f"c{c}"] = ComponentSnapshot(required_location, active, draw(resources))
         fleet[f"s{s}"] = components
     return fleet
 

@@ -16,6 +16,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlsplit
 
 import psutil
@@ -30,8 +31,6 @@ from bridgeos_agent.rosmaster import find_ros_master
 from bridgeos_agent.tls import is_loopback
 
 __all__ = ["doctor", "run_agent", "settings_from_args"]
-
-EXIT_REFUSED = 3
 
 
 def settings_from_args(args: argparse.Namespace) -> AgentSettings:
@@ -187,7 +186,7 @@ async def _probe_cloud(
 ) -> tuple[bool | str, str | None, RobotConfig | None]:
     """Connect and authenticate once; return (True or why unreachable, refusal reason or None, robot config)."""
     url = master.rstrip("/") + "/ws/robot/"
-    options = {"ssl": context} if context is not None else {}
+    options: dict[str, Any] = {"ssl": context} if context is not None else {}
     config = None
     try:
         async with websockets.connect(url, open_timeout=5, compression=None, proxy=None, **options) as ws:
@@ -260,11 +259,11 @@ def _check_network(config: RobotConfig, args: argparse.Namespace, check: Callabl
 
 def _docker_status() -> tuple[bool, str]:
     try:
-        import docker
+        import docker.client
     except ImportError:
         return False, "the docker Python package is missing: pip install docker"
     try:
-        client = docker.from_env(timeout=3)
+        client = docker.client.from_env(timeout=3)
         version = client.version().get("Version", "?")
         client.close()
     except Exception as exc:

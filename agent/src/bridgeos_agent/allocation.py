@@ -20,11 +20,11 @@ if TYPE_CHECKING:
 
 __all__ = [
     "ActiveLocation",
+    "AllocationDecision",
     "AllocationSettings",
     "AllocationState",
     "Cloud",
-    "ComponentState",
-    "Decision",
+    "ComponentSnapshot",
     "Deploy",
     "Location",
     "Measurement",
@@ -41,7 +41,7 @@ ActiveLocation = Literal["robot", "cloud"] | None
 
 
 @dataclass(frozen=True, slots=True)
-class ComponentState:
+class ComponentSnapshot:
     """Snapshot one component as the allocator sees it."""
 
     required_location: Location  # from the Skill configuration
@@ -61,7 +61,7 @@ class AllocationState:
 
     total: Resources
     free: Resources
-    skills: Mapping[str, Mapping[str, ComponentState]]  # skill id -> component id -> state
+    skills: Mapping[str, Mapping[str, ComponentSnapshot]]  # skill id -> component id -> state
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,7 +115,7 @@ class Refuse:
     reason: str
 
 
-Decision = Deploy | Replace | Cloud | Refuse
+AllocationDecision = Deploy | Replace | Cloud | Refuse
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,7 +129,7 @@ class Measurement:
     ros_bytes: float = 0.0
 
 
-def link_groups(components: Mapping[str, ComponentState]) -> dict[str, tuple[str, ...]]:
+def link_groups(components: Mapping[str, ComponentSnapshot]) -> dict[str, tuple[str, ...]]:
     """Map each component of a Skill to its link group: itself and everything linked, transitively."""
     # Links are symmetric and transitive: A-B and B-C put A, B and C in one location.
     parent = {cid: cid for cid in components}
@@ -199,7 +199,7 @@ def allocate(
     skill_id: str,
     component_id: str,
     settings: AllocationSettings | None = None,
-) -> Decision:
+) -> AllocationDecision:
     """Decide whether a component runs on the robot, after a replacement, in the cloud, or not at all."""
     settings = settings or AllocationSettings()
     try:
@@ -264,9 +264,9 @@ def allocation_state(
     keyed by ``(skill_id, component_id)``, and a component missing from them runs nowhere.
     """
     measurements = measurements or {}
-    snapshot: dict[str, dict[str, ComponentState]] = {}
+    snapshot: dict[str, dict[str, ComponentSnapshot]] = {}
     for skill in skills:
-        components: dict[str, ComponentState] = {}
+        components: dict[str, ComponentSnapshot] = {}
         for cid, config in skill.components.items():
             key = (skill.skill_id, cid)
             active = active_locations.get(key)
@@ -278,7 +278,7 @@ def allocation_state(
                 usage = required  # not measured yet: trust the configuration
             else:
                 usage = measured.usage
-            components[cid] = ComponentState(
+            components[cid] = ComponentSnapshot(
                 required_location=config.location,
                 active_location=active,
                 required=required,

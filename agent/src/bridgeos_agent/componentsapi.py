@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterable
 from typing import Annotated, Any, NotRequired, Protocol
 
 from aiohttp import web
@@ -100,6 +100,7 @@ class MetricStore:
     def latest(self, names: Collection[str] | None = None, component: str | None = None) -> list[dict[str, Any]]:
         """Return the latest points, only of ``names`` and ``component`` when given."""
         by_name = self._by_name
+        groups: Iterable[dict[str | None, dict[str, Any]]]
         if names is None:
             groups = by_name.values()
         else:

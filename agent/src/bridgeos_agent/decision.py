@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from bridgeos_agent.skillconfig import Location, ManagerConfig, NeuralNetworkConfig
 
 if TYPE_CHECKING:
-    import torch
+    from torch import Tensor
 
 __all__ = [
     "FEATURES",
@@ -160,7 +160,7 @@ class DecisionModel:
         self.batch_size = batch_size
         self.optimizer = optimizer
         widths = [n_features, *self.config.hidden_layers, 1]
-        self.params: list[torch.Tensor] = []
+        self.params: list[Tensor] = []
         for fan_in, fan_out in pairwise(widths):
             # torch.nn.Linear's default initialisation, without the Module overhead.
             bound = 1.0 / math.sqrt(fan_in)
@@ -488,11 +488,12 @@ class Decider:
         """Compare the reward with the threshold, record the sample; return the decision and whether training is due."""
         usable = prediction is not None and math.isfinite(prediction)
         trusted = False
-        if usable:
+        if prediction is not None and usable:
             # The trust gate: a network that strays from the policy it learns from does not decide.
             self._errors.append(abs(prediction - given.estimated_reward))
-            trusted = self.network_error <= self.hysteresis  # type: ignore[operator]
-        reward = prediction if trusted else given.estimated_reward
+            error = self.network_error
+            trusted = error is not None and error <= self.hysteresis
+        reward = prediction if trusted and prediction is not None else given.estimated_reward
         source = "prediction" if trusted else "estimate"
         threshold = self.config.threshold
         if not reward >= threshold + self.hysteresis:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import pydantic
 
@@ -37,7 +38,7 @@ def _dotted(loc: Sequence[str | int]) -> str:
     return ".".join(str(part) for part in loc) or NON_FIELD
 
 
-def _message(error: dict[str, object], loc: tuple[str | int, ...]) -> str:
+def _message(error: Mapping[str, Any], loc: tuple[str | int, ...]) -> str:
     """Phrase one pydantic error for a person fixing a configuration."""
     kind = error.get("type")
     if kind == "extra_forbidden" and loc:

@@ -102,7 +102,7 @@ class Link:
                     # One bad frame from the peer must not stop the link; keep it for inspection.
                     self.refused.append(exc)
                     continue
-                if envelope.event == Event.ACK and self.reliable.on_ack(envelope.reply_to):
+                if envelope.reply_to and envelope.event == Event.ACK and self.reliable.on_ack(envelope.reply_to):
                     self.acked[envelope.reply_to].set()
                 waiter = self.waiters.get(envelope.reply_to) if envelope.reply_to else None
                 if waiter is not None and not waiter.done():

@@ -18,10 +18,10 @@ import json
 import logging
 import math
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from bridgeos_agent.componentsapi import ComponentsAPI, MetricStore
-from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, decide_batch
+from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, Side, decide_batch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Reporter
 from bridgeos_agent.policies import Metrics, PolicyCosts, PolicyEstimator
@@ -30,7 +30,8 @@ from bridgeos_agent.robotconfig import RobotConfig
 from bridgeos_agent.traffic import ComponentTraffic
 
 if TYPE_CHECKING:
-    from bridgeos_agent.controller import RobotController, SkillRecord
+    from bridgeos_agent.hosts import SkillHost
+    from bridgeos_agent.state import SkillRecord
     from bridgeos_agent.supervisor import SkillSupervisor
 
 __all__ = ["SkillManager", "skill_manager_plugin"]
@@ -46,8 +47,8 @@ STAY_POINT_EVERY = 30.0
 class SkillManager:
     """Decide and act on the locations of one Skill's movable components."""
 
-    def __init__(self, controller: RobotController, skill_id: str, *, clock: Any = time.monotonic) -> None:
-        self.controller = controller
+    def __init__(self, host: SkillHost, skill_id: str, *, clock: Any = time.monotonic) -> None:
+        self.host = host
         self.skill_id = skill_id
         self.clock = clock
         self.deciders: dict[str, Decider] = {}
@@ -55,7 +56,7 @@ class SkillManager:
         self.last: dict[str, Decision] = {}
         # ROS message loss rate per component and location; a location it never ran at keeps its last value.
         self.loss: dict[str, dict[str, float]] = {}
-        self.model_dir = controller.data_dir / "models" / skill_id
+        self.model_dir = host.data_dir / "models" / skill_id
         self.store = MetricStore()
         self.api: ComponentsAPI | None = None
         self._estimator: tuple[tuple[Any, ...], PolicyEstimator] | None = None
@@ -94,7 +95,7 @@ class SkillManager:
         """Keep metrics a component published and share them with the cloud."""
         applied = self.store.publish(points)
         shared = [{**point, "skill": self.skill_id} for point in points]
-        self.controller._spawn(self.controller.emit(Event.METRICS, {"metrics": shared}))
+        self.host.spawn(self.host.emit(Event.METRICS, {"metrics": shared}))
         return applied
 
     async def start_api(self) -> str:
@@ -102,20 +103,20 @@ class SkillManager:
         port_file = self.model_dir / "api.port"
         saved = int(port_file.read_text()) if port_file.exists() else 0
         for port in dict.fromkeys((saved, 0)):
-            self.api = ComponentsAPI(self, port=port)
+            self.api = api = ComponentsAPI(self, port=port)
             try:
-                url = await self.api.start()
+                url = await api.start()
                 break
             except OSError:
                 continue
         self.model_dir.mkdir(parents=True, exist_ok=True)
-        port_file.write_text(str(self.api.port))
+        port_file.write_text(str(api.port))
         return url
 
     @property
     def record(self) -> SkillRecord:
-        """Return the controller's record of this Skill."""
-        return self.controller.skills[self.skill_id]
+        """Return the robot's record of this Skill."""
+        return self.host.skills[self.skill_id]
 
     def recommend(self, component: str, location: str) -> None:
         """Take a manual offloading recommendation; it wins at the next decision."""
@@ -161,8 +162,7 @@ class SkillManager:
 
     def _traffic(self, name: str) -> ComponentTraffic | None:
         """Ask the Skill's router what it measured of a component's traffic (None: no router or no routes)."""
-        supervisor = self.record.supervisor
-        router = supervisor.context.get("router") if supervisor is not None else None
+        router = self.record.context("router")
         if router is None:
             return None
         try:
@@ -173,18 +173,17 @@ class SkillManager:
 
     def _inputs(self, names: list[str]) -> tuple[list[str], list[DecisionInput], dict[str, Any]]:
         """Build each component's decision input; return the components costed, their inputs and costs."""
-        controller, record = self.controller, self.record
-        robot_config = controller.config or RobotConfig()
+        host, record = self.host, self.record
+        robot_config = host.config or RobotConfig()
         capacity = Resources.of(robot_config.resources)
         estimator = self._estimator_for(robot_config, capacity)
         policy = record.config.manager.policy
-        sample = controller.monitor.latest
+        sample = host.monitor.latest
         values = sample.values if sample else {}
         free = sample.free if sample else {}
         # Latency: a component on the robot answers locally; one in the cloud is a link round
         # trip away, measured by the WebSocket keepalive.
-        ws = controller.ws
-        rtt = float(getattr(ws, "latency", 0.0) or 0.0) if ws is not None else 0.0
+        rtt = host.link_latency()
         robot_state = Metrics(
             latency_robot=0.0,
             latency_cloud=rtt,
@@ -197,9 +196,12 @@ class SkillManager:
         costed, inputs, costs = [], [], {}
         for name in names:
             config = record.config.components[name]
-            location = record.locations[name]
+            where = record.locations[name]
+            if where is None:
+                continue  # movable() returned only running components; nothing runs in between
+            location: Side = "cloud" if where == "cloud" else "robot"
             needs = Resources.of(config.resources)
-            measured = controller._usage.get((self.skill_id, name))
+            measured = host.usage.get((self.skill_id, name))
             # The runtime measures CPU and RAM only: bandwidth, GPU and I/O stay as declared.
             usage = dataclasses.replace(needs, cpu=measured.cpu, ram=measured.ram) if measured else needs
             loss = self.loss.setdefault(name, {"robot": 0.0, "cloud": 0.0})
@@ -274,7 +276,7 @@ class SkillManager:
         now = time.time()
         for decision in decisions:
             self.last[decision.component] = decision
-        self.controller.metrics.decided(self.skill_id, decisions)
+        self.host.metrics.decided(self.skill_id, decisions)
         # A move is logged as an offloading_decision event once carried out; a stay, as a point when it changed.
         readings = [
             (DECISION_METRIC, float(d.estimated_reward), self.skill_id, d.component) for d in decisions if not d.migrate
@@ -304,7 +306,7 @@ class SkillManager:
                 }
             )
         if points:
-            await self.controller.emit(Event.METRICS, {"metrics": points})
+            await self.host.emit(Event.METRICS, {"metrics": points})
         for decision in decisions:
             if decision.migrate:
                 await self._move(decision, costs[decision.component], now)
@@ -316,14 +318,14 @@ class SkillManager:
         started = time.perf_counter()
         error = None
         try:
-            await self.controller.migrate_component(record, decision.component, decision.target)
+            await self.host.migrate_component(record, decision.component, decision.target)
             self.save_placement()
         except Exception as exc:  # e.g. no room on the robot: the next decision after the cooldown tries again
             error = str(exc) or type(exc).__name__
             logger.warning(
                 "skill %s: moving %s to the %s failed: %s", self.skill_id, decision.component, decision.target, error
             )
-        await self.controller.emit(
+        await self.host.emit(
             Event.OFFLOADING_DECISION,
             decision_event(decision, estimate, decided_at, time.perf_counter() - started, error, self.skill_id),
         )
@@ -353,7 +355,7 @@ class SkillManager:
     async def run(self, supervisor: SkillSupervisor) -> None:
         """Serve the Components API and decide every ``decision_interval`` seconds until the Skill stops."""
         url = await self.start_api()
-        supervisor.context.setdefault("env", {})["BRIDGEOS_MANAGER_URL"] = url
+        cast("dict[str, str]", supervisor.context.setdefault("env", {}))["BRIDGEOS_MANAGER_URL"] = url
         supervisor.mark_ready("manager")
         try:
             while True:
@@ -371,11 +373,11 @@ class SkillManager:
         now = time.time()
         points = [
             {"name": name, "value": value, "ts": now, "component": component}
-            for (skill, component), usage in self.controller._usage.items()
+            for (skill, component), usage in self.host.usage.items()
             if skill == self.skill_id
             for name, value in (("cpu", round(100 * usage.cpu, 2)), ("ram", round(usage.ram, 1)))
         ]
-        sample = self.controller.monitor.latest
+        sample = self.host.monitor.latest
         if sample is not None:
             points.extend({"name": name, "value": float(value), "ts": now} for name, value in sample.values.items())
         if points:
@@ -437,9 +439,9 @@ def _share(free: float | None, capacity: float) -> float:
 
 
 async def skill_manager_plugin(supervisor: SkillSupervisor) -> None:
-    """Run a Skill's manager as a supervisor plug-in (the controller is in the supervisor's context)."""
-    controller = supervisor.context["controller"]
-    manager = supervisor.context.get("manager")
+    """Run a Skill's manager as a supervisor plug-in (its host, the controller, is in the supervisor's context)."""
+    host = cast("SkillHost", supervisor.context["controller"])
+    manager = cast("SkillManager | None", supervisor.context.get("manager"))
     if manager is None:  # a restart after a crash keeps the manager's state
-        manager = supervisor.context["manager"] = SkillManager(controller, supervisor.skill)
+        manager = supervisor.context["manager"] = SkillManager(host, supervisor.skill)
     await manager.run(supervisor)

@@ -167,7 +167,7 @@ def controller_collector(controller: RobotController) -> AgentCollector:
 
     def routers() -> Iterator[tuple[str, Any]]:
         for skill_id, record in list(controller.skills.items()):
-            router = record.supervisor.context.get("router") if record.supervisor is not None else None
+            router = record.context("router")
             if router is not None:
                 yield skill_id, router
 

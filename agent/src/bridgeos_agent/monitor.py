@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 
 import psutil
 
-__all__ = ["Reporter", "ResourceMonitor", "Sample", "SimulatedRobot", "SystemRobot"]
+__all__ = ["RESOURCES", "Reporter", "ResourceMonitor", "Sample", "SimulatedRobot", "SystemRobot"]
 
-RESOURCES = ("cpu", "gpu", "ram", "bandwidth", "io")
+RESOURCES = ("cpu", "gpu", "ram", "bandwidth", "io")  # what a robot config and allocation count
 # Interface names that fit a metric name (veth pairs such as "veth1@if5" are left out).
 _NIC = re.compile(r"[A-Za-z0-9_.:-]{1,64}")
 

@@ -212,11 +212,11 @@ def performance_cost(location: Site, ros: bool, metrics: Metrics) -> float:
 def parse_cost_function_key(key: str) -> tuple[str, Site]:
     """Split a cost function key into its policy and location ('robot' means custom at robot)."""
     if key in LOCATIONS:
-        return "custom", key  # type: ignore[return-value]
+        return "custom", key
     policy, _, location = key.rpartition("_")
     if not policy or location not in LOCATIONS:
         raise ValueError(f"cost function key {key!r} must be 'robot', 'cloud', '<policy>_robot' or '<policy>_cloud'")
-    return policy, location  # type: ignore[return-value]
+    return policy, location
 
 
 def cost_function_names(user_constants: Iterable[str] = ()) -> frozenset[str]:

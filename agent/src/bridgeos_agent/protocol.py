@@ -3,6 +3,10 @@
 Sans-IO: nothing here touches a socket, an event loop or a clock. Times come in as
 ``now`` arguments (seconds, any monotonic or wall origin the caller picks), so the
 cloud's Channels consumers and the agent's transport share this module and its tests.
+
+Longer than 600 lines on purpose: this file is the one definition of every message (thesis
+Table 3.3) and of the reliability core both sides run; splitting it would scatter the
+definition the cloud and the robot must agree on.
 """
 
 from __future__ import annotations
@@ -67,8 +71,8 @@ __all__ = [
     "IdGenerator",
     "Location",
     "MetricPoint",
-    "Metrics",
     "MetricsGet",
+    "MetricsPayload",
     "Offloading",
     "OffloadingDecision",
     "OffloadingGet",
@@ -77,14 +81,14 @@ __all__ = [
     "Pending",
     "ProtocolError",
     "Reliable",
-    "RobotConfig",
     "RobotConfigGet",
+    "RobotConfigPayload",
     "RobotConfigUpdate",
     "RobotStart",
     "RobotStop",
     "Shutdown",
-    "SkillConfig",
     "SkillConfigGet",
+    "SkillConfigPayload",
     "SkillConnect",
     "SkillStart",
     "SkillStatus",
@@ -344,7 +348,7 @@ class RobotStop(RobotScoped):
     """Order a robot to stop operating and stay idle."""
 
 
-class RobotConfig(RobotScoped):
+class RobotConfigPayload(RobotScoped):
     """Carry a robot's configuration (validated by ``bridgeos_agent.robotconfig``)."""
 
     config: JsonObject
@@ -404,7 +408,7 @@ class SkillConnect(RobotScoped):
     manager_url: Url | None = None
 
 
-class SkillConfig(RobotScoped):
+class SkillConfigPayload(RobotScoped):
     """Carry a Skill's configuration (validated by ``bridgeos_agent.skillconfig``)."""
 
     skill: Slug
@@ -503,7 +507,7 @@ class MetricPoint(Payload):
     labels: Annotated[dict[LabelKey, LabelValue], Field(max_length=16)] | None = None
 
 
-class Metrics(RobotScoped):
+class MetricsPayload(RobotScoped):
     """Forward a batch of metric points."""
 
     metrics: Annotated[list[MetricPoint], Field(max_length=MAX_METRICS_PER_FRAME)]
@@ -660,7 +664,7 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.SHUTDOWN: Shutdown,
     Event.ROBOT_START: RobotStart,
     Event.ROBOT_STOP: RobotStop,
-    Event.ROBOT_CONFIG: RobotConfig,
+    Event.ROBOT_CONFIG: RobotConfigPayload,
     Event.ROBOT_CONFIG_GET: RobotConfigGet,
     Event.ROBOT_CONFIG_UPDATE: RobotConfigUpdate,
     Event.OFFLOADING: Offloading,
@@ -670,7 +674,7 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.SKILL_STATUS: SkillStatus,
     Event.SKILL_STATUS_GET: SkillStatusGet,
     Event.SKILL_CONNECT: SkillConnect,
-    Event.SKILL_CONFIG: SkillConfig,
+    Event.SKILL_CONFIG: SkillConfigPayload,
     Event.SKILL_CONFIG_GET: SkillConfigGet,
     Event.COMPONENT_START: ComponentStart,
     Event.COMPONENT_STOP: ComponentStop,
@@ -679,7 +683,7 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.COMPONENT_STATUS_GET: ComponentStatusGet,
     Event.COMPONENT_LOCATION: ComponentLocation,
     Event.COMPONENT_MIGRATE: ComponentMigrate,
-    Event.METRICS: Metrics,
+    Event.METRICS: MetricsPayload,
     Event.METRICS_GET: MetricsGet,
     Event.VOLUME_CHANGES: VolumeChanges,
     Event.VOLUME_CHUNKS_GET: VolumeChunksGet,

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import http.client
 import os
 import xmlrpc.client
+from typing import Any, cast
 from urllib.parse import urlsplit
 
 __all__ = ["DEFAULT_ROS_MASTER", "find_ros_master", "ros_master_answers"]
@@ -18,7 +20,7 @@ class _TimeoutTransport(xmlrpc.client.Transport):
         super().__init__()
         self.timeout = timeout
 
-    def make_connection(self, host):  # type: ignore[no-untyped-def]
+    def make_connection(self, host: Any) -> http.client.HTTPConnection:
         connection = super().make_connection(host)
         connection.timeout = self.timeout
         return connection
@@ -31,7 +33,8 @@ def ros_master_answers(uri: str, *, timeout: float = 1.0) -> bool:
         return False
     proxy = xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(timeout))
     try:
-        code, _, _ = proxy.getSystemState("/bridgeos_agent")
+        # [code, status message, system state]; a reply of another shape raises ValueError.
+        code, _, _ = cast(list[Any], proxy.getSystemState("/bridgeos_agent"))
     except (TimeoutError, OSError, xmlrpc.client.Error, ValueError):
         return False
     return code == 1

@@ -6,7 +6,9 @@ does what a router needs and no more: it registers publications, subscriptions a
 services with the master (batched in ``system.multicall`` requests), answers the slave API
 (``requestTopic``, ``publisherUpdate``, ``getBusInfo``, ``getPid``...), accepts TCPROS
 subscribers and service clients, connects to publishers, and hands each burst of message
-frames on as one ``bytes`` without decoding a message.
+frames on as one ``bytes`` without decoding a message. The topic connections themselves
+(publications, subscriptions, their TCPROS framing) live in ``rostopics``; their names are
+re-exported here.
 """
 
 from __future__ import annotations
@@ -16,17 +18,25 @@ import contextlib
 import itertools
 import logging
 import os
-import socket
 import xmlrpc.client
-from collections import deque
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
 from urllib.parse import urlsplit
 
 import aiohttp
 from aiohttp import web
 
-from bridgeos_agent.tcpros import HeaderError, decode_header, encode_header, split_frames
+from bridgeos_agent.rostopics import (
+    Inbound,
+    MessageCallback,
+    Outbound,
+    Publication,
+    Subscription,
+    iter_frames,
+    nodelay,
+    read_header,
+)
+from bridgeos_agent.tcpros import HeaderError, encode_header
 
 __all__ = [
     "Inbound",
@@ -42,300 +52,11 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 BATCH = 500  # master calls per system.multicall request
-QUEUE_MESSAGES = 1000  # per subscriber connection, once its socket stops taking data...
-QUEUE_BYTES = 16 << 20  # ...and at most this much of it (a thousand pointclouds would not fit a robot)
-HIGH_WATER = 1 << 20  # bytes the kernel-side write buffer may hold before a connection queues
-# A publisher whose bursts arrive closer than this is read in bursts of COALESCE_S instead: one
-# wakeup per message would cost the router several µs of CPU each (throughput under load beats a
-# fraction of a millisecond there; at nominal rates nothing waits).
-COALESCE_GAP_S = 0.0002
-COALESCE_S = 0.0005
-
 ServiceHandler = Callable[[dict[str, str], asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
-MessageCallback = Callable[["Subscription", bytes, int, "Inbound"], None]
 
 
 class MasterError(RuntimeError):
     """The ROS master refused a call or could not be reached."""
-
-
-def iter_frames(blob: bytes) -> Iterable[bytes]:
-    """Yield each whole frame (length prefix included) of a burst of frames."""
-    offset, end = 0, len(blob)
-    while offset < end:
-        size = int.from_bytes(blob[offset : offset + 4], "little")
-        yield blob[offset : offset + 4 + size]
-        offset += 4 + size
-
-
-async def read_header(reader: asyncio.StreamReader) -> dict[str, str]:
-    """Read one TCPROS connection header from a stream."""
-    size = int.from_bytes(await reader.readexactly(4), "little")
-    if size > 1 << 20:
-        raise HeaderError(f"connection header of {size} bytes")
-    return decode_header(await reader.readexactly(size))
-
-
-def _nodelay(transport: asyncio.BaseTransport) -> None:
-    sock = transport.get_extra_info("socket")
-    if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-
-
-class Outbound:
-    """One subscriber connected to a publication: a bounded queue once its socket backs up."""
-
-    __slots__ = (
-        "_flusher",
-        "backlog",
-        "backlog_bytes",
-        "callerid",
-        "closed",
-        "dropped",
-        "publication",
-        "transport",
-        "writer",
-    )
-
-    def __init__(self, publication: Publication, writer: asyncio.StreamWriter, callerid: str) -> None:
-        self.publication = publication
-        self.writer = writer
-        self.transport = writer.transport
-        self.callerid = callerid
-        self.backlog: deque[bytes] | None = None
-        self.backlog_bytes = 0
-        self.dropped = 0
-        self.closed = False
-        self._flusher: asyncio.Task | None = None
-
-    def send(self, blob: bytes, count: int) -> int:
-        """Write a burst with one write, or queue it while the peer is slow; return messages dropped."""
-        if self.closed:
-            return 0
-        if self.backlog is None:
-            if self.transport.get_write_buffer_size() <= HIGH_WATER:
-                self.transport.write(blob)
-                return 0
-            self.backlog = deque()
-            self._flusher = asyncio.get_running_loop().create_task(self._flush())
-        backlog = self.backlog
-        backlog.extend(iter_frames(blob) if count != 1 else (blob,))
-        self.backlog_bytes += len(blob)
-        # A stalled subscriber loses its own oldest messages; nobody else waits for it.
-        overflow = 0
-        while len(backlog) > QUEUE_MESSAGES or (self.backlog_bytes > QUEUE_BYTES and len(backlog) > 1):
-            self.backlog_bytes -= len(backlog.popleft())
-            overflow += 1
-        self.dropped += overflow
-        return overflow
-
-    async def _flush(self) -> None:
-        try:
-            while self.backlog:
-                await self.writer.drain()
-                data = b"".join(self.backlog)
-                self.backlog.clear()
-                self.backlog_bytes = 0
-                self.transport.write(data)
-                await self.writer.drain()
-        except (ConnectionError, RuntimeError):
-            self.close()
-        finally:
-            self.backlog = None
-            self.backlog_bytes = 0
-            self._flusher = None
-
-    def close(self) -> None:
-        """Close the connection and forget it."""
-        if not self.closed:
-            self.closed = True
-            self.transport.close()
-            with contextlib.suppress(ValueError):
-                self.publication.connections.remove(self)  # type: ignore[union-attr]
-
-
-class Publication:
-    """A topic the node publishes; message bytes are forwarded as given."""
-
-    __slots__ = ("connections", "definition", "md5sum", "name", "on_connect", "type")
-
-    def __init__(self, name: str, type_: str) -> None:
-        self.name = name
-        self.type = type_
-        self.md5sum = "*"  # unknown until a publisher upstream (or a subscriber) tells
-        self.definition = ""
-        # Kept small for routers of thousands of topics: a list only once someone subscribes.
-        self.connections: list[Outbound] | tuple[()] = ()
-        self.on_connect: Callable[[Outbound], None] | None = None
-
-    def send(self, blob: bytes, count: int) -> int:
-        """Send a burst of frames to every subscriber; return the messages dropped."""
-        dropped = 0
-        for connection in self.connections:
-            dropped += connection.send(blob, count)
-        return dropped
-
-    def reply_header(self, request: dict[str, str], callerid: str) -> dict[str, str]:
-        """Return the header answering a subscriber, echoing its type while ours is unknown."""
-        wanted = request.get("md5sum", "*")
-        if self.md5sum != "*" and wanted not in ("*", self.md5sum):
-            return {"error": f"{self.name}: md5sum {wanted} does not match {self.type}'s {self.md5sum}"}
-        if self.md5sum == "*" and wanted != "*":
-            return {
-                "callerid": callerid,
-                "md5sum": wanted,
-                "type": request.get("type", self.type),
-                "message_definition": request.get("message_definition", ""),
-                "latching": "0",
-                "topic": self.name,
-            }
-        return {
-            "callerid": callerid,
-            "md5sum": self.md5sum,
-            "type": self.type,
-            "message_definition": self.definition,
-            "latching": "0",
-            "topic": self.name,
-        }
-
-
-class Inbound(asyncio.Protocol):
-    """A TCPROS connection to one publisher: hands each burst of whole frames on at once."""
-
-    def __init__(self, subscription: Subscription, publisher: str) -> None:
-        self.subscription = subscription
-        self.publisher = publisher
-        self.header: dict[str, str] | None = None
-        self.transport: asyncio.Transport | None = None
-        self._buffer = bytearray()
-        self._last = 0.0
-        self._loop = asyncio.get_running_loop()
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-        _nodelay(transport)
-        sub = self.subscription
-        transport.write(  # type: ignore[attr-defined]
-            encode_header(
-                {
-                    "callerid": sub.node.name,
-                    "topic": sub.name,
-                    "md5sum": "*",
-                    "type": "*",
-                    "message_definition": "",
-                    "tcp_nodelay": "1",
-                }
-            )
-        )
-
-    def data_received(self, data: bytes) -> None:
-        now = self._loop.time()
-        if now - self._last < COALESCE_GAP_S and self.header is not None:
-            self.transport.pause_reading()
-            self._loop.call_later(COALESCE_S, self._resume)
-        self._last = now
-        buffer = self._buffer
-        if self.header is None:
-            buffer += data
-            if len(buffer) < 4:
-                return
-            size = int.from_bytes(buffer[:4], "little")
-            if len(buffer) < 4 + size:
-                return
-            try:
-                header = decode_header(bytes(buffer[4 : 4 + size]))
-            except HeaderError as exc:
-                logger.warning("%s: bad header from %s: %s", self.subscription.name, self.publisher, exc)
-                self.transport.close()
-                return
-            del buffer[: 4 + size]
-            if "error" in header:
-                logger.warning("%s: %s refused: %s", self.subscription.name, self.publisher, header["error"])
-                self.transport.close()
-                return
-            self.header = header
-            self.subscription.on_header(self)
-            if not buffer:
-                return
-            data = bytes(buffer)
-            buffer.clear()
-        elif buffer:
-            buffer += data
-            data = bytes(buffer)
-            buffer.clear()
-        try:
-            end, count = split_frames(data)
-        except HeaderError as exc:
-            logger.warning("%s: %s", self.subscription.name, exc)
-            self.transport.close()
-            return
-        if end < len(data):
-            buffer += data[end:]
-            data = data[:end]
-        if count:
-            self.subscription.callback(self.subscription, data, count, self)
-
-    def _resume(self) -> None:
-        if self.transport is not None and not self.transport.is_closing():
-            self.transport.resume_reading()
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.subscription.on_lost(self)
-
-
-_NO_CONNECTIONS: dict[str, Any] = {}  # shared, never written: every write replaces it first
-
-
-class Subscription:
-    """A topic the node subscribes to, whatever its type (md5sum ``*``, like AnyMsg)."""
-
-    __slots__ = ("callback", "connections", "name", "node", "owner", "type", "where")
-
-    def __init__(self, node: RosNode, name: str, type_: str, callback: MessageCallback) -> None:
-        self.node = node
-        self.name = name
-        self.type = type_
-        self.callback = callback
-        self.owner: Any = None  # whatever the node's user keeps here (the router: its topic)
-        self.where: str | None = None
-        # publisher API -> connection (None while connecting); a dict only once there are publishers
-        self.connections: dict[str, Inbound | None] = _NO_CONNECTIONS
-
-    @property
-    def connected(self) -> bool:
-        """Tell whether at least one publisher's connection is up."""
-        return any(c is not None and c.header is not None for c in self.connections.values())
-
-    def update(self, publishers: Iterable[str], *, complete: bool) -> None:
-        """Connect to new publishers; with ``complete``, drop those no longer listed."""
-        wanted = {uri for uri in publishers if uri != self.node.uri}
-        if wanted and self.connections is _NO_CONNECTIONS:
-            self.connections = {}
-        for uri in wanted - self.connections.keys():
-            self.connections[uri] = None
-            self.node.spawn(self.node.connect(self, uri))
-        if complete:
-            for uri in set(self.connections) - wanted:
-                connection = self.connections.pop(uri)
-                if connection is not None and connection.transport is not None:
-                    connection.transport.close()
-
-    def on_header(self, inbound: Inbound) -> None:
-        """Take the publisher's type, md5sum and definition for whoever forwards this topic."""
-        self.node.on_publisher_header(self, inbound)
-
-    def on_lost(self, inbound: Inbound) -> None:
-        """Forget a closed publisher connection."""
-        if self.connections.get(inbound.publisher) is inbound:
-            del self.connections[inbound.publisher]
-
-    def close(self) -> None:
-        """Close every publisher connection."""
-        for connection in self.connections.values():
-            if connection is not None and connection.transport is not None:
-                connection.transport.close()
-        self.connections = _NO_CONNECTIONS
 
 
 class RosNode:
@@ -429,9 +150,9 @@ class RosNode:
             await self._session.close()
             self._session = None
 
-    def spawn(self, coroutine: Awaitable[Any]) -> None:
+    def spawn(self, coroutine: Coroutine[Any, Any, Any]) -> None:
         """Run a coroutine the node owns (cancelled when it closes)."""
-        task = asyncio.get_running_loop().create_task(coroutine)  # type: ignore[arg-type]
+        task = asyncio.get_running_loop().create_task(coroutine)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
@@ -591,7 +312,7 @@ class RosNode:
     # ------------------------------------------------------------------ TCPROS server
 
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        _nodelay(writer.transport)
+        nodelay(writer.transport)
         try:
             header = await asyncio.wait_for(read_header(reader), 30)
         except (asyncio.IncompleteReadError, HeaderError, TimeoutError, ConnectionError):
@@ -621,7 +342,7 @@ class RosNode:
         outbound = Outbound(publication, writer, header.get("callerid", ""))
         if not publication.connections:
             publication.connections = []
-        publication.connections.append(outbound)  # type: ignore[union-attr]
+        publication.connections.append(outbound)
         if publication.on_connect is not None:
             publication.on_connect(outbound)
         try:

@@ -253,12 +253,16 @@ class ServiceRoute(_Model):
     server: Slug = Field(description="Id of the component serving the service.")
 
 
+def _only_get() -> list[HttpMethod]:
+    return ["GET"]
+
+
 class HttpRoute(_Model):
     """Proxy HTTP requests under a path prefix to a component."""
 
     component: Slug
     prefix: Annotated[str, StringConstraints(pattern=HTTP_PREFIX_PATTERN, max_length=256)] = "/"
-    methods: list[HttpMethod] = Field(default_factory=lambda: ["GET"], min_length=1)
+    methods: list[HttpMethod] = Field(default_factory=_only_get, min_length=1)
     port: Port | None = Field(
         default=None,
         description="Component port to forward to; the first port of its launch spec if unset.",

@@ -12,7 +12,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Literal
 
-from bridgeos_agent.allocation import ComponentState
+from bridgeos_agent.allocation import ComponentSnapshot
 from bridgeos_agent.heuristics import ZERO, Resources
 
 __all__ = ["CloudMonitor", "Transition", "plan_revert", "plan_takeover"]
@@ -20,7 +20,7 @@ __all__ = ["CloudMonitor", "Transition", "plan_revert", "plan_takeover"]
 Transition = Literal["takeover", "revert"]
 
 
-def plan_takeover(skills: Mapping[str, Mapping[str, ComponentState]], free: Resources) -> dict[str, list[str]]:
+def plan_takeover(skills: Mapping[str, Mapping[str, ComponentSnapshot]], free: Resources) -> dict[str, list[str]]:
     """Pick, per Skill, the cloud components to launch on the robot while the cloud is lost."""
     plan: dict[str, list[str]] = {}
     for skill_id, components in skills.items():

@@ -27,9 +27,13 @@ import tempfile
 from collections.abc import Awaitable, Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import CHUNK_BYTES, MAX_CHUNKS_PER_FRAME, VolumeChunks, VolumeFile
+
+if TYPE_CHECKING:
+    from bridgeos_agent.hosts import SkillHost
 
 __all__ = ["MAX_HASHES_PER_FRAME", "FileState", "VolumeReplica", "VolumeSync", "change_frames", "receive_changes"]
 
@@ -296,33 +300,43 @@ async def receive_changes(replica: VolumeReplica, changes: list[VolumeFile], req
 class VolumeSync:
     """The robot's side: scan each running Skill's volumes, send what changed, apply what the cloud sends."""
 
-    def __init__(self, controller: Any) -> None:
-        self.controller = controller
+    def __init__(self, host: SkillHost) -> None:
+        self.host = host
         self.replicas: dict[tuple[str, str], VolumeReplica] = {}
         self._unreachable: set[tuple[str, str]] = set()
+        self._failures: dict[tuple[str, str], LogOnce] = {}  # per volume: a scan failing every second is said once
         self.chunks_sent = 0  # chunks read for the cloud: what volume sync cost in data
 
     async def run(self) -> None:
         """Scan the volumes of every running Skill that may have a cloud copy, for as long as the agent runs."""
         import asyncio
 
-        interval = self.controller.settings.volume_sync_interval
+        interval = self.host.settings.volume_sync_interval
         if interval <= 0:
             return
         while True:
             await asyncio.sleep(interval)
-            if self.controller.ws is None:
+            if not self.host.connected.is_set():
                 continue  # nothing is lost: the next scan after reconnecting sees every change since
-            for skill_id, record in list(self.controller.skills.items()):
+            for skill_id, record in list(self.host.skills.items()):
                 if str(record.status) not in ("running", "starting") or not record.config.volumes:
                     continue
                 if all(c.location == "robot" for c in record.config.components.values()):
                     continue
                 for volume in record.config.volumes:
-                    try:
-                        await self.announce(skill_id, volume)
-                    except Exception:
-                        logger.exception("volume sync of %s/%s failed", skill_id, volume)
+                    await self._sync(skill_id, volume)
+
+    async def _sync(self, skill_id: str, volume: str) -> None:
+        """Announce one volume's changes; a failure is said once until it syncs again, and retried next scan."""
+        key = (skill_id, volume)
+        try:
+            await self.announce(skill_id, volume)
+        except Exception as exc:
+            # Any failure of one volume (disk, a file vanishing, the link) must not stop the others.
+            self._failures.setdefault(key, LogOnce(logger, f"volume sync of {skill_id}/{volume}")).failed(exc)
+        else:
+            if key in self._failures:
+                self._failures.pop(key).worked()
 
     async def announce(self, skill_id: str, volume: str) -> int:
         """Send one volume's changes since the last scan; return how many files changed."""
@@ -335,14 +349,14 @@ class VolumeSync:
             return 0
         changes = await asyncio.to_thread(replica.scan)
         for batch in change_frames(changes):
-            await self.controller.emit(Event.VOLUME_CHANGES, {"skill": skill_id, "volume": volume, "changes": batch})
+            await self.host.emit(Event.VOLUME_CHANGES, {"skill": skill_id, "volume": volume, "changes": batch})
         return len(changes)
 
     async def receive(self, payload: Any) -> int:
         """Apply the cloud's changes to one of our volumes, fetching the chunks we lack."""
         from bridgeos_agent.protocol import Event, ProtocolError, parse_payload
 
-        record = self.controller.skills.get(payload.skill)
+        record = self.host.skills.get(payload.skill)
         if record is None or payload.volume not in record.config.volumes:
             raise ProtocolError(f"no volume {payload.volume!r} in skill {payload.skill!r} here", code="not_found")
         replica = await self.replica(payload.skill, payload.volume)
@@ -351,10 +365,11 @@ class VolumeSync:
 
         async def request(refs: list[dict[str, Any]]) -> VolumeChunks:
             data = {"skill": payload.skill, "volume": payload.volume, "chunks": refs}
-            reply = await self.controller.request(Event.VOLUME_CHUNKS_GET, data, timeout=30.0)
-            if reply is None or reply.event != Event.VOLUME_CHUNKS:
+            reply = await self.host.request(Event.VOLUME_CHUNKS_GET, data, timeout=30.0)
+            chunks = parse_payload(reply) if reply is not None and reply.event == Event.VOLUME_CHUNKS else None
+            if not isinstance(chunks, VolumeChunks):
                 raise ProtocolError("the cloud did not send the chunks asked for", code="unavailable")
-            return parse_payload(reply)
+            return chunks
 
         return await receive_changes(replica, list(payload.changes), request)
 
@@ -375,13 +390,13 @@ class VolumeSync:
         key = (skill_id, volume)
         replica = self.replicas.get(key)
         if replica is None:
-            root = await local_volume_path(self.controller.runtime, skill_id, volume)
+            root = await local_volume_path(self.host.runtime, skill_id, volume)
             if root is None:
                 if key not in self._unreachable:
                     self._unreachable.add(key)
-                    self.controller.say(f"volume {skill_id}/{volume}: not readable here; it is not synced")
+                    self.host.say(f"volume {skill_id}/{volume}: not readable here; it is not synced")
                 return None
-            index = self.controller.data_dir / "volumesync" / skill_id / f"{volume}.json"
+            index = self.host.data_dir / "volumesync" / skill_id / f"{volume}.json"
             replica = self.replicas[key] = VolumeReplica(root, index)
         return replica
 
@@ -395,12 +410,14 @@ async def local_volume_path(runtime: Any, skill_id: str, volume: str) -> Path | 
     if hasattr(runtime, "volume_name"):
         # A Docker volume: its mountpoint on this host (readable as root).
         def mountpoint() -> Path | None:
-            import docker
+            import docker.client
+            import docker.errors
 
             try:
-                client = docker.from_env()
+                client = docker.client.from_env()
                 path = client.api.inspect_volume(runtime.volume_name(skill_id, volume))["Mountpoint"]
-            except Exception:
+            except (docker.errors.DockerException, OSError, KeyError) as exc:
+                logger.debug("volume %s/%s: no Docker mountpoint: %s", skill_id, volume, exc)
                 return None
             return Path(path) if os.access(path, os.R_OK | os.W_OK) else None
 

@@ -14,8 +14,9 @@ What the runtime creates, all labelled ``io.bridgeos.robot=<robot>`` and ``io.br
   and ``host.docker.internal`` resolving to the robot itself.
 
 Crashed containers are restarted by the agent, not by Docker's restart policy, so every
-restart is counted and reported. One thread follows Docker's event stream for all the
-robot's containers; a component's supervisor is a task waiting for its container's death.
+restart is counted and reported (``runtime.lifecycle``). One thread follows Docker's event
+stream for all the robot's containers (``runtime.engine``); a component's supervisor is a task
+waiting for its container's death.
 Docker SDK calls are blocking, so they run in one small thread pool sized to the SDK's
 connection pool; stats requests, which Docker holds until its next once-a-second
 collection, go straight to its unix socket from the event loop, all at once. Images are
@@ -25,7 +26,6 @@ never pulled: no registry is reachable from a robot here.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import dataclasses
 import functools
@@ -34,7 +34,6 @@ import logging
 import math
 import os
 import re
-import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -43,7 +42,6 @@ from pathlib import Path
 from typing import Any
 
 import docker.errors
-import docker.utils
 import requests
 from docker.api import APIClient
 from docker.types import DeviceRequest, IPAMConfig, IPAMPool, LogConfig, Mount
@@ -55,29 +53,26 @@ from bridgeos_agent.runtime.base import (
     ComponentState,
     RestartBudget,
     RestartPolicy,
-    Runtime,
     RuntimeFailure,
     Status,
     StatusCallback,
     Usage,
-    absent,
     check_ids,
-    give_up_message,
-    unrunnable,
 )
+from bridgeos_agent.runtime.engine import LABEL_ROBOT, DeathFollower, Deaths, open_client
+from bridgeos_agent.runtime.lifecycle import Supervised, SupervisedRuntime
+from bridgeos_agent.runtime.usage import MIB, docker_usage, get_json
 
-__all__ = ["LABEL_MANAGED", "LABEL_ROBOT", "VOLUMES_MOUNT", "DockerRuntime"]
+__all__ = ["LABEL_MANAGED", "LABEL_ROBOT", "MIN_CPUS", "MIN_MEMORY", "VOLUMES_MOUNT", "DockerRuntime"]
 
 logger = logging.getLogger(__name__)
 
-LABEL_ROBOT = "io.bridgeos.robot"
 LABEL_SKILL = "io.bridgeos.skill"
 LABEL_COMPONENT = "io.bridgeos.component"
 LABEL_MANAGED = "io.bridgeos.managed"
 LABEL_RESTART = "io.bridgeos.restart"
 VOLUMES_MOUNT = "/bridgeos/volumes"
 
-MIB = 1024 * 1024
 MIN_MEMORY = 6 * MIB  # Docker refuses smaller memory limits
 MIN_CPUS = 0.01  # and smaller CPU limits
 STATS_CONCURRENCY = 256  # stats requests in flight at once (one socket each)
@@ -88,112 +83,18 @@ ROS_NETWORKS = ("host", "bridge")
 DOCKER_NAME = re.compile(r"^[a-zA-Z0-9][a-zA-Z0-9_.-]*$")
 
 
-@dataclass(eq=False, slots=True)
-class _Container:
+@dataclass(eq=False, slots=True, kw_only=True)
+class _Container(Supervised):
     """Hold what the runtime knows and owns for one component's container."""
 
-    state: ComponentState
-    budget: RestartBudget
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)  # one Docker operation at a time
     container_id: str | None = None
-    supervisor: asyncio.Task[None] | None = None
-    stop_done: asyncio.Future[None] | None = None
+    exited: asyncio.Future[int | None] | None = None  # resolved when the current launch dies
     cpu_seen: tuple[float, float] | None = None  # (CPU seconds, Unix time) at the last stats()
     command: list[str] | None = None  # unknown for a container adopted without saved state
 
 
-class _DeathFollower:
-    """Follow the robot's container 'die' events in one thread and hand them to the loop."""
-
-    def __init__(
-        self,
-        robot: str,
-        loop: asyncio.AbstractEventLoop,
-        on_die: Callable[[str, int | None], None],
-        on_reconnect: Callable[[], None],
-    ) -> None:
-        self._robot = robot
-        self._loop = loop
-        self._on_die = on_die
-        self._on_reconnect = on_reconnect
-        self._closed = threading.Event()
-        self._stream: Any = None
-        self._thread: threading.Thread | None = None
-
-    def start(self, api: APIClient) -> None:
-        """Start following; events since this moment are delivered even if the stream lags."""
-        if self._thread is not None:
-            return
-        self._thread = threading.Thread(
-            target=self._run, args=(api, time.time()), name=f"bridgeos-docker-events-{self._robot}", daemon=True
-        )
-        self._thread.start()
-
-    def _run(self, api: APIClient, since: float) -> None:
-        """Read the event stream, reconnecting with backoff when Docker goes away."""
-        last_nano = 0
-        delay = 0.5
-        connected_before = False
-        filters = {"type": "container", "event": "die", "label": f"{LABEL_ROBOT}={self._robot}"}
-        while not self._closed.is_set():
-            try:
-                self._stream = api.events(since=f"{since:.9f}", filters=filters, decode=True)
-                if self._closed.is_set():  # closed while connecting: close() saw no stream
-                    self._stream.close()
-                    break
-                if connected_before:
-                    self._post(self._on_reconnect)
-                connected_before = True
-                delay = 0.5
-                for event in self._stream:
-                    nano = int(event.get("timeNano") or 0)
-                    if nano and nano <= last_nano:
-                        continue  # replayed after a reconnect
-                    last_nano = max(last_nano, nano)
-                    since = nano / 1e9 if nano else since
-                    code = (event.get("Actor") or {}).get("Attributes", {}).get("exitCode")
-                    self._post(self._on_die, event.get("id", ""), int(code) if code is not None else None)
-            except Exception as exc:
-                if not self._closed.is_set():
-                    logger.warning("Docker event stream failed (%s); reconnecting in %.1f s", exc, delay)
-            if self._closed.wait(delay):
-                break
-            delay = min(delay * 2, 10.0)
-
-    def _post(self, callback: Callable[..., None], *args: Any) -> None:
-        """Run a callback in the event loop, unless the loop is gone."""
-        with contextlib.suppress(RuntimeError):
-            self._loop.call_soon_threadsafe(callback, *args)
-
-    async def close(self) -> None:
-        """Stop following and wait for the thread to end."""
-        self._closed.set()
-        stream = self._stream
-        if stream is not None:
-            with contextlib.suppress(Exception):
-                stream.close()
-        if self._thread is not None:
-            await asyncio.to_thread(self._thread.join, 5.0)
-
-
-async def open_client(
-    docker_url: str | None, workers: int, executor: ThreadPoolExecutor
-) -> tuple[APIClient, str | None]:
-    """Connect to the engine (``docker_url``, else DOCKER_HOST, else its socket) with a pool for ``workers``.
-
-    Return the client and the engine's unix socket path (None over TCP); raise DockerException.
-    """
-    options: dict[str, Any] = docker.utils.kwargs_from_env()
-    if docker_url:
-        options["base_url"] = docker_url
-    url = options.get("base_url") or "unix:///var/run/docker.sock"
-    socket_path = url.removeprefix("unix://") if url.startswith("unix://") else None
-    options.update(version="auto", max_pool_size=workers + 2)
-    api = await asyncio.get_running_loop().run_in_executor(executor, functools.partial(APIClient, **options))
-    return api, socket_path
-
-
-class DockerRuntime(Runtime):
+class DockerRuntime(SupervisedRuntime[_Container]):
     """Launch components as Docker containers (the robot's production runtime)."""
 
     name = "docker"
@@ -232,11 +133,8 @@ class DockerRuntime(Runtime):
         self._network_ready = False
         self._network_lock = asyncio.Lock()
         self._volumes: dict[str, asyncio.Future[None]] = {}
-        self._records: dict[tuple[str, str], _Container] = {}
-        self._follower: _DeathFollower | None = None
-        self._waiters: dict[str, asyncio.Future[int | None]] = {}
-        # Deaths nobody waited for yet (e.g. between listing and watching an adopted container).
-        self._unclaimed: collections.OrderedDict[str, int | None] = collections.OrderedDict()
+        self._follower: DeathFollower | None = None
+        self._deaths = Deaths()
         self._reconciling: set[asyncio.Task[None]] = set()
         self._socket_path: str | None = None  # Docker's unix socket, when that is how we reach it
         self._stats_slots = asyncio.Semaphore(STATS_CONCURRENCY)
@@ -253,80 +151,8 @@ class DockerRuntime(Runtime):
 
     # --- the interface ---------------------------------------------------------------
 
-    async def start(self, spec: ComponentSpec) -> ComponentState:
-        """Create and start a component's container, or return its state if it runs."""
-        check_ids(spec.skill, spec.component, spec.volumes)
-        key = spec.key
-        rec = self._records.get(key)
-        while rec is not None and rec.stop_done is not None and not rec.stop_done.done():
-            await asyncio.shield(rec.stop_done)
-            rec = self._records.get(key)
-        if rec is not None and rec.state.status in ACTIVE:
-            async with rec.lock:  # a concurrent start of the same component finishes first
-                return dataclasses.replace(rec.state)
-        rec = _Container(
-            state=ComponentState(skill=spec.skill, component=spec.component, status=Status.STARTING),
-            budget=RestartBudget(spec.restart),
-            command=spec.launch.command,
-        )
-        self._records[key] = rec
-        self._notify(rec.state)
-        async with rec.lock:
-            try:
-                container_id, exited = await self._launch(spec)
-            except RuntimeFailure as exc:
-                rec.state.status = Status.FAILED
-                rec.state.message = str(exc)
-                self._notify(rec.state)
-                raise
-            state = rec.state
-            rec.container_id = container_id
-            state.pid_or_container_id = container_id
-            state.status = Status.RUNNING
-            state.started_at = time.time()
-            self._notify(state)
-            rec.supervisor = asyncio.create_task(
-                self._supervise(rec, exited), name=f"bridgeos-docker-{spec.skill}/{spec.component}"
-            )
-            return dataclasses.replace(state)
-
-    async def stop(self, skill: str, component: str, timeout: float = 10.0) -> ComponentState:
-        """Stop (SIGTERM, SIGKILL after ``timeout``) and remove a component's container."""
-        check_ids(skill, component)
-        rec = self._records.get((skill, component))
-        if rec is None:
-            return absent(skill, component)
-        if rec.stop_done is not None:
-            await asyncio.shield(rec.stop_done)
-            return dataclasses.replace(rec.state)
-        done = rec.stop_done = asyncio.get_running_loop().create_future()
-        try:
-            async with rec.lock:
-                if rec.supervisor is not None:
-                    # Cancelled first, so the death our stop causes is never taken for a crash.
-                    rec.supervisor.cancel()
-                    await asyncio.wait([rec.supervisor])
-                if rec.container_id is not None:
-                    rec.state.exit_code = await self._stop_container(rec.container_id, timeout)
-                rec.state.status = Status.STOPPED
-                self._notify(rec.state)
-        except BaseException:
-            rec.stop_done = None  # let a later stop() try again
-            raise
-        finally:
-            done.set_result(None)
-        return dataclasses.replace(rec.state)
-
-    async def status(self, skill: str, component: str) -> ComponentState:
-        """Return a component's current state (status 'absent' if unknown)."""
-        rec = self._records.get((skill, component))
-        return absent(skill, component) if rec is None else dataclasses.replace(rec.state)
-
-    async def logs(self, skill: str, component: str, tail: int = 100) -> list[str]:
+    async def _read_logs(self, skill: str, component: str, tail: int) -> list[str]:
         """Return the last ``tail`` lines of a component's container output."""
-        check_ids(skill, component)
-        if tail <= 0:
-            return []
         api = await self._connect()
         try:
             raw = await self._call(api.logs, self.container_name(skill, component), tail=tail)
@@ -353,7 +179,7 @@ class DockerRuntime(Runtime):
                 logger.debug("no stats for %s: %s", key, sample)
                 continue
             raw, now = sample
-            usage, cpu_seconds = _usage(raw)
+            usage, cpu_seconds = docker_usage(raw)
             seen_cpu, seen_at = rec.cpu_seen or (0.0, rec.state.started_at or now)
             # A restart resets the container's counters; then count from the restart.
             if cpu_seconds < seen_cpu:
@@ -363,28 +189,15 @@ class DockerRuntime(Runtime):
             result[key] = usage
         return result
 
-    def get_state(self) -> dict[str, Any]:
-        """Return the running containers (also found again by label if this is lost)."""
-        return {
-            "runtime": self.name,
-            "robot": self.robot,
-            "components": [
-                {
-                    "skill": skill,
-                    "component": component,
-                    "container_id": rec.container_id,
-                    "restarts": rec.state.restarts,
-                    "started_at": rec.state.started_at,
-                }
-                for (skill, component), rec in self._records.items()
-                if rec.container_id is not None and rec.state.status is Status.RUNNING
-            ],
-        }
+    def _saved(self, rec: _Container) -> dict[str, Any] | None:
+        """Keep a running container's id (it is also found again by label if this is lost)."""
+        if rec.container_id is None:
+            return None
+        return {"container_id": rec.container_id}
 
     async def load_state(self, state: Mapping[str, Any]) -> list[ComponentState]:
         """Re-adopt the robot's running containers, found by label; forget the rest."""
-        if state.get("runtime", self.name) != self.name:
-            logger.warning("ignoring saved state of the %r runtime", state.get("runtime"))
+        if self._foreign(state):
             state = {}
         api = await self._connect()
         saved = {
@@ -421,24 +234,15 @@ class DockerRuntime(Runtime):
                 ),
                 budget=RestartBudget(_policy_from_label(labels.get(LABEL_RESTART))),
                 container_id=container_id,
+                exited=self._deaths.expect(container_id),
             )
             self._records[(skill, component)] = rec
-            rec.supervisor = asyncio.create_task(
-                self._supervise(rec, self._expect_death(container_id)), name=f"bridgeos-docker-{skill}/{component}"
-            )
+            self._watch(rec)
             adopted.append(dataclasses.replace(rec.state))
         return adopted
 
-    async def close(self, stop_components: bool = False) -> None:
-        """Stop supervising and release the client; stop the containers too if asked."""
-        if stop_components:
-            await asyncio.gather(*(self.stop(*key) for key, rec in self._records.items() if rec.state.status in ACTIVE))
-        tasks = [rec.supervisor for rec in self._records.values() if rec.supervisor is not None]
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.wait(tasks)
-        self._records.clear()
+    async def _release(self) -> None:
+        """Stop following deaths and release the client and its threads."""
         if self._follower is not None:
             await self._follower.close()
         await asyncio.to_thread(self._executor.shutdown)
@@ -473,8 +277,8 @@ class DockerRuntime(Runtime):
                     api, self._socket_path = await open_client(self.docker_url, self._workers, self._executor)
                 except docker.errors.DockerException as exc:
                     raise RuntimeFailure(self._unreachable(exc)) from None
-                self._follower = _DeathFollower(
-                    self.robot, asyncio.get_running_loop(), self._on_death, self._on_reconnect
+                self._follower = DeathFollower(
+                    self.robot, asyncio.get_running_loop(), self._deaths.died, self._on_reconnect
                 )
                 self._follower.start(api)
                 self._api = api
@@ -633,13 +437,13 @@ class DockerRuntime(Runtime):
             ) from None
         except docker.errors.APIError as exc:
             raise RuntimeFailure(f"{who}: Docker could not create its container: {exc.explanation}") from None
-        exited = self._expect_death(container_id)
+        exited = self._deaths.expect(container_id)
         if running:
             return container_id, exited
         try:
             await self._call(api.start, container_id)
         except docker.errors.APIError as exc:
-            self._waiters.pop(container_id, None)
+            self._deaths.forget(container_id)
             with contextlib.suppress(docker.errors.APIError, RuntimeFailure):
                 await self._call(api.remove_container, container_id, force=True, v=True)
             raise RuntimeFailure(
@@ -672,13 +476,13 @@ class DockerRuntime(Runtime):
             return await self._call(_sample_stats, api, container_id)
         url = f"/v{api.api_version}/containers/{container_id}/stats?stream=0&one-shot=1"
         async with self._stats_slots:
-            raw = await _get_json(self._socket_path, url)
+            raw = await get_json(self._socket_path, url)
         return raw, time.time()
 
     async def _stop_container(self, container_id: str, timeout: float) -> int | None:
         """Stop and remove a container; return its exit code."""
         api = await self._connect()
-        self._waiters.pop(container_id, None)
+        self._deaths.forget(container_id)
         code = None
         try:
             await self._call(api.stop, container_id, timeout=math.ceil(timeout))
@@ -688,33 +492,14 @@ class DockerRuntime(Runtime):
             pass
         except docker.errors.APIError as exc:
             raise RuntimeFailure(f"Docker could not stop container {container_id[:12]}: {exc.explanation}") from None
-        self._unclaimed.pop(container_id, None)
+        self._deaths.forget_unclaimed(container_id)
         return code
 
     # --- supervision -------------------------------------------------------------------
 
-    def _expect_death(self, container_id: str) -> asyncio.Future[int | None]:
-        """Return a future resolved with the container's exit code when it dies."""
-        future: asyncio.Future[int | None] = asyncio.get_running_loop().create_future()
-        if container_id in self._unclaimed:
-            future.set_result(self._unclaimed.pop(container_id))
-        else:
-            self._waiters[container_id] = future
-        return future
-
-    def _on_death(self, container_id: str, code: int | None) -> None:
-        """Deliver a container's death to whoever waits for it."""
-        future = self._waiters.pop(container_id, None)
-        if future is not None and not future.done():
-            future.set_result(code)
-            return
-        self._unclaimed[container_id] = code
-        while len(self._unclaimed) > 256:
-            self._unclaimed.popitem(last=False)
-
     def _on_reconnect(self) -> None:
         """Check every watched container after the event stream was down: deaths may be lost."""
-        task = asyncio.create_task(self._reconcile(list(self._waiters)), name="bridgeos-docker-reconcile")
+        task = asyncio.create_task(self._reconcile(self._deaths.watched()), name="bridgeos-docker-reconcile")
         self._reconciling.add(task)
         task.add_done_callback(self._reconciling.discard)
 
@@ -725,59 +510,66 @@ class DockerRuntime(Runtime):
             try:
                 info = await self._call(api.inspect_container, container_id)
             except docker.errors.NotFound:
-                self._on_death(container_id, None)
+                self._deaths.died(container_id, None)
                 continue
             except (docker.errors.APIError, RuntimeFailure) as exc:
                 logger.warning("cannot check container %s: %s", container_id[:12], exc)
                 continue
             if not info.get("State", {}).get("Running"):
-                self._on_death(container_id, info.get("State", {}).get("ExitCode"))
+                self._deaths.died(container_id, info.get("State", {}).get("ExitCode"))
 
-    async def _supervise(self, rec: _Container, exited: asyncio.Future[int | None]) -> None:
-        """Restart a container that crashes, with backoff, until the policy gives up."""
+    def _guard(self, rec: _Container) -> asyncio.Lock:
+        """Serialise the Docker operations on one container."""
+        return rec.lock
+
+    def _new_record(self, spec: ComponentSpec) -> _Container:
+        """Return the record of a container about to be created."""
+        return _Container(
+            state=ComponentState(skill=spec.skill, component=spec.component, status=Status.STARTING),
+            budget=RestartBudget(spec.restart),
+            command=spec.launch.command,
+        )
+
+    async def _launch_first(self, rec: _Container, spec: ComponentSpec) -> None:
+        """Create and start the component's container."""
+        container_id, rec.exited = await self._launch(spec)
+        rec.container_id = container_id
+        state = rec.state
+        state.pid_or_container_id = container_id
+        state.status = Status.RUNNING
+        state.started_at = time.time()
+
+    async def _relaunch(self, rec: _Container) -> None:
+        """Start the crashed container again."""
         state = rec.state
         container_id = rec.container_id
-        if container_id is None:
-            return
-        api = await self._connect()
-        code = await asyncio.shield(exited)
-        while True:
-            state.exit_code = code
-            if code == 0:
-                state.status = Status.EXITED
-                self._notify(state)
-                return
-            who = f"component {state.skill}/{state.component}"
-            # docker-init runs the command, so a missing one only shows as exit 127.
-            message = unrunnable(code, who, rec.command)
-            delay = None if message else rec.budget.next_delay(time.monotonic())
-            if delay is None:
-                message = message or give_up_message(who, rec.budget.policy, code)
-                logger.warning("%s", message)
-                state.status = Status.FAILED
-                state.message = message
-                self._notify(state)
-                return
-            state.status = Status.RESTARTING
-            self._notify(state)
-            await asyncio.sleep(delay)
-            async with rec.lock:
-                exited = self._expect_death(container_id)
-                try:
-                    await self._call(api.start, container_id)
-                except (docker.errors.APIError, RuntimeFailure) as exc:
-                    self._waiters.pop(container_id, None)
-                    logger.warning("cannot restart %s: %s", who, exc)
-                    state.message = f"{who}: cannot restart its container: {exc}"
-                    code = None
-                    continue
-            state.restarts += 1
-            state.status = Status.RUNNING
-            state.exit_code = None
-            state.message = None
-            state.started_at = time.time()
-            self._notify(state)
-            code = await asyncio.shield(exited)
+        assert container_id is not None  # supervised only once created
+        who = f"component {state.skill}/{state.component}"
+        async with rec.lock:
+            rec.exited = self._deaths.expect(container_id)
+            try:
+                api = await self._connect()
+                await self._call(api.start, container_id)
+            except (docker.errors.APIError, RuntimeFailure) as exc:
+                self._deaths.forget(container_id)
+                raise RuntimeFailure(f"{who}: cannot restart its container: {exc}") from None
+        state.status = Status.RUNNING
+        state.exit_code = None
+        state.message = None
+        state.started_at = time.time()
+
+    def _exited(self, rec: _Container) -> asyncio.Future[int | None] | None:
+        """Return the future of the container's death."""
+        return rec.exited
+
+    def _command(self, rec: _Container) -> list[str] | None:
+        """Return the container's command (docker-init runs it: a missing one shows as exit 127)."""
+        return rec.command
+
+    async def _end(self, rec: _Container, timeout: float) -> None:
+        """Stop and remove the container."""
+        if rec.container_id is not None:
+            rec.state.exit_code = await self._stop_container(rec.container_id, timeout)
 
 
 def _policy_from_label(text: str | None) -> RestartPolicy:
@@ -790,49 +582,7 @@ def _policy_from_label(text: str | None) -> RestartPolicy:
         return RestartPolicy()
 
 
-async def _get_json(socket_path: str, url: str, timeout: float = 10.0) -> Any:
-    """GET a Docker API URL over its unix socket; HTTP/1.0, so the answer simply ends at EOF."""
-    async with asyncio.timeout(timeout):
-        reader, writer = await asyncio.open_unix_connection(socket_path)
-        try:
-            writer.write(f"GET {url} HTTP/1.0\r\nHost: docker\r\n\r\n".encode())
-            data = await reader.read()
-        finally:
-            writer.close()
-    head, _, body = data.partition(b"\r\n\r\n")
-    status = head.split(b"\r\n", 1)[0].decode("latin-1")
-    if status.split(" ")[1:2] != ["200"]:
-        raise RuntimeFailure(f"Docker answered {status!r} to GET {url}")
-    return json.loads(body)
-
-
 def _sample_stats(api: APIClient, container_id: str) -> tuple[dict[str, Any], float]:
     """Take one stats sample without Docker's one-second second sample."""
     raw = api.stats(container_id, stream=False, one_shot=True)
     return raw, time.time()
-
-
-def _usage(raw: Mapping[str, Any]) -> tuple[Usage, float]:
-    """Turn a Docker stats sample into usage and the container's total CPU seconds."""
-    cpu_seconds = ((raw.get("cpu_stats") or {}).get("cpu_usage") or {}).get("total_usage", 0) / 1e9
-    memory = raw.get("memory_stats") or {}
-    detail = memory.get("stats") or {}
-    # What `docker stats` shows: usage minus the page cache the kernel can drop.
-    cache = detail.get("inactive_file", detail.get("total_inactive_file", detail.get("cache", 0)))
-    ram = max(memory.get("usage", 0) - cache, 0) / MIB
-    networks = (raw.get("networks") or {}).values()
-    io_read = io_write = 0
-    for entry in (raw.get("blkio_stats") or {}).get("io_service_bytes_recursive") or ():
-        op = str(entry.get("op", "")).lower()
-        if op == "read":
-            io_read += entry.get("value", 0)
-        elif op == "write":
-            io_write += entry.get("value", 0)
-    usage = Usage(
-        ram=ram,
-        net_rx=sum(n.get("rx_bytes", 0) for n in networks),
-        net_tx=sum(n.get("tx_bytes", 0) for n in networks),
-        io_read=io_read,
-        io_write=io_write,
-    )
-    return usage, cpu_seconds

@@ -117,7 +117,7 @@ def render(scene: Scene, width: int, height: int, hfov_deg: float = 58.0, seed: 
     def take(candidate: np.ndarray, rgb: float | np.ndarray) -> None:
         closer = (candidate > 1e-6) & (candidate < t)
         t[closer] = candidate[closer]
-        color[closer] = rgb if np.isscalar(rgb) else rgb[closer]
+        color[closer] = rgb[closer] if isinstance(rgb, np.ndarray) else rgb
 
     with np.errstate(divide="ignore", invalid="ignore"):
         take(np.where(dz < 0, floor_z / dz, np.inf), _pack_rgb(120, 110, 100))

@@ -11,6 +11,7 @@ import argparse
 import collections
 import threading
 
+from bridgeos_agent.usecases.motion import Pose
 from bridgeos_agent.usecases.world import get_world
 
 
@@ -46,14 +47,14 @@ def main(argv: list[str]) -> int:
     scans_loss, odom_loss = LossCounter(), LossCounter()
     grid = args.world.grid(args.resolution)
     built = LogOddsMap(grid)
-    poses: collections.OrderedDict[int, object] = collections.OrderedDict()
+    poses: collections.OrderedDict[int, Pose] = collections.OrderedDict()
     waiting: collections.deque[LaserScan] = collections.deque()
     unpaired = 0
     publisher = rospy.Publisher("map", OccupancyGrid, queue_size=1, latch=True)
     # rospy runs each subscription's callbacks on a thread of its own.
     lock = threading.Lock()
 
-    def fold(scan: LaserScan, pose: object) -> None:
+    def fold(scan: LaserScan, pose: Pose) -> None:
         n = len(scan.ranges)
         angles = scan.angle_min + np.arange(n) * scan.angle_increment
         built.integrate(pose, angles, np.asarray(scan.ranges, dtype=np.float64), scan.range_max)

@@ -89,7 +89,7 @@ class Metrics:
             self._flush()
 
     def _flush(self) -> None:
-        batch = []
+        batch: list[dict[str, Any]] = []
         while len(batch) < 1000:
             try:
                 batch.append(self._pending.get_nowait())
@@ -158,6 +158,8 @@ def cloud_message(header: Any, points: np.ndarray, height: int = 1) -> Any:
     from sensor_msgs.msg import PointCloud2, PointField
 
     dtype = points.dtype
+    if dtype.fields is None or dtype.names is None:
+        raise ValueError("points must be a structured array with named float32 fields")
     fields = [
         PointField(name=name, offset=dtype.fields[name][1], datatype=PointField.FLOAT32, count=1)
         for name in dtype.names

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = ["WORLDS", "Grid", "World", "cast_rays", "disk_offsets", "get_world", "inflate"]
 
@@ -20,7 +21,7 @@ class Grid:
     width: int  # cells along x
     height: int  # cells along y
 
-    def cell(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    def cell(self, x: ArrayLike, y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return the (iy, ix) cell indices of points, unclipped."""
         ix = np.floor((np.asarray(x) - self.origin_x) / self.resolution).astype(np.int64)
         iy = np.floor((np.asarray(y) - self.origin_y) / self.resolution).astype(np.int64)

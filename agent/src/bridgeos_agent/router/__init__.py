@@ -1,0 +1,29 @@
+"""The Skill Router (thesis §3.4.2): hides where each component of a Skill runs.
+
+Every component instance runs in a namespace of its own (``rosnames.instance_namespace``),
+so the robot and cloud copies of a component never meet. The router relays each topic of
+the Skill's ``router`` section from the publisher's *active* instance to the canonical name
+and to every subscriber's active instance (and from outside publishers on the canonical
+name to the subscribers), proxies ROS services and HTTP routes to the server's active
+instance, and switches an instance active with one flag once the new one is ready. It
+forwards message bytes without decoding them, keeps one bounded queue per subscriber
+connection so a slow peer or a big topic never delays another, keeps the last N messages
+of marked topics for new instances, counts everything for the Skill Manager and publishes
+``rosgraph_msgs/TopicStatistics`` on ``/statistics``.
+"""
+
+from __future__ import annotations
+
+from bridgeos_agent.router.core import SkillRouter, skill_router_plugin
+from bridgeos_agent.router.settings import LOCATIONS, RouterSettings, Where, router_settings_from_env
+from bridgeos_agent.router.statistics import STATISTICS_TOPIC
+
+__all__ = [
+    "LOCATIONS",
+    "STATISTICS_TOPIC",
+    "RouterSettings",
+    "SkillRouter",
+    "Where",
+    "router_settings_from_env",
+    "skill_router_plugin",
+]
