@@ -96,8 +96,11 @@ class Session:
         self.reliable = self._new_reliable()
         self._replaying = False
         self._holding = False  # moving to another path: new frames wait in the outbox
-        self._dedup = protocol.Dedup(capacity=2000)
-        self._answers: dict[str, str] = {}  # command id -> the frame that answered it
+        # What an earlier agent applied (kept in the outbox's file) counts as seen: killed and
+        # restarted, the agent answers a resent command again rather than applying it twice.
+        applied = outbox.applied.load()
+        self._dedup = protocol.Dedup(capacity=outbox.applied.kept, ids=(frame_id for frame_id, _ in applied))
+        self._answers: dict[str, str] = dict(applied)  # command id -> the frame that answered it
         self._handling: set[str] = set()  # ids of frames whose handler has not answered yet
         self._requests = protocol.Correlator()
         self._replies: dict[str, asyncio.Future[Envelope | None]] = {}
@@ -399,8 +402,9 @@ class Session:
     async def _answer(self, envelope: Envelope, text: str) -> None:
         if envelope.event in protocol.REQUIRES_ACK:
             self._answers[envelope.id] = text
-            if len(self._answers) > 2000:
+            if len(self._answers) > self.outbox.applied.kept:
                 self._answers.pop(next(iter(self._answers)))
+            self.outbox.applied.add(envelope.id, text)
         await self.send_text(text)
 
 
