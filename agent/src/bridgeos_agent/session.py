@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import sqlite3
 import ssl
 import time
 from collections.abc import Awaitable, Callable, Mapping
@@ -21,6 +22,7 @@ import websockets.asyncio.client
 from websockets.client import backoff
 
 from bridgeos_agent import protocol
+from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.network import VPN, CloudNetwork, Target
 from bridgeos_agent.outbox import Outbox
 from bridgeos_agent.protocol import Envelope, Event, ProtocolError
@@ -101,6 +103,7 @@ class Session:
         applied = outbox.applied.load()
         self._dedup = protocol.Dedup(capacity=outbox.applied.kept, ids=(frame_id for frame_id, _ in applied))
         self._answers: dict[str, str] = dict(applied)  # command id -> the frame that answered it
+        self._remembering = LogOnce(logger, "keeping an applied command's id on disk")
         self._handling: set[str] = set()  # ids of frames whose handler has not answered yet
         self._requests = protocol.Correlator()
         self._replies: dict[str, asyncio.Future[Envelope | None]] = {}
@@ -404,7 +407,13 @@ class Session:
             self._answers[envelope.id] = text
             if len(self._answers) > self.outbox.applied.kept:
                 self._answers.pop(next(iter(self._answers)))
-            self.outbox.applied.add(envelope.id, text)
+            try:
+                self.outbox.applied.add(envelope.id, text)
+            except sqlite3.Error as exc:
+                # A full or read-only disk must not hold back the answer: only a restart forgets this id.
+                self._remembering.failed(exc)
+            else:
+                self._remembering.worked()
         await self.send_text(text)
 
 
