@@ -7,6 +7,7 @@ import secrets
 from pathlib import Path
 
 import dj_database_url
+from cryptography.fernet import Fernet
 
 from network.conf import network_settings
 
@@ -36,6 +37,30 @@ def _secret_key() -> str:
 
 
 SECRET_KEY = _secret_key()
+
+
+def _pki_key() -> str:
+    """Return the key sealing the VPN PKI's private keys: BRIDGEOS_PKI_KEY(_FILE), else one kept in DATA_DIR."""
+    configured = env_str("BRIDGEOS_PKI_KEY")
+    if configured:
+        return configured
+    path = DATA_DIR / "pki_key"
+    if not path.exists():
+        # Written aside and linked into place: daphne, Celery and manage.py starting together
+        # agree on one key, and none reads a half-written file.
+        draft = path.with_name(f"pki_key.{os.getpid()}.tmp")
+        draft.write_bytes(Fernet.generate_key())
+        draft.chmod(0o600)
+        try:
+            os.link(draft, path)
+        except FileExistsError:
+            pass  # another process made it first: use theirs
+        finally:
+            draft.unlink()
+    return path.read_text().strip()
+
+
+BRIDGEOS_PKI_KEY = _pki_key()
 DEBUG = env_bool("DEBUG", False)
 ALLOWED_HOSTS = env_list("ALLOWED_HOSTS", ["127.0.0.1", "localhost", "[::1]"])
 CSRF_TRUSTED_ORIGINS = env_list("CSRF_TRUSTED_ORIGINS", [])

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 from typing import Any
 
+from cryptography.fernet import Fernet
+from django.conf import settings
 from django.db import models
 from django.utils import timezone
 
 from robots.models import Robot
+
+from . import pki
 
 
 class CidrField(models.CharField):
@@ -26,6 +31,22 @@ class CidrField(models.CharField):
 
     def get_prep_value(self, value: Any) -> str | None:
         return None if value is None else str(ipaddress.ip_network(value, strict=True))
+
+
+@functools.cache
+def _sealing_key(secret: str) -> Fernet:
+    return pki.sealing_key(secret)
+
+
+class SealedTextField(models.TextField):
+    """A secret (a private key) encrypted at rest with BRIDGEOS_PKI_KEY; plain text in Python."""
+
+    def from_db_value(self, value: Any, expression: Any, connection: Any) -> str | None:
+        return None if value is None else pki.unseal(value, _sealing_key(settings.BRIDGEOS_PKI_KEY))
+
+    def get_prep_value(self, value: Any) -> str | None:
+        value = super().get_prep_value(value)
+        return None if value is None else pki.seal(value, _sealing_key(settings.BRIDGEOS_PKI_KEY))
 
 
 class Subnet(models.Model):
@@ -55,7 +76,7 @@ class Authority(models.Model):
 
     name = models.CharField(max_length=32, unique=True)
     cert_pem = models.TextField(blank=True)
-    key_pem = models.TextField()
+    key_pem = SealedTextField()
     created_at = models.DateTimeField(default=timezone.now, editable=False)
 
     class Meta:
@@ -71,7 +92,7 @@ class ClientCertificate(models.Model):
     robot = models.OneToOneField(Robot, on_delete=models.CASCADE, related_name="vpn_certificate")
     serial = models.CharField(max_length=64, unique=True)
     cert_pem = models.TextField()
-    key_pem = models.TextField()
+    key_pem = SealedTextField()
     not_after = models.DateTimeField()
     created_at = models.DateTimeField(default=timezone.now, editable=False)
 

@@ -2,19 +2,44 @@
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import ipaddress
 import secrets
 from collections.abc import Iterable
 from datetime import datetime, timedelta
 
 from cryptography import x509
+from cryptography.fernet import Fernet, InvalidToken
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-__all__ = ["issue", "key_pem", "load_cert", "load_key", "make_ca", "make_crl", "new_key", "pem", "tls_crypt_key"]
+__all__ = [
+    "SEALED",
+    "SealError",
+    "issue",
+    "key_pem",
+    "load_cert",
+    "load_key",
+    "make_ca",
+    "make_crl",
+    "new_key",
+    "pem",
+    "seal",
+    "sealing_key",
+    "tls_crypt_key",
+    "unseal",
+]
 
 Key = ec.EllipticCurvePrivateKey
+
+# What a sealed secret starts with; a PEM never does, so plain rows from before sealing are told apart.
+SEALED = "sealed:fernet:"
+
+
+class SealError(ValueError):
+    """A sealed secret cannot be opened: the sealing key is not the one it was sealed with."""
 
 
 def new_key() -> Key:
@@ -110,7 +135,7 @@ def pem(obj: x509.Certificate | x509.CertificateRevocationList) -> str:
 
 
 def key_pem(key: Key) -> str:
-    """Return a private key as unencrypted PKCS#8 PEM text (kept in the database, served only to its owner)."""
+    """Return a private key as unencrypted PKCS#8 PEM text (sealed in the database, served only to its owner)."""
     return key.private_bytes(
         serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
     ).decode()
@@ -133,3 +158,31 @@ def tls_crypt_key() -> str:
     body = secrets.token_hex(256)
     lines = [body[i : i + 32] for i in range(0, len(body), 32)]
     return "-----BEGIN OpenVPN Static key V1-----\n" + "\n".join(lines) + "\n-----END OpenVPN Static key V1-----\n"
+
+
+def sealing_key(secret: str) -> Fernet:
+    """Make the Fernet that seals secrets at rest: ``secret`` is a Fernet key, or any passphrase (its SHA-256)."""
+    try:
+        return Fernet(secret.strip().encode())
+    except ValueError:
+        return Fernet(base64.urlsafe_b64encode(hashlib.sha256(secret.encode()).digest()))
+
+
+def seal(text: str, fernet: Fernet) -> str:
+    """Encrypt and authenticate a secret (AES-128-CBC + HMAC-SHA256) for storing; sealed text is kept as is."""
+    if text.startswith(SEALED):
+        return text
+    return SEALED + fernet.encrypt(text.encode()).decode()
+
+
+def unseal(text: str, fernet: Fernet) -> str:
+    """Open a sealed secret; plain text (stored before sealing existed) is returned as is."""
+    if not text.startswith(SEALED):
+        return text
+    try:
+        return fernet.decrypt(text[len(SEALED) :].encode()).decode()
+    except InvalidToken:
+        raise SealError(
+            "a private key of the VPN PKI cannot be unsealed: BRIDGEOS_PKI_KEY (or the generated"
+            " pki_key in the data dir) is not the key it was sealed with"
+        ) from None

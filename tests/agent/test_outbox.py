@@ -136,3 +136,19 @@ def test_the_real_machine_is_read_per_interface():
     assert all(v >= 0 for k, v in sample.values.items() if k.startswith(("net_rx:", "net_tx:")))
     assert not any(k.endswith(":lo") for k in sample.values)
     assert sample.free["cpu"] <= 2 - 0.5
+
+
+def test_applied_frame_ids_survive_a_restart_bounded_to_the_newest(tmp_path):
+    box = Outbox(tmp_path / "outbox.sqlite3")
+    box.applied.kept = 300
+    for n in range(1000):
+        box.applied.add(f"cmd-{n}", f"answer-{n}")
+    box.applied.add("cmd-999", "answer-999")  # answered again: still one row
+    box.close()
+    reopened = Outbox(tmp_path / "outbox.sqlite3")
+    reopened.applied.kept = 300
+    remembered = reopened.applied.load()
+    assert remembered[-1] == ("cmd-999", "answer-999")
+    assert [frame_id for frame_id, _ in remembered] == [f"cmd-{n}" for n in range(700, 1000)]
+    # Trimmed every 200 additions: never more than kept + 200 rows on disk.
+    assert 300 <= len(reopened.applied) <= 500

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import sqlite3
 import time
 
 import websockets
@@ -63,3 +64,62 @@ async def test_an_unacked_frame_is_sent_again_after_its_backoff_and_dropped_once
             controller.stop()
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.wait_for(running, 15)
+
+
+async def test_a_command_is_answered_even_when_its_id_cannot_be_kept_on_disk(tmp_path, caplog):
+    answers: dict[str, Envelope] = {}
+    connected = asyncio.Event()
+    cloud_ws = []
+
+    async def cloud(ws):
+        protocol.decode(await ws.recv())  # authentication_robot
+        await ws.send(
+            protocol.encode(protocol.make(Event.AUTHENTICATION_SUCCESS, {"robot": "sess-2"}, now=time.time()))
+        )
+        cloud_ws.append(ws)
+        connected.set()
+        async for raw in ws:
+            envelope = protocol.decode(raw)
+            if envelope.reply_to:
+                answers[envelope.reply_to] = envelope
+
+    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
+        port = server.sockets[0].getsockname()[1]
+        settings = AgentSettings(
+            master=f"ws://127.0.0.1:{port}",
+            robot="sess-2",
+            token="token",
+            data_dir=tmp_path,
+            simulate=True,
+            detect_ros_master=False,
+            volume_sync_interval=0,
+        )
+        controller = RobotController(settings, plugins={})
+        running = asyncio.create_task(controller.run())
+        try:
+            await asyncio.wait_for(connected.wait(), 10)
+            kept = protocol.make(Event.OFFLOADING, {"mode": "manual"}, now=time.time())
+            await cloud_ws[0].send(protocol.encode(kept))
+            await asyncio.wait_for(_answered(answers, kept.id), 5)
+            # The outbox's file refuses writes now (as a full disk would): the answer still comes.
+            db: sqlite3.Connection = controller.outbox._db
+            db.execute("PRAGMA query_only=ON")
+            try:
+                lost = protocol.make(Event.OFFLOADING, {"mode": "auto"}, now=time.time())
+                await cloud_ws[0].send(protocol.encode(lost))
+                await asyncio.wait_for(_answered(answers, lost.id), 10)
+            finally:
+                db.execute("PRAGMA query_only=OFF")
+            assert answers[lost.id].event == Event.ACK
+            assert "keeping an applied command's id on disk failed" in caplog.text
+            remembered = [frame_id for frame_id, _ in controller.outbox.applied.load()]
+            assert kept.id in remembered and lost.id not in remembered
+        finally:
+            controller.stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.wait_for(running, 15)
+
+
+async def _answered(answers: dict[str, Envelope], frame_id: str) -> None:
+    while frame_id not in answers:
+        await asyncio.sleep(0.02)

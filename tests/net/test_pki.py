@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import importlib
 import subprocess
 from datetime import UTC, datetime
 
 import pytest
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID
+from django.apps import apps
 from django.contrib.auth import get_user_model
+from django.db import connection
 
 from bridgeos_agent.firewall import RobotNetwork, cloud_rules, robot_rules
 from network import openvpn, pki, services
-from network.models import ClientCertificate, Revocation
+from network.models import Authority, ClientCertificate, Revocation
 from robots.models import Robot
 from robots.services import create_robot, delete_robot, rotate_token
 from tests.net import netns
@@ -144,3 +147,46 @@ def test_nft_loads_both_rulesets_and_replaces_them_atomically():
         assert [line for line in listing if line] == ["table inet bridgeos"]
     finally:
         world.close()
+
+
+def raw_keys() -> list[str]:
+    """Return the key_pem columns as the database holds them."""
+    with connection.cursor() as cursor:
+        cursor.execute("SELECT key_pem FROM network_authority UNION ALL SELECT key_pem FROM network_clientcertificate")
+        return [row[0] for row in cursor.fetchall()]
+
+
+@pytest.mark.django_db
+def test_private_keys_are_sealed_in_the_database_and_open_in_python():
+    robot, _ = create_robot("sealed-1", get_user_model().objects.create_user("sealed-owner"))
+    cert = services.client_certificate(robot)
+    services.authority("tls-crypt")
+    stored = raw_keys()
+    assert len(stored) >= 3  # the CA, the tls-crypt key and the robot's key at least
+    for text in stored:
+        assert text.startswith(pki.SEALED)
+        assert "PRIVATE KEY" not in text and "OpenVPN Static key" not in text
+    # Read back through the model, the key is the one that matches the robot's certificate.
+    key = pki.load_key(ClientCertificate.objects.get(robot=robot).key_pem)
+    assert key.public_key() == pki.load_cert(cert.cert_pem).public_key()
+
+
+@pytest.mark.django_db
+def test_the_migration_seals_keys_stored_plain_before_it():
+    robot, _ = create_robot("sealed-2", get_user_model().objects.create_user("sealed-owner-2"))
+    services.client_certificate(robot)
+    ca_plain = Authority.objects.get(name="ca").key_pem
+    with connection.cursor() as cursor:  # as an older cloud left them
+        cursor.execute("UPDATE network_authority SET key_pem = %s WHERE name = 'ca'", [ca_plain])
+    assert ca_plain in raw_keys()
+    migration = importlib.import_module("network.migrations.0002_sealed_private_keys")
+    migration.seal_existing(apps, None)
+    assert all(text.startswith(pki.SEALED) and "PRIVATE KEY" not in text for text in raw_keys())
+    assert Authority.objects.get(name="ca").key_pem == ca_plain
+
+
+def test_a_sealed_key_opens_only_with_its_sealing_key():
+    sealed = pki.seal("-----BEGIN PRIVATE KEY-----\nx\n", pki.sealing_key("one passphrase"))
+    assert pki.unseal(sealed, pki.sealing_key("one passphrase")).startswith("-----BEGIN PRIVATE KEY")
+    with pytest.raises(pki.SealError, match="BRIDGEOS_PKI_KEY"):
+        pki.unseal(sealed, pki.sealing_key("another"))

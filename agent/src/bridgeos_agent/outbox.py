@@ -8,6 +8,10 @@ Bound: the store holds at most ``max_bytes`` of frames. Past that, the oldest ha
 metric frames is thinned to every other frame (halving the time resolution of old metrics,
 again and again if needed) and, when only state events are left, nothing more is dropped:
 state events are never discarded, whatever their volume.
+
+The same file remembers the ids of the cloud's frames this robot applied (and the answer it
+gave), the newest ``APPLIED_KEPT``, so a command the cloud resends after the agent was killed
+and restarted is answered again, not applied twice.
 """
 
 from __future__ import annotations
@@ -20,9 +24,12 @@ from pathlib import Path
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
 
-__all__ = ["Outbox", "OutboxStats"]
+__all__ = ["AppliedFrames", "Outbox", "OutboxStats"]
 
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
+# As many applied ids as the session's in-memory dedup window; trimmed every APPLIED_TRIM_EVERY adds.
+APPLIED_KEPT = 2000
+APPLIED_TRIM_EVERY = 200
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS outbox (
@@ -32,6 +39,11 @@ CREATE TABLE IF NOT EXISTS outbox (
     frame TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS outbox_metrics ON outbox (metrics, seq);
+CREATE TABLE IF NOT EXISTS applied (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    id TEXT NOT NULL UNIQUE,
+    answer TEXT NOT NULL
+);
 """
 
 
@@ -63,6 +75,7 @@ class Outbox:
         self._db.executescript(SCHEMA)
         self._bytes = self._db.execute("SELECT coalesce(sum(length(frame)), 0) FROM outbox").fetchone()[0]
         self.thinned_frames = 0
+        self.applied = AppliedFrames(self._db)
 
     def put(self, envelope: Envelope) -> str:
         """Store a frame before it is sent; return its encoded text. A stored id is kept as is."""
@@ -138,3 +151,34 @@ class Outbox:
                 self._db.execute(f"DELETE FROM outbox WHERE seq IN ({marks})", part)
             self._bytes -= freed
             self.thinned_frames += len(victims)
+
+
+class AppliedFrames:
+    """The ids of the cloud's frames this robot applied, with the answer it gave, kept on disk."""
+
+    def __init__(self, db: sqlite3.Connection, *, kept: int = APPLIED_KEPT) -> None:
+        self._db = db
+        self.kept = kept
+        self._added = 0
+
+    def add(self, frame_id: str, answer: str) -> None:
+        """Remember that a frame was applied and how it was answered (no fsync: WAL, synchronous=NORMAL)."""
+        self._db.execute("INSERT OR REPLACE INTO applied (id, answer) VALUES (?, ?)", (frame_id, answer))
+        self._added += 1
+        if self._added >= APPLIED_TRIM_EVERY:
+            self._added = 0
+            self._trim()
+
+    def load(self) -> list[tuple[str, str]]:
+        """Return (id, answer) of the newest ``kept`` applied frames, oldest first."""
+        rows = self._db.execute("SELECT id, answer FROM applied ORDER BY seq DESC LIMIT ?", (self.kept,)).fetchall()
+        return rows[::-1]
+
+    def __len__(self) -> int:
+        return self._db.execute("SELECT count(*) FROM applied").fetchone()[0]
+
+    def _trim(self) -> None:
+        """Forget all but the newest ``kept`` ids."""
+        self._db.execute(
+            "DELETE FROM applied WHERE seq <= (SELECT coalesce(max(seq), 0) FROM applied) - ?", (self.kept,)
+        )

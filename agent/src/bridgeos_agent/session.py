@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import sqlite3
 import ssl
 import time
 from collections.abc import Awaitable, Callable, Mapping
@@ -21,6 +22,7 @@ import websockets.asyncio.client
 from websockets.client import backoff
 
 from bridgeos_agent import protocol
+from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.network import VPN, CloudNetwork, Target
 from bridgeos_agent.outbox import Outbox
 from bridgeos_agent.protocol import Envelope, Event, ProtocolError
@@ -96,8 +98,12 @@ class Session:
         self.reliable = self._new_reliable()
         self._replaying = False
         self._holding = False  # moving to another path: new frames wait in the outbox
-        self._dedup = protocol.Dedup(capacity=2000)
-        self._answers: dict[str, str] = {}  # command id -> the frame that answered it
+        # What an earlier agent applied (kept in the outbox's file) counts as seen: killed and
+        # restarted, the agent answers a resent command again rather than applying it twice.
+        applied = outbox.applied.load()
+        self._dedup = protocol.Dedup(capacity=outbox.applied.kept, ids=(frame_id for frame_id, _ in applied))
+        self._answers: dict[str, str] = dict(applied)  # command id -> the frame that answered it
+        self._remembering = LogOnce(logger, "keeping an applied command's id on disk")
         self._handling: set[str] = set()  # ids of frames whose handler has not answered yet
         self._requests = protocol.Correlator()
         self._replies: dict[str, asyncio.Future[Envelope | None]] = {}
@@ -399,8 +405,15 @@ class Session:
     async def _answer(self, envelope: Envelope, text: str) -> None:
         if envelope.event in protocol.REQUIRES_ACK:
             self._answers[envelope.id] = text
-            if len(self._answers) > 2000:
+            if len(self._answers) > self.outbox.applied.kept:
                 self._answers.pop(next(iter(self._answers)))
+            try:
+                self.outbox.applied.add(envelope.id, text)
+            except sqlite3.Error as exc:
+                # A full or read-only disk must not hold back the answer: only a restart forgets this id.
+                self._remembering.failed(exc)
+            else:
+                self._remembering.worked()
         await self.send_text(text)
 
 
