@@ -22,8 +22,8 @@ from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
-from skills.orchestration import cloud_reports
-from skills.volumes import CloudVolumes
+from skills.cloud.reporting import cloud_reports
+from skills.cloud.volumes import CloudVolumes
 
 from . import dedup, services
 from .dedup import applied_ids

@@ -89,7 +89,7 @@ def authenticate_robot(robot_id: str, token: str) -> Robot | None:
 
 def mark_connected(robot_id: str, channel: str, ros_master: str | None = None) -> dict[str, Any]:
     """Record that a robot connected on a channel; return its config and the ROS master to use."""
-    from skills.orchestration import ros_master_for
+    from skills.cloud.masters import ros_master_for
 
     now = timezone.now()
     with transaction.atomic():

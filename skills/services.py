@@ -22,7 +22,7 @@ from monitoring.services import record_event
 from robots.models import Robot
 from robots.services import client_frame
 
-from . import orchestration
+from .cloud import orchestration
 from .models import Component, Skill, SkillTemplate
 
 if TYPE_CHECKING:

@@ -1,4 +1,4 @@
-"""Celery tasks of the cloud orchestration: thin doors to `skills.orchestration`.
+"""Celery tasks of the cloud orchestration: thin doors to `skills.cloud`.
 
 Each takes primary keys (and the launch token of the request it serves), is acknowledged
 only once done (``acks_late``; a worker that dies mid-task has it redelivered, and the
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from celery import Task, shared_task
 
-from . import orchestration
-from .orchestration import TryAgain
+from .cloud import converge, masters, reconcile
+from .cloud.orchestration import TryAgain
 
 RETRIES = 4
 
@@ -24,11 +24,11 @@ def _backoff(retries: int) -> float:
 def start_cloud_component(self: Task, instance_id: int, token: str) -> str:
     """Run a component's cloud copy for the start request with this token."""
     try:
-        return orchestration.converge(instance_id, token)
+        return converge.converge(instance_id, token)
     except TryAgain as exc:
         if self.request.retries < self.max_retries:
             raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from None
-        orchestration.give_up(instance_id, token, f"gave up after {self.max_retries + 1} attempts: {exc}")
+        converge.give_up(instance_id, token, f"gave up after {self.max_retries + 1} attempts: {exc}")
         return "failed"
 
 
@@ -36,7 +36,7 @@ def start_cloud_component(self: Task, instance_id: int, token: str) -> str:
 def stop_cloud_component(self: Task, instance_id: int, token: str) -> str:
     """Remove a component's cloud copy for the stop request with this token."""
     try:
-        return orchestration.converge(instance_id, token)
+        return converge.converge(instance_id, token)
     except TryAgain as exc:
         if self.request.retries < self.max_retries:
             raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from None
@@ -48,7 +48,7 @@ def stop_cloud_component(self: Task, instance_id: int, token: str) -> str:
 def ensure_ros_master(self: Task, robot_id: str) -> str:
     """Run (or stop) a robot's dedicated ROS master as its row says."""
     try:
-        return orchestration.converge_ros_master(robot_id)
+        return masters.converge_ros_master(robot_id)
     except TryAgain as exc:
         if self.request.retries < self.max_retries:
             raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from None
@@ -58,4 +58,4 @@ def ensure_ros_master(self: Task, robot_id: str) -> str:
 @shared_task(acks_late=True, ignore_result=True)
 def reconcile_cloud() -> dict[str, int]:
     """Compare the desired cloud copies with what runs and fix the difference."""
-    return orchestration.reconcile()
+    return reconcile.reconcile()

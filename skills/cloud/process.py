@@ -33,7 +33,7 @@ from bridgeos_agent.runtime.base import (
 )
 from bridgeos_agent.runtime.process import ProcessRuntime, _adopt, _measure, _signal_group
 
-from .cloudruntime import (
+from .runtime import (
     KIND_COMPONENT,
     KIND_ROS_MASTER,
     MASTER_COMPONENT,

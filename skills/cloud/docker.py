@@ -33,7 +33,7 @@ from bridgeos_agent.runtime.base import (
 )
 from bridgeos_agent.runtime.docker import VOLUMES_MOUNT, DockerRuntime, _usage
 
-from .cloudruntime import (
+from .runtime import (
     KIND_COMPONENT,
     KIND_ROS_MASTER,
     LABEL_CLOUD,
@@ -54,6 +54,7 @@ from .cloudruntime import (
     ros_networking,
     volumes_root,
 )
+from .swarmspec import cpu_share
 
 __all__ = ["CloudDockerRuntime"]
 
@@ -115,13 +116,12 @@ class CloudDockerRuntime(DockerRuntime, CloudRuntime):
         samples = await asyncio.gather(
             *(self._call(api.stats, c["Id"], stream=False) for c in containers), return_exceptions=True
         )
-        from .swarm import _cpu_share
 
         for container, raw in zip(containers, samples, strict=True):
             if isinstance(raw, BaseException):
                 continue
             usage, _ = _usage(raw)
-            usage.cpu = _cpu_share(raw)
+            usage.cpu = cpu_share(raw)
             result[(container["Labels"].get(LABEL_SKILL, ""), container["Labels"].get(LABEL_COMPONENT, ""))] = usage
         return result
 

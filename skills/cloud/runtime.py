@@ -215,11 +215,11 @@ def create_cloud_runtime(robot: str, name: str | None = None) -> CloudRuntime:
 
         return SwarmRuntime(robot, data_dir=data_dir)
     if name == "docker":
-        from .clouddocker import CloudDockerRuntime
+        from .docker import CloudDockerRuntime
 
         return CloudDockerRuntime(robot, data_dir=data_dir)
     if name == "process":
-        from .cloudprocess import CloudProcessRuntime
+        from .process import CloudProcessRuntime
 
         return CloudProcessRuntime(robot, data_dir=data_dir)
     raise ConfigError(f"unknown cloud runtime {name!r}: use one of {', '.join(RUNTIMES)}")
