@@ -15,7 +15,6 @@ from django.core.exceptions import ValidationError
 
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
-from bridgeos_cloud import bruteforce
 from bridgeos_cloud.consumers import CLOSE_TOO_MANY_FAILURES, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
 from monitoring.ingest import get_writer
@@ -127,11 +126,11 @@ class RobotConsumer(ProtocolConsumer):
         """Check the robot's id and token, mark it connected and send it its config."""
         credentials = protocol.parse_payload(envelope)
         address = (self.scope.get("client") or ["?"])[0]
-        if await database_sync_to_async(bruteforce.blocked)("robot", credentials.robot, address):
+        try:
+            robot = await database_sync_to_async(services.login_robot)(credentials.robot, credentials.token, address)
+        except services.LoginBlocked:
             await self.refuse("too many failed attempts; try again later", envelope.id, CLOSE_TOO_MANY_FAILURES)
             return False
-        robot = await database_sync_to_async(services.authenticate_robot)(credentials.robot, credentials.token)
-        await database_sync_to_async(bruteforce.attempted)("robot", credentials.robot, address, robot is not None)
         if robot is None:
             await self.refuse("unknown robot or wrong token", reply_to=envelope.id)
             return False

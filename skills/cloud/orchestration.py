@@ -10,7 +10,9 @@ import secrets
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
+from celery import current_app
 from django.conf import settings
+from django.core.exceptions import ValidationError
 from django.db import transaction
 
 from bridgeos_agent.protocol import ComponentStatusName as CS
@@ -18,14 +20,15 @@ from bridgeos_agent.protocol import Location
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.runtime.base import RuntimeFailure
 from bridgeos_agent.skillconfig import parse_skill_config
+from network.ipam import subnets
 from robots.models import Robot
 
 from ..models import CloudInstance, Component
+from .backends import create_cloud_runtime
 from .runtime import (
     NO_RESTARTS,
     CloudRuntime,
     CloudSpec,
-    create_cloud_runtime,
     object_name,
     ros_networking,
     runtime_name,
@@ -115,10 +118,8 @@ def request_stop(component: Component) -> CloudInstance:
 
 def enqueue_on_commit(task_name: str, *args: Any) -> None:
     """Queue one of the orchestration's Celery tasks once the caller's transaction commits."""
-    # Imported here: the tasks module is the door onto this package and imports it.
-    from .. import tasks
-
-    task = getattr(tasks, task_name)
+    # Looked up by name in the Celery app (which loads skills.tasks): the tasks are the door onto this package.
+    task = current_app.tasks[f"skills.tasks.{task_name}"]
     transaction.on_commit(lambda: task.delay(*args), robust=True)
 
 
@@ -182,10 +183,6 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
 
 def cloud_subnet(robot: Robot) -> str | None:
     """Return the robot's cloud subnet (IPAM), which its cloud network is created with."""
-    from django.core.exceptions import ValidationError
-
-    from network.ipam import subnets
-
     try:
         return subnets(robot)[1]
     except ValidationError as exc:

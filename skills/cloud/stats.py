@@ -9,11 +9,11 @@ import time
 
 from bridgeos_agent.protocol import Event, MetricPoint
 from bridgeos_agent.runtime.base import RuntimeFailure
+from monitoring.ingest import MetricWriter
+from monitoring.live import LiveFeed
 from robots.services import push_to_robot
 
-from .runtime import (
-    create_cloud_runtime,
-)
+from .backends import create_cloud_runtime
 
 logger = logging.getLogger(__name__)
 
@@ -24,8 +24,6 @@ def collect_stats(robot_ids: set[str]) -> int:
     """Measure the running cloud copies of these robots; store, broadcast and send the figures."""
     if not robot_ids:
         return 0
-    from monitoring.ingest import MetricWriter
-    from monitoring.live import LiveFeed
 
     async def measure_all() -> dict[str, list[MetricPoint]]:
         async def one(robot_id: str) -> tuple[str, list[MetricPoint]]:
