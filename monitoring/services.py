@@ -215,7 +215,8 @@ def _aggregate_in_python(
     return results[:limit]
 
 
-LEVEL_ORDER = [level.value for level in Level]
+# Levels from least to most severe, as declared.
+LEVEL_ORDER: list[str] = list(Level.values)
 
 
 def events_matching(filters: dict[str, Any], robots: QuerySet[Any] | None) -> QuerySet[Event]:

@@ -277,9 +277,16 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
     store = applied_ids()
     written = store.in_flight(robot_id, envelope.id)
     if written is None:
-        get_live_feed().add_metrics(robot_id, points)
         written = get_writer().add(robot_id, points)
         store.hold(robot_id, envelope.id, written)
+        feed = get_live_feed()
+
+        def broadcast(future: asyncio.Future) -> None:
+            # Clients hear of points only once their rows are committed, never of points that were not stored.
+            if not future.cancelled() and future.exception() is None:
+                feed.add_metrics(robot_id, points)
+
+        written.add_done_callback(broadcast)
     # else: an earlier connection's copy of this frame is still being written: answer with its outcome.
 
     def acknowledge(future: asyncio.Future) -> None:

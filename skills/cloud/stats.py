@@ -51,11 +51,13 @@ def collect_stats(robot_ids: set[str]) -> int:
             # The ingest the robots' metrics go through: COPY in one batch, then the live feed.
             writer = MetricWriter()
             writer.start()
-            feed = LiveFeed()
             for robot_id, points in measured.items():
                 writer.add(robot_id, points)
-                feed.add_metrics(robot_id, points)
             await writer.close()
+            # Once the rows are committed: clients never hear of points that were not stored.
+            feed = LiveFeed()
+            for robot_id, points in measured.items():
+                feed.add_metrics(robot_id, points)
             await feed.close()
         return measured
 
