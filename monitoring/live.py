@@ -11,13 +11,14 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import weakref
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from asgiref.sync import async_to_sync
 from channels.layers import BaseChannelLayer, get_channel_layer
 from django.db import transaction
+
+from bridgeos_cloud.loopowned import loop_object
 
 if TYPE_CHECKING:
     from bridgeos_agent.protocol import MetricPoint
@@ -105,17 +106,15 @@ def metrics_data_json(robot_id: str, points: Iterable[MetricPoint]) -> str:
     return json.dumps({"robot": robot_id, "metrics": encoded}, separators=(",", ":"))
 
 
-_feeds: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, LiveFeed] = weakref.WeakKeyDictionary()
+def _started_feed() -> LiveFeed:
+    feed = LiveFeed()
+    feed.start()
+    return feed
 
 
 def get_live_feed() -> LiveFeed:
-    """Return this event loop's live feed, started on first use."""
-    loop = asyncio.get_running_loop()
-    feed = _feeds.get(loop)
-    if feed is None:
-        feed = _feeds[loop] = LiveFeed()
-        feed.start()
-    return feed
+    """Return this event loop's live feed, started on first use; its owner closes it at shutdown."""
+    return loop_object("live feed", _started_feed)
 
 
 async def publish(robot_id: str, frame: dict[str, Any]) -> None:
