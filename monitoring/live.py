@@ -18,6 +18,7 @@ from asgiref.sync import async_to_sync
 from channels.layers import BaseChannelLayer, get_channel_layer
 from django.db import transaction
 
+from bridgeos_cloud.logonce import RepeatedFailures
 from bridgeos_cloud.loopowned import loop_object
 
 if TYPE_CHECKING:
@@ -84,13 +85,16 @@ class LiveFeed:
         self.messages_sent += 1
 
     async def _run(self) -> None:
+        failures = RepeatedFailures(logger, "Sending live metrics")
         while True:
             await asyncio.sleep(self.interval)
             try:
                 await self.send()
-            except Exception:
+            except Exception as exc:
                 # Live values are expendable: the next round carries fresher ones.
-                logger.exception("Sending live metrics failed")
+                failures.failed(exc)
+            else:
+                failures.succeeded()
 
 
 def metrics_data_json(robot_id: str, points: Iterable[MetricPoint]) -> str:

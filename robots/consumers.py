@@ -17,6 +17,7 @@ from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
 from bridgeos_cloud.consumers import CLOSE_TOO_MANY_FAILURES, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
+from bridgeos_cloud.logonce import RepeatedFailures
 from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
 from monitoring.services import record_event
@@ -167,13 +168,16 @@ class RobotConsumer(ProtocolConsumer):
             self.volume_scanner = self.spawn(self._scan_volumes_forever())
 
     async def _scan_volumes_forever(self) -> None:
+        failures = RepeatedFailures(log, f"robot {self.robot_id}: scanning its cloud volumes")
         while not self.closing:
             await asyncio.sleep(VOLUME_SCAN_S)
             try:
                 for data in await self.volumes.scan():
                     await self.send_reliably(protocol.make(Event.VOLUME_CHANGES, data, now=time.time()))
-            except Exception:
-                log.exception("robot %s: scanning its cloud volumes failed", self.robot_id)
+            except Exception as exc:
+                failures.failed(exc)
+            else:
+                failures.succeeded()
 
     async def ask_chunks(self, data: dict[str, Any]) -> Any:
         """Ask the robot for volume chunks and wait for its answer."""
