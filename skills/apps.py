@@ -12,4 +12,5 @@ class SkillsConfig(AppConfig):
     default_auto_field = "django.db.models.BigAutoField"
 
     def ready(self) -> None:
-        from . import receivers  # noqa: F401 - connects the receivers
+        # Connect the receivers, and register the Celery tasks the orchestration queues by name.
+        from . import receivers, tasks  # noqa: F401

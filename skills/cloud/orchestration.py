@@ -10,7 +10,6 @@ import secrets
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
-from celery import current_app
 from django.conf import settings
 from django.core.exceptions import ValidationError
 from django.db import transaction
@@ -20,6 +19,7 @@ from bridgeos_agent.protocol import Location
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.runtime.base import RuntimeFailure
 from bridgeos_agent.skillconfig import parse_skill_config
+from bridgeos_cloud.celery import app as celery_app
 from network.ipam import subnets
 from robots.models import Robot
 
@@ -118,8 +118,8 @@ def request_stop(component: Component) -> CloudInstance:
 
 def enqueue_on_commit(task_name: str, *args: Any) -> None:
     """Queue one of the orchestration's Celery tasks once the caller's transaction commits."""
-    # Looked up by name in the Celery app (which loads skills.tasks): the tasks are the door onto this package.
-    task = current_app.tasks[f"skills.tasks.{task_name}"]
+    # By name: the tasks are the door onto this package (loaded when the skills app is ready).
+    task = celery_app.tasks[f"skills.tasks.{task_name}"]
     transaction.on_commit(lambda: task.delay(*args), robust=True)
 
 

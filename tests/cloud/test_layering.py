@@ -18,10 +18,11 @@ ROOT = Path(__file__).resolve().parents[2]
 # links; networks serve robots; skills run on robots; the dashboard shows all of it.
 LAYERS = ["monitoring", "robots", "network", "skills", "dashboard"]
 BASE = "bridgeos_cloud"
-# The project's wiring: settings, URL and WebSocket routes, the ASGI and Celery entry points.
-WIRING = {"settings", "urls", "routing", "asgi", "celery"}
+# The project's wiring: settings, URL and WebSocket routes, the ASGI entry point.
+WIRING = {"settings", "urls", "routing", "asgi"}
 DOOR_PARTS = {"api", "management"}
-DOOR_MODULES = {"admin", "consumers", "routing", "urls", "views", "tasks"}
+# An app config is its app's wiring: ready() connects receivers and registers tasks.
+DOOR_MODULES = {"admin", "apps", "consumers", "routing", "urls", "views", "tasks"}
 PROJECT = {*LAYERS, BASE}
 
 
