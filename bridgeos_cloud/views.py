@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import logging
 import math
 from collections.abc import Callable
 
@@ -16,6 +17,9 @@ from rest_framework.request import Request
 from rest_framework.response import Response
 
 from . import bruteforce
+from .logonce import RepeatedFailures
+
+logger = logging.getLogger(__name__)
 
 
 @extend_schema(
@@ -34,9 +38,15 @@ def _database_ok() -> bool:
     try:
         with connection.cursor() as cursor:
             cursor.execute("SELECT 1")
-        return True
-    except Exception:
+    except Exception as exc:
+        # Reported as "degraded" to whoever asks; the log says why, once per distinct error.
+        _database_failures.failed(exc)
         return False
+    _database_failures.succeeded()
+    return True
+
+
+_database_failures = RepeatedFailures(logger, "The health check's database query")
 
 
 def _redis_ok() -> bool:

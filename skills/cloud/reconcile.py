@@ -14,6 +14,7 @@ from django.utils import timezone
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.runtime.base import ComponentState, RuntimeFailure, Status
+from bridgeos_cloud.logonce import RepeatedFailures
 from monitoring.choices import Level
 from monitoring.services import record_event
 from robots.models import Robot
@@ -43,6 +44,16 @@ from .runtime import (
 from .stats import collect_stats
 
 logger = logging.getLogger(__name__)
+
+# Per copy, across rounds (the beat runs the reconciler every few seconds in the same worker).
+_failed_copies: dict[tuple[str, str, str], RepeatedFailures] = {}
+
+
+def _failures(key: tuple[str, str, str]) -> RepeatedFailures:
+    found = _failed_copies.get(key)
+    if found is None:
+        found = _failed_copies[key] = RepeatedFailures(logger, "reconcile {}/{}/{}".format(*key))
+    return found
 
 
 def reconcile(*, now: float | None = None) -> dict[str, int]:
@@ -86,9 +97,11 @@ def _reconcile(now: float) -> dict[str, int]:
             continue
         except (TryAgain, RuntimeFailure) as exc:
             logger.warning("reconcile %s/%s/%s: %s", robot_id, skill_id, component_id, exc)
-        except Exception:
-            # One copy the reconciler cannot handle must not keep it from the others.
-            logger.exception("reconcile %s/%s/%s failed", robot_id, skill_id, component_id)
+        except Exception as exc:
+            # One copy the reconciler cannot handle must not keep it from the others; said once per distinct error.
+            _failures(key).failed(exc)
+        else:
+            _failures(key).succeeded()
     for key, item in by_key.items():
         if key not in wanted:
             done["removed"] += _remove_orphan(item)
