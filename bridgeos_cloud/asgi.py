@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import os
+import sys
 
 import django
 
@@ -14,6 +16,7 @@ django.setup(set_prefix=False)
 from django.conf import settings  # noqa: E402
 
 from bridgeos_cloud.handler import PooledASGIHandler  # noqa: E402
+from bridgeos_cloud.loopowned import close_loop_objects  # noqa: E402
 
 django_asgi_app = PooledASGIHandler(threads=settings.BRIDGEOS["HTTP_THREADS"])
 
@@ -27,6 +30,24 @@ application = ProtocolTypeRouter(
         "websocket": BrowserOriginValidator(URLRouter(websocket_urlpatterns)),
     }
 )
+
+
+def close_at_shutdown() -> None:
+    """Have daphne's reactor close the loop's metric writer, live feed and applied ids before it stops."""
+    reactor = sys.modules.get("twisted.internet.reactor")
+    if reactor is None:
+        return  # not served by daphne (a test's in-process server): its loop's owner closes nothing
+
+    from twisted.internet.defer import Deferred
+
+    def close() -> Deferred:
+        # The reactor runs on the asyncio loop the consumers use: close their objects on it, and wait.
+        return Deferred.fromFuture(asyncio.ensure_future(close_loop_objects()))
+
+    reactor.addSystemEventTrigger("before", "shutdown", close)
+
+
+close_at_shutdown()
 
 # Everything loaded so far lives as long as the process: move it out of the collector's
 # sight, so a full collection walks only what requests allocate (no 100 ms pauses).

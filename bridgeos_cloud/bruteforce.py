@@ -8,6 +8,10 @@ import time
 from functools import cache
 
 from django.conf import settings
+from django.dispatch import Signal
+
+# Sent with scope=, identity=, address= when a login identity just reached its limit (monitoring logs it).
+login_blocked = Signal()
 
 
 class FailureLimit:
@@ -112,12 +116,4 @@ def attempted(scope: str, identity: str, address: str, ok: bool) -> None:
     if ok:
         failures().succeeded(keys[0][0])
     elif failures().failed(keys, window()):
-        from monitoring.choices import Level
-        from monitoring.services import record_event
-
-        record_event(
-            f"Too many failed authentications of {scope} {identity[:150]} from {address}",
-            level=Level.WARNING,
-            kind="authentication_blocked",
-            data={scope: identity[:150], "address": address},
-        )
+        login_blocked.send(sender=FailureLimit, scope=scope, identity=identity, address=address)

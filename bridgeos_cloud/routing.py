@@ -8,10 +8,10 @@ from urllib.parse import urlsplit
 from django.conf import settings
 from django.http.request import validate_host
 
-from monitoring.routing import websocket_urlpatterns as monitoring_routes
+from dashboard.routing import websocket_urlpatterns as client_routes
 from robots.routing import websocket_urlpatterns as robot_routes
 
-websocket_urlpatterns = [*robot_routes, *monitoring_routes]
+websocket_urlpatterns = [*robot_routes, *client_routes]
 
 
 class BrowserOriginValidator:

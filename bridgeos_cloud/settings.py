@@ -241,7 +241,7 @@ CELERY_BEAT_SCHEDULE = {
 
 REST_FRAMEWORK = {
     "DEFAULT_AUTHENTICATION_CLASSES": [
-        "bridgeos_cloud.authentication.ApiTokenAuthentication",
+        "robots.authentication.ApiTokenAuthentication",
         "rest_framework.authentication.SessionAuthentication",
     ],
     "DEFAULT_PERMISSION_CLASSES": ["rest_framework.permissions.IsAuthenticated"],
@@ -291,7 +291,7 @@ BRIDGEOS = {
     "HTTP_THREADS": env_int("BRIDGEOS_HTTP_THREADS", 8),
     # Robot state JSON kept per server process; every read revalidates it against the database.
     "STATE_CACHE_BYTES": env_int("BRIDGEOS_STATE_CACHE_BYTES", 64 * 1024 * 1024),
-    # Cloud orchestration (skills.orchestration): what runs cloud components and how robots reach them.
+    # Cloud orchestration (skills.cloud): what runs cloud components and how robots reach them.
     "CLOUD_RUNTIME": env_str("BRIDGEOS_CLOUD_RUNTIME", "process"),
     # Tells this cloud's containers apart from other clouds' on a shared engine (default: from the database).
     "CLOUD_ID": env_str("BRIDGEOS_CLOUD_ID", ""),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import logging
 import math
 from collections.abc import Callable
 
@@ -15,7 +16,11 @@ from rest_framework.permissions import AllowAny
 from rest_framework.request import Request
 from rest_framework.response import Response
 
+from bridgeos_agent.logonce import LogOnce
+
 from . import bruteforce
+
+logger = logging.getLogger(__name__)
 
 
 @extend_schema(
@@ -34,9 +39,15 @@ def _database_ok() -> bool:
     try:
         with connection.cursor() as cursor:
             cursor.execute("SELECT 1")
-        return True
-    except Exception:
+    except Exception as exc:
+        # Reported as "degraded" to whoever asks; the log says why, once per distinct error.
+        _database_failures.failed(exc)
         return False
+    _database_failures.worked()
+    return True
+
+
+_database_failures = LogOnce(logger, "The health check's database query", traceback=True)
 
 
 def _redis_ok() -> bool:

@@ -1,4 +1,4 @@
-"""What the dashboard's pages read: lean summaries of the fleet, built in a few queries."""
+"""What the dashboard's pages read (fleet summaries in a few queries) and what /ws/client/ answers."""
 
 from __future__ import annotations
 
@@ -16,12 +16,17 @@ from pydantic import BaseModel
 from pydantic import ValidationError as PydanticValidationError
 
 from bridgeos_agent.errors import field_errors
+from bridgeos_agent.protocol import Event
 from bridgeos_agent.robotconfig import parse_robot_config, robot_config_json_schema
 from bridgeos_agent.skillconfig import parse_skill_config
+from bridgeos_cloud.errors import NotFound
 from monitoring.models import Metric
+from monitoring.services import latest_metrics
 from robots.models import Robot
-from robots.services import fleet_state_json, visible_robots
+from robots.services import robot_config, update_robot_config, visible_robots
 from skills.models import Component, Skill, SkillTemplate
+from skills.services import component_state, skill_state
+from skills.state import fleet_state_json
 
 # Robot-wide series the fleet overview shows (points with no skill and no component):
 # cpu, ram and battery in percent, bandwidth in Mbit/s. The robot page charts every series.
@@ -164,3 +169,38 @@ def robot_config_choices() -> dict[str, list[str]]:
     """Return the allowed values of the robot config's enumerated fields, from the shared schema."""
     properties = robot_config_json_schema()["properties"]
     return {name: list(properties[name]["enum"]) for name in ("heuristic", "offloading")}
+
+
+# --------------------------------------------------------------------------- client commands (/ws/client/)
+
+
+def store_config_change(event: str, robot_id: str, p: Any) -> None:
+    """Store a client's change of a robot's config before it is relayed."""
+    changes = dict(p.changes) if event == Event.ROBOT_CONFIG_UPDATE else {"offloading": p.mode}
+    update_robot_config(robot_id, changes)
+
+
+def answer_from_database(event: str, robot_id: str, p: Any) -> tuple[Event, dict[str, Any]]:
+    """Answer a client's request from the cloud's own records; return the reply event and data."""
+    if event == Event.ROBOT_CONFIG_GET:
+        return Event.ROBOT_CONFIG, {"robot": robot_id, "config": robot_config(robot_id)}
+    if event == Event.OFFLOADING_GET:
+        return Event.OFFLOADING, {"robot": robot_id, "mode": robot_config(robot_id)["offloading"]}
+    if event == Event.SKILL_STATUS_GET:
+        skill = skill_state(robot_id, p.skill)
+        return Event.SKILL_STATUS, {"robot": robot_id, "skill": skill.skill_id, "status": skill.status}
+    if event == Event.SKILL_CONFIG_GET:
+        skill = skill_state(robot_id, p.skill)
+        return Event.SKILL_CONFIG, {"robot": robot_id, "skill": skill.skill_id, "config": skill.config}
+    if event == Event.COMPONENT_STATUS_GET:
+        component = component_state(robot_id, p.skill, p.component)
+        data = {"robot": robot_id, "skill": p.skill, "component": p.component, "status": component.status}
+        if component.active_location:
+            data["location"] = component.active_location
+        return Event.COMPONENT_STATUS, data
+    if event == Event.METRICS_GET:
+        points = latest_metrics(
+            robot_id, names=p.names, skill=p.skill, component=p.component, since=p.since, limit=p.limit or 100
+        )
+        return Event.METRICS, {"robot": robot_id, "metrics": points}
+    raise NotFound(f"event {event!r} is not a request clients can make", field="event")

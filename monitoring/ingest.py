@@ -12,7 +12,6 @@ import asyncio
 import json
 import logging
 import time
-import weakref
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC, datetime
@@ -21,6 +20,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 import psycopg
 from django.conf import settings
 from django.db import IntegrityError, InterfaceError, OperationalError, connections, transaction
+
+from bridgeos_cloud.loopowned import loop_object
 
 from . import prometheus
 from .models import Metric
@@ -473,14 +474,12 @@ class MetricWriter:
         return [entry for entry in entries if entry.robot_id not in missing]
 
 
-_writers: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, MetricWriter] = weakref.WeakKeyDictionary()
+def _started_writer() -> MetricWriter:
+    writer = MetricWriter()
+    writer.start()
+    return writer
 
 
 def get_writer() -> MetricWriter:
-    """Return this event loop's metric writer, started on first use."""
-    loop = asyncio.get_running_loop()
-    writer = _writers.get(loop)
-    if writer is None or writer.closed:
-        writer = _writers[loop] = MetricWriter()
-        writer.start()
-    return writer
+    """Return this event loop's metric writer, started on first use; its owner closes it at shutdown."""
+    return loop_object("metric writer", _started_writer, usable=lambda writer: not writer.closed)

@@ -12,7 +12,6 @@ import asyncio
 import json
 import logging
 import time
-import weakref
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -21,7 +20,9 @@ from channels.layers import BaseChannelLayer, get_channel_layer
 from django.db import transaction
 
 from bridgeos_agent import protocol
+from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import Event as ProtocolEvent
+from bridgeos_cloud.loopowned import loop_object
 
 from . import prometheus
 
@@ -92,14 +93,17 @@ class LiveFeed:
         prometheus.LIVE_MESSAGES.inc()
 
     async def _run(self) -> None:
+        failures = LogOnce(logger, "Sending live metrics", traceback=True)
         while True:
             await asyncio.sleep(self.interval)
             try:
                 await self.send()
-            except Exception:
+            except Exception as exc:
                 # Live values are expendable: the next round carries fresher ones.
                 prometheus.LIVE_DROPS.inc()
-                logger.exception("Sending live metrics failed")
+                failures.failed(exc)
+            else:
+                failures.worked()
 
 
 def metrics_data_json(robot_id: str, points: Iterable[MetricPoint]) -> str:
@@ -115,17 +119,15 @@ def metrics_data_json(robot_id: str, points: Iterable[MetricPoint]) -> str:
     return json.dumps({"robot": robot_id, "metrics": encoded}, separators=(",", ":"))
 
 
-_feeds: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, LiveFeed] = weakref.WeakKeyDictionary()
+def _started_feed() -> LiveFeed:
+    feed = LiveFeed()
+    feed.start()
+    return feed
 
 
 def get_live_feed() -> LiveFeed:
-    """Return this event loop's live feed, started on first use."""
-    loop = asyncio.get_running_loop()
-    feed = _feeds.get(loop)
-    if feed is None:
-        feed = _feeds[loop] = LiveFeed()
-        feed.start()
-    return feed
+    """Return this event loop's live feed, started on first use; its owner closes it at shutdown."""
+    return loop_object("live feed", _started_feed)
 
 
 async def publish(robot_id: str | None, frame: dict[str, Any], *, owner_id: int | None = None) -> None:

@@ -5,8 +5,6 @@ from __future__ import annotations
 from django.db import models
 from django.utils import timezone
 
-from robots.models import Robot
-
 from .choices import Level, Source
 
 
@@ -14,7 +12,7 @@ class Metric(models.Model):
     """One measured point of a robot, or of one of its skills or components."""
 
     # No index of its own: the (robot, name, ts) index serves lookups by robot, and each index slows ingest.
-    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="metrics", db_index=False)
+    robot = models.ForeignKey("robots.Robot", on_delete=models.CASCADE, related_name="metrics", db_index=False)
     # Slugs rather than foreign keys: ingest writes them straight from frames, with no lookups.
     skill = models.CharField(max_length=64, blank=True, default="")
     component = models.CharField(max_length=64, blank=True, default="")
@@ -39,7 +37,7 @@ class Event(models.Model):
     level = models.CharField(max_length=8, choices=Level.choices, default=Level.INFO)
     source = models.CharField(max_length=16, choices=Source.choices, default=Source.CLOUD)
     kind = models.CharField(max_length=64, blank=True, help_text="The protocol event it records, if any.")
-    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="events", null=True, blank=True)
+    robot = models.ForeignKey("robots.Robot", on_delete=models.CASCADE, related_name="events", null=True, blank=True)
     skill = models.CharField(max_length=64, blank=True, default="")
     component = models.CharField(max_length=64, blank=True, default="")
     message = models.TextField()

@@ -7,6 +7,7 @@ from typing import Any
 
 from django.conf import settings
 from django.db import connection, transaction
+from django.db.models import QuerySet
 from django.utils import timezone
 
 from .choices import Level, Source
@@ -216,3 +217,28 @@ def _aggregate_in_python(
         key=lambda row: (-row["bucket"].timestamp(), row["robot"], row["name"], row["skill"], row["component"])
     )
     return results[:limit]
+
+
+# Levels from least to most severe, as declared.
+LEVEL_ORDER: list[str] = list(Level.values)
+
+
+def events_matching(filters: dict[str, Any], robots: QuerySet[Any] | None) -> QuerySet[Event]:
+    """Return the events of these robots (None: all, fleet-wide events too) matching filters, newest first."""
+    events = Event.objects.all()
+    if robots is not None:
+        events = events.filter(robot__in=robots)
+    if filters.get("robots"):
+        events = events.filter(robot_id__in=filters["robots"])
+    for field in ("skill", "component"):
+        if filters.get(field):
+            events = events.filter(**{field: filters[field]})
+    if filters.get("event"):
+        events = events.filter(kind=filters["event"])
+    if filters.get("level"):
+        events = events.filter(level__in=LEVEL_ORDER[LEVEL_ORDER.index(filters["level"]) :])
+    if filters.get("since"):
+        events = events.filter(ts__gte=filters["since"])
+    if filters.get("until"):
+        events = events.filter(ts__lt=filters["until"])
+    return events.order_by("-ts", "-id")

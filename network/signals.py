@@ -8,9 +8,9 @@ from django.db.models.signals import post_save, pre_delete
 from django.dispatch import receiver
 
 from robots.models import Robot
-from robots.signals import credentials_rotated
+from robots.signals import config_checked, credentials_rotated
 
-from . import services
+from . import ipam, services
 
 
 @receiver(post_save, sender=Robot, dispatch_uid="network-sync-config")
@@ -30,3 +30,9 @@ def revoke_on_delete(sender: type[Robot], instance: Robot, **kw: Any) -> None:
 def revoke_on_rotation(sender: Any, robot: Robot, **kw: Any) -> None:
     """New credentials: the old VPN certificate stops working too."""
     services.revoke_certificate(robot, "credentials rotated")
+
+
+@receiver(config_checked, dispatch_uid="network-check-subnets")
+def check_subnets(sender: type[Robot], robot_id: str, config: dict[str, Any], **kw: Any) -> None:
+    """Refuse subnets in a robot config outside their pools or overlapping another robot's."""
+    ipam.check_requested(robot_id, config)

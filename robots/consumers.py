@@ -14,8 +14,8 @@ from django.conf import settings
 from django.core.exceptions import ValidationError
 
 from bridgeos_agent import protocol
+from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
-from bridgeos_cloud import bruteforce
 from bridgeos_cloud.consumers import CLOSE_TOO_MANY_FAILURES, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
 from monitoring import prometheus
@@ -23,8 +23,8 @@ from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
-from skills.orchestration import cloud_reports
-from skills.volumes import CloudVolumes
+from skills.cloud.reporting import cloud_reports
+from skills.cloud.volumes import CloudVolumes
 
 from . import dedup, services
 from .dedup import applied_ids
@@ -130,11 +130,11 @@ class RobotConsumer(ProtocolConsumer):
         """Check the robot's id and token, mark it connected and send it its config."""
         credentials = protocol.parse_payload(envelope)
         address = (self.scope.get("client") or ["?"])[0]
-        if await database_sync_to_async(bruteforce.blocked)("robot", credentials.robot, address):
+        try:
+            robot = await database_sync_to_async(services.login_robot)(credentials.robot, credentials.token, address)
+        except services.LoginBlocked:
             await self.refuse("too many failed attempts; try again later", envelope.id, CLOSE_TOO_MANY_FAILURES)
             return False
-        robot = await database_sync_to_async(services.authenticate_robot)(credentials.robot, credentials.token)
-        await database_sync_to_async(bruteforce.attempted)("robot", credentials.robot, address, robot is not None)
         if robot is None:
             await self.refuse("unknown robot or wrong token", reply_to=envelope.id)
             return False
@@ -171,13 +171,16 @@ class RobotConsumer(ProtocolConsumer):
             self.volume_scanner = self.spawn(self._scan_volumes_forever())
 
     async def _scan_volumes_forever(self) -> None:
+        failures = LogOnce(log, f"robot {self.robot_id}: scanning its cloud volumes", traceback=True)
         while not self.closing:
             await asyncio.sleep(VOLUME_SCAN_S)
             try:
                 for data in await self.volumes.scan():
                     await self.send_reliably(protocol.make(Event.VOLUME_CHANGES, data, now=time.time()))
-            except Exception:
-                log.exception("robot %s: scanning its cloud volumes failed", self.robot_id)
+            except Exception as exc:
+                failures.failed(exc)
+            else:
+                failures.worked()
 
     async def ask_chunks(self, data: dict[str, Any]) -> Any:
         """Ask the robot for volume chunks and wait for its answer."""
@@ -282,9 +285,16 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
     store = applied_ids()
     written = store.in_flight(robot_id, envelope.id)
     if written is None:
-        get_live_feed().add_metrics(robot_id, points)
         written = get_writer().add(robot_id, points)
         store.hold(robot_id, envelope.id, written)
+        feed = get_live_feed()
+
+        def broadcast(future: asyncio.Future) -> None:
+            # Clients hear of points only once their rows are committed, never of points that were not stored.
+            if not future.cancelled() and future.exception() is None:
+                feed.add_metrics(robot_id, points)
+
+        written.add_done_callback(broadcast)
     # else: an earlier connection's copy of this frame is still being written: answer with its outcome.
 
     def acknowledge(future: asyncio.Future) -> None:

@@ -7,6 +7,8 @@ from collections import defaultdict
 
 from django.conf import settings
 
+from bridgeos_cloud.loopowned import loop_object
+
 # Only frames in flight when a link dropped are ever resent, so a short window is plenty.
 WINDOW = 1_000
 FLUSH_INTERVAL = 2.0
@@ -72,6 +74,16 @@ class AppliedIds:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
+    async def close(self) -> None:
+        """Save every unsaved id and let go of Redis (at shutdown)."""
+        if self._flusher is not None:
+            self._flusher.cancel()
+            self._flusher = None
+        await self.flush()
+        if self._redis is not None:
+            await self._redis.aclose()
+            self._redis = None
+
     async def flush(self) -> None:
         """Save every unsaved id now."""
         unsaved, self._unsaved = self._unsaved, defaultdict(list)
@@ -92,13 +104,6 @@ class AppliedIds:
             await pipe.execute()
 
 
-_stores: dict[asyncio.AbstractEventLoop, AppliedIds] = {}
-
-
 def applied_ids() -> AppliedIds:
-    """Return this event loop's store of applied ids."""
-    loop = asyncio.get_running_loop()
-    store = _stores.get(loop)
-    if store is None:
-        store = _stores[loop] = AppliedIds(settings.REDIS_URL)
-    return store
+    """Return this event loop's store of applied ids; its owner closes it at shutdown."""
+    return loop_object("applied ids", lambda: AppliedIds(settings.REDIS_URL))

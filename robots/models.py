@@ -17,6 +17,7 @@ from bridgeos_agent.skillconfig import SLUG_PATTERN
 from bridgeos_cloud.validation import validated_config
 
 from .choices import RobotStatus
+from .signals import config_checked
 
 id_validator = RegexValidator(
     SLUG_PATTERN, "Use 1-64 lowercase letters, digits, '-' or '_', starting with a letter or digit."
@@ -67,9 +68,8 @@ class Robot(models.Model):
 
     def clean(self) -> None:
         self.config = validated_config(parse_robot_config, self.config)
-        from network.ipam import check_requested  # the network app depends on this model
-
-        check_requested(self.id, self.config)
+        # The apps above this one (the network's subnets) check their parts of the config.
+        config_checked.send(sender=Robot, robot_id=self.id, config=self.config)
 
     def issue_token(self) -> str:
         """Replace the robot's token and return the new one; only its hash is kept."""

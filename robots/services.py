@@ -5,9 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 import secrets
-import threading
 import time
-from collections import OrderedDict
 from datetime import timedelta
 from typing import Any
 
@@ -15,14 +13,14 @@ from asgiref.sync import async_to_sync, sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
-from django.core.serializers.json import DjangoJSONEncoder
-from django.db import connection, transaction
+from django.db import transaction
 from django.db.models import QuerySet
 from django.utils import timezone
 
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
 from bridgeos_agent.robotconfig import merge_config_changes
+from bridgeos_cloud import bruteforce
 from monitoring import prometheus
 from monitoring.choices import Level
 from monitoring.live import publish_on_commit
@@ -30,7 +28,7 @@ from monitoring.services import record_event
 
 from .choices import RobotStatus
 from .models import ApiToken, Robot, hash_token
-from .signals import credentials_rotated
+from .signals import credentials_rotated, ros_master_wanted
 
 
 def create_robot(
@@ -88,15 +86,32 @@ def authenticate_robot(robot_id: str, token: str) -> Robot | None:
     return robot if robot.check_token(token) else None
 
 
+class LoginBlocked(Exception):
+    """Too many failed logins of this robot from this address: refused for ``retry_s`` seconds more."""
+
+    def __init__(self, retry_s: float) -> None:
+        super().__init__(f"too many failed attempts; try again in {retry_s:g} s")
+        self.retry_s = retry_s
+
+
+def login_robot(robot_id: str, token: str, address: str) -> Robot | None:
+    """Check a robot's token presented from an address, counting failures; raise LoginBlocked past the limit."""
+    retry = bruteforce.blocked("robot", robot_id, address)
+    if retry:
+        raise LoginBlocked(retry)
+    robot = authenticate_robot(robot_id, token)
+    bruteforce.attempted("robot", robot_id, address, robot is not None)
+    return robot
+
+
 def mark_connected(robot_id: str, channel: str, ros_master: str | None = None) -> dict[str, Any]:
     """Record that a robot connected on a channel; return its config and the ROS master to use."""
-    from skills.orchestration import ros_master_for
-
     now = timezone.now()
     with transaction.atomic():
         robot = Robot.objects.select_for_update().get(id=robot_id)
         # A robot without a ROS master of its own gets the cloud's: a shared one, or its own in the cloud.
-        master = ros_master_for(robot_id, ros_master)
+        answers = [answer for _, answer in ros_master_wanted.send(sender=Robot, robot_id=robot_id, reported=ros_master)]
+        master = next((answer for answer in answers if answer is not None), ros_master or "")
         replaced = robot.channel if robot.connected and robot.channel != channel else ""
         Robot.objects.filter(id=robot_id).update(
             connected=True, channel=channel, last_seen=now, status=RobotStatus.RUNNING, ros_master=master
@@ -233,6 +248,11 @@ def visible_robot_ids(user: AbstractBaseUser) -> set[str] | None:
     return None if user.is_staff else set(visible_robots(user).values_list("id", flat=True))
 
 
+def robot_scope(user: AbstractBaseUser) -> QuerySet[Robot] | None:
+    """Return the robots a user's view is limited to, or None for staff (who also see fleet-wide records)."""
+    return None if user.is_staff else visible_robots(user)
+
+
 def can_see(user: AbstractBaseUser, robot_id: str) -> bool:
     """Tell whether a user may see and command a robot."""
     return visible_robots(user).filter(id=robot_id).exists()
@@ -299,117 +319,3 @@ def delete_robot(robot: Robot) -> None:
         robot.delete()
         # Pushed live to its owner and staff: open dashboards drop the robot at once.
         record_event(f"Robot {robot_id} deleted", kind="robot_deleted", data={"robot": robot_id}, owner_id=owner_id)
-
-
-def fleet_state(robots: QuerySet[Robot]) -> list[dict[str, Any]]:
-    """Return robots with their skills and components as plain data, in three queries.
-
-    Built from rows rather than model instances and serializers: a fleet of 100 robots
-    carries thousands of components, and instances cost ten times more per row.
-    """
-    from skills.models import Component, Skill
-
-    robot_rows = list(
-        robots.order_by("id").values(
-            "id", "name", "owner__username", "status", "connected", "last_seen", "ros_master", "config"
-        )
-    )
-    skill_rows = Skill.objects.filter(robot__in=robots).order_by("robot_id", "skill_id")
-    component_rows = Component.objects.filter(skill__robot__in=robots).order_by("skill_id", "component_id")
-    components: dict[int, list[dict[str, Any]]] = {}
-    for row in component_rows.values(
-        "skill_id", "component_id", "location", "active_location", "status", "container", "resources", "updated_at"
-    ):
-        components.setdefault(row.pop("skill_id"), []).append(row)
-    skills: dict[str, list[dict[str, Any]]] = {}
-    for row in skill_rows.values("id", "robot_id", "skill_id", "name", "status", "updated_at"):
-        row["components"] = components.get(row.pop("id"), [])
-        skills.setdefault(row.pop("robot_id"), []).append(row)
-    for row in robot_rows:
-        row["owner"] = row.pop("owner__username")
-        row["skills"] = skills.get(row["id"], [])
-    return robot_rows
-
-
-# A robot's state version: every row version its JSON is built from. An UPDATE writes a new
-# row version (a new ctid, and a new xmin unless in the same transaction), so any change to the
-# robot, its owner, its skills or their components, or any skill or component added or removed,
-# changes the digest. Reading it costs ~2 ms for 2,500 components; building their JSON, ~14 ms.
-ROBOT_VERSION_SQL = """md5(concat_ws(',', ro.xmin, ro.ctid, u.xmin, u.ctid, (
-  SELECT string_agg(concat(sk.xmin, sk.ctid, ':', (
-    SELECT string_agg(concat(co.xmin, co.ctid), ',' ORDER BY co.id)
-    FROM skills_component co WHERE co.skill_id = sk.id)), ';' ORDER BY sk.id)
-  FROM skills_skill sk WHERE sk.robot_id = ro.id)))"""
-
-FLEET_VERSIONS_SQL = f"""
-SELECT ro.id, {ROBOT_VERSION_SQL}
-FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
-WHERE ro.id IN ({{robots}}) ORDER BY ro.id
-"""
-
-ROBOTS_JSON_SQL = f"""
-SELECT ro.id, {ROBOT_VERSION_SQL}, row_to_json(r)::text
-FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
-CROSS JOIN LATERAL (
-  SELECT ro.id, ro.name, u.username AS owner, ro.status, ro.connected, ro.last_seen, ro.ros_master, ro.config,
-    coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
-      SELECT sk.skill_id, sk.name, sk.status, sk.updated_at,
-        coalesce((SELECT json_agg(c ORDER BY c.component_id) FROM (
-          SELECT co.component_id, co.location, co.active_location, co.status, co.container, co.resources,
-                 co.updated_at
-          FROM skills_component co WHERE co.skill_id = sk.id) c), '[]') AS components
-      FROM skills_skill sk WHERE sk.robot_id = ro.id) s), '[]') AS skills
-) r
-WHERE ro.id = ANY(%s)
-"""
-
-
-class RobotStateCache:
-    """Keep each robot's state JSON in this process, revalidated against its row versions on every read.
-
-    A read never serves stale state: it first asks the database for every robot's current
-    version (one cheap query) and rebuilds only the robots whose version changed.
-    """
-
-    def __init__(self, max_bytes: int) -> None:
-        self.max_bytes = max_bytes
-        self._entries: OrderedDict[str, tuple[str, str]] = OrderedDict()
-        self._bytes = 0
-        self._lock = threading.Lock()
-
-    def render(self, robots: QuerySet[Robot]) -> str:
-        """Return the robots' state as a JSON array, ordered by id."""
-        subquery, params = robots.values("id").query.sql_with_params()
-        with connection.cursor() as cursor:
-            cursor.execute(FLEET_VERSIONS_SQL.format(robots=subquery), params)
-            versions = cursor.fetchall()
-            with self._lock:
-                cached = {robot_id: self._entries.get(robot_id) for robot_id, _ in versions}
-            stale = [robot_id for robot_id, version in versions if (cached[robot_id] or ("",))[0] != version]
-            if stale:
-                cursor.execute(ROBOTS_JSON_SQL, [stale])
-                fresh = {robot_id: (version, text) for robot_id, version, text in cursor.fetchall()}
-                cached.update(fresh)
-                self._store(fresh)
-        # A robot deleted between the two queries has no state any more: leave it out.
-        return "[" + ",".join(entry[1] for entry in (cached[robot_id] for robot_id, _ in versions) if entry) + "]"
-
-    def _store(self, fresh: dict[str, tuple[str, str]]) -> None:
-        with self._lock:
-            for robot_id, entry in fresh.items():
-                old = self._entries.pop(robot_id, None)
-                self._bytes += len(entry[1]) - (len(old[1]) if old else 0)
-                self._entries[robot_id] = entry
-            while self._bytes > self.max_bytes and self._entries:
-                _, (_, text) = self._entries.popitem(last=False)
-                self._bytes -= len(text)
-
-
-robot_states = RobotStateCache(max_bytes=settings.BRIDGEOS["STATE_CACHE_BYTES"])
-
-
-def fleet_state_json(robots: QuerySet[Robot]) -> str:
-    """Return fleet_state() as JSON text, built by PostgreSQL and cached per robot where available."""
-    if connection.vendor != "postgresql":
-        return json.dumps(fleet_state(robots), cls=DjangoJSONEncoder, separators=(",", ":"))
-    return robot_states.render(robots)

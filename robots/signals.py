@@ -6,3 +6,12 @@ from django.dispatch import Signal
 
 # Sent with robot=... inside the transaction that replaced a robot's token.
 credentials_rotated = Signal()
+
+# Sent with robot_id=, config= (already normalised) whenever a robot's config is validated; a
+# receiver refuses what its app cannot honour by raising ValidationError (the network app: subnets).
+config_checked = Signal()
+
+# Sent with robot_id=, reported= (the ROS master the robot reported, or None) inside the transaction
+# that marks it connected; a receiver may answer the ROS master its components use (the cloud's
+# orchestration: a shared one, or one of its own in the cloud). No answer: the reported one.
+ros_master_wanted = Signal()

@@ -10,3 +10,7 @@ class SkillsConfig(AppConfig):
 
     name = "skills"
     default_auto_field = "django.db.models.BigAutoField"
+
+    def ready(self) -> None:
+        # Connect the receivers, and register the Celery tasks the orchestration queues by name.
+        from . import receivers, tasks  # noqa: F401

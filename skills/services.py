@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
 from django.core.exceptions import ValidationError
-from django.core.serializers.json import DjangoJSONEncoder
-from django.db import connection, transaction
-from django.db.models import QuerySet
+from django.db import transaction
 from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName, Event, Location, SkillStatusName
@@ -22,7 +19,7 @@ from monitoring.services import record_event
 from robots.models import Robot
 from robots.services import client_frame
 
-from . import orchestration
+from .cloud import orchestration
 from .models import Component, Skill, SkillTemplate
 
 if TYPE_CHECKING:
@@ -269,6 +266,27 @@ def request_cloud_component(robot_id: str, skill_id: str, component_id: str, act
         _announce(robot_id, Event.COMPONENT_STATUS, {**data, "location": Location.CLOUD.value})
 
 
+def check_location(component: Component, location: str) -> None:
+    """Refuse a location the component's config does not allow."""
+    if component.location not in (location, Location.EITHER):
+        raise ValidationError(
+            {"location": [f"Component {component.component_id} may only run on the {component.location}."]}
+        )
+
+
+def migration_target(component: Component, location: str | None) -> str:
+    """Return where a migration moves a component: the side asked for, else the other one; refuse what cannot be."""
+    target = location
+    if target is None:
+        if not component.active_location:
+            raise ValidationError({"location": ["The component is not running; say where to move it."]})
+        target = Location.CLOUD if component.active_location == Location.ROBOT else Location.ROBOT
+    check_location(component, target)
+    if target == component.active_location:
+        raise ValidationError({"location": [f"Component {component.component_id} runs on the {target} already."]})
+    return str(target)
+
+
 def component_state(robot_id: str, skill_id: str, component_id: str) -> Component:
     """Return a skill's component, or raise NotFound."""
     with transaction.atomic():
@@ -293,86 +311,3 @@ def create_template(
 ) -> SkillTemplate:
     """Add a Skill config to the catalog."""
     return SkillTemplate.objects.create(name=name, config=config, description=description, tags=tags or [])
-
-
-COMPONENT_COLUMNS = (
-    "co.component_id, co.location, co.active_location, co.status, co.container, co.resources, co.updated_at"
-)
-SKILL_JSON_SQL = f"""
-SELECT json_build_object(
-  'robot', sk.robot_id, 'skill_id', sk.skill_id, 'name', sk.name, 'status', sk.status, 'config', sk.config,
-  'updated_at', sk.updated_at,
-  'components', coalesce((SELECT json_agg(c ORDER BY c.component_id) FROM (
-      SELECT {COMPONENT_COLUMNS} FROM skills_component co WHERE co.skill_id = sk.id) c), '[]')
-)::text
-FROM skills_skill sk WHERE sk.robot_id IN ({{robots}}) AND sk.robot_id = %s AND sk.skill_id = %s
-"""
-COMPONENT_JSON_SQL = """
-SELECT json_build_object(
-  'robot', sk.robot_id, 'skill', sk.skill_id, 'component_id', co.component_id, 'location', co.location,
-  'active_location', co.active_location, 'status', co.status, 'container', co.container,
-  'resources', co.resources, 'updated_at', co.updated_at, 'config', sk.config -> 'components' -> co.component_id
-)::text
-FROM skills_component co JOIN skills_skill sk ON sk.id = co.skill_id
-WHERE sk.robot_id IN ({robots}) AND sk.robot_id = %s AND sk.skill_id = %s AND co.component_id = %s
-"""
-
-
-def skill_state_json(robots: QuerySet[Robot], robot_id: str, skill_id: str) -> str | None:
-    """Return a skill of one of these robots with its config and components as JSON, or None."""
-    if connection.vendor == "postgresql":
-        return _one_json(SKILL_JSON_SQL, robots, [robot_id, skill_id])
-    skill = Skill.objects.filter(robot__in=robots, robot_id=robot_id, skill_id=skill_id).first()
-    if skill is None:
-        return None
-    state = {
-        "robot": skill.robot_id,
-        "skill_id": skill.skill_id,
-        "name": skill.name,
-        "status": skill.status,
-        "config": skill.config,
-        "updated_at": skill.updated_at,
-        "components": [_component_state(c) for c in skill.components.order_by("component_id")],
-    }
-    return json.dumps(state, cls=DjangoJSONEncoder)
-
-
-def component_state_json(robots: QuerySet[Robot], robot_id: str, skill_id: str, component_id: str) -> str | None:
-    """Return a component of one of these robots with its part of the Skill config as JSON, or None."""
-    if connection.vendor == "postgresql":
-        return _one_json(COMPONENT_JSON_SQL, robots, [robot_id, skill_id, component_id])
-    component = (
-        Component.objects.select_related("skill")
-        .filter(skill__robot__in=robots, skill__robot_id=robot_id, skill__skill_id=skill_id, component_id=component_id)
-        .first()
-    )
-    if component is None:
-        return None
-    state = {
-        "robot": robot_id,
-        "skill": skill_id,
-        **_component_state(component),
-        "config": component.skill.config["components"].get(component_id),
-    }
-    return json.dumps(state, cls=DjangoJSONEncoder)
-
-
-def _component_state(component: Component) -> dict[str, Any]:
-    return {
-        "component_id": component.component_id,
-        "location": component.location,
-        "active_location": component.active_location,
-        "status": component.status,
-        "container": component.container,
-        "resources": component.resources,
-        "updated_at": component.updated_at,
-    }
-
-
-def _one_json(sql: str, robots: QuerySet[Robot], params: list[str]) -> str | None:
-    """Run a query building one JSON document, restricted to a queryset of robots."""
-    subquery, robot_params = robots.values("id").query.sql_with_params()
-    with connection.cursor() as cursor:
-        cursor.execute(sql.format(robots=subquery), [*robot_params, *params])
-        row = cursor.fetchone()
-    return row[0] if row else None

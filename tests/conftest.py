@@ -150,7 +150,7 @@ def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) 
 
 def remove_cloud_copies(runtime: str | None = None) -> int:
     """Remove everything the test cloud runs (cloud copies, ROS masters); return how many there were."""
-    from skills.orchestration import with_runtime
+    from skills.cloud.orchestration import with_runtime
 
     async def sweep(cloud_runtime) -> int:
         found = await cloud_runtime.observe()

@@ -15,35 +15,16 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from bridgeos_agent.skillconfig import SLUG_PATTERN
-from robots.services import visible_robots
+from robots.services import robot_scope, visible_robots
 
 from .. import services
-from ..choices import Level
 from ..models import Event
 from .serializers import EventSerializer, MetricRowSerializer, QueryResultSerializer, QuerySerializer
 
-LEVEL_ORDER = [level.value for level in Level]
-
 
 def events_of(request: Request, filters: dict) -> QuerySet[Event]:
-    """Return the events of the user's robots (staff: also fleet-wide events) matching filters."""
-    events = Event.objects.all()
-    if not request.user.is_staff:
-        events = events.filter(robot__owner=request.user)
-    if filters.get("robots"):
-        events = events.filter(robot_id__in=filters["robots"])
-    for field in ("skill", "component"):
-        if filters.get(field):
-            events = events.filter(**{field: filters[field]})
-    if filters.get("event"):
-        events = events.filter(kind=filters["event"])
-    if filters.get("level"):
-        events = events.filter(level__in=LEVEL_ORDER[LEVEL_ORDER.index(filters["level"]) :])
-    if filters.get("since"):
-        events = events.filter(ts__gte=filters["since"])
-    if filters.get("until"):
-        events = events.filter(ts__lt=filters["until"])
-    return events.order_by("-ts", "-id")
+    """Return the events the user may see (staff: also fleet-wide events) matching filters."""
+    return services.events_matching(filters, robot_scope(request.user))
 
 
 class DatabaseQueryView(APIView):
@@ -103,7 +84,7 @@ class EventListView(generics.ListAPIView):
             OpenApiParameter("skill", str),
             OpenApiParameter("component", str),
             OpenApiParameter("kind", str),
-            OpenApiParameter("level", str, enum=LEVEL_ORDER, description="Minimum level."),
+            OpenApiParameter("level", str, enum=services.LEVEL_ORDER, description="Minimum level."),
             OpenApiParameter("since", str, description="ISO 8601 time."),
             OpenApiParameter("until", str, description="ISO 8601 time."),
         ]

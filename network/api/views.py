@@ -13,10 +13,9 @@ from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from bridgeos_cloud import bruteforce
-from bridgeos_cloud.authentication import ApiTokenAuthentication
 from monitoring.services import record_event
 from robots import services as robots
+from robots.authentication import ApiTokenAuthentication
 from robots.models import TOKEN_PREFIX, Robot
 
 from .. import services
@@ -28,12 +27,10 @@ def robot_from_token(request: Request, robot_id: str) -> Robot | None:
     scheme, _, key = header.partition(" ")
     if scheme.lower() != "token" or not key.startswith(TOKEN_PREFIX):
         return None
-    address = request.META.get("REMOTE_ADDR", "")
-    retry = bruteforce.blocked("robot", robot_id, address)
-    if retry:
-        raise Throttled(wait=retry, detail="Too many failed attempts for this robot; try again later.")
-    robot = robots.authenticate_robot(robot_id, key.strip())
-    bruteforce.attempted("robot", robot_id, address, robot is not None)
+    try:
+        robot = robots.login_robot(robot_id, key.strip(), request.META.get("REMOTE_ADDR", ""))
+    except robots.LoginBlocked as exc:
+        raise Throttled(wait=exc.retry_s, detail="Too many failed attempts for this robot; try again later.") from None
     if robot is None:
         raise AuthenticationFailed("Unknown robot or wrong token.")
     return robot

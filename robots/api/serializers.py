@@ -6,6 +6,7 @@ from rest_framework import serializers
 
 from bridgeos_agent.skillconfig import SLUG_PATTERN
 from skills.api.serializers import SkillSerializer
+from skills.state import ROBOT_FIELDS
 
 from ..models import Robot
 
@@ -20,14 +21,14 @@ class RenewedTokenSerializer(serializers.Serializer):
 
 
 class RobotSerializer(serializers.ModelSerializer):
-    """A robot with its skills and their components."""
+    """A robot with its skills and their components (the fields of `skills.state`, for the OpenAPI document)."""
 
     owner = serializers.CharField(source="owner.get_username", read_only=True)
     skills = SkillSerializer(many=True, read_only=True)
 
     class Meta:
         model = Robot
-        fields = ["id", "name", "owner", "status", "connected", "last_seen", "ros_master", "config", "skills"]
+        fields = [*ROBOT_FIELDS, "skills"]
         read_only_fields = fields
 
 

@@ -19,10 +19,11 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from bridgeos_agent.protocol import Event
-from bridgeos_cloud.authentication import ApiTokenAuthentication, PasswordAuthentication
 from monitoring.services import record_event
+from skills.state import fleet_state_json
 
 from .. import services
+from ..authentication import ApiTokenAuthentication, PasswordAuthentication
 from ..models import ApiToken, Robot
 from .commands import relay, relay_to_fleet, wait_seconds
 from .serializers import (
@@ -54,7 +55,7 @@ def django_errors(exc: DjangoValidationError) -> ValidationError:
 
 def state_of(request: Request, robot_id: str) -> dict:
     """Return the state of one of the user's robots, or 404, as every robot route renders it."""
-    found = json.loads(services.fleet_state_json(services.visible_robots(request.user).filter(id=robot_id)))
+    found = json.loads(fleet_state_json(services.visible_robots(request.user).filter(id=robot_id)))
     if not found:
         raise Http404(f"No robot {robot_id!r}.")
     return found[0]
@@ -62,7 +63,7 @@ def state_of(request: Request, robot_id: str) -> dict:
 
 def json_state(request: Request, robots: QuerySet[Robot], *, one: bool = False) -> HttpResponse:
     """Answer with robots' state as JSON built by the database (one robot, or 404, when ``one``)."""
-    text = services.fleet_state_json(robots)
+    text = fleet_state_json(robots)
     if one:
         if text == "[]":
             raise Http404("No such robot.")

@@ -7,12 +7,13 @@ from rest_framework import serializers
 from bridgeos_agent.skillconfig import SLUG_PATTERN
 
 from ..models import Component, Skill, SkillTemplate
+from ..state import COMPONENT_FIELDS, SKILL_FIELDS
 
 
 class ComponentSerializer(serializers.ModelSerializer):
     class Meta:
         model = Component
-        fields = ["component_id", "location", "active_location", "status", "container", "resources", "updated_at"]
+        fields = list(COMPONENT_FIELDS)
         read_only_fields = fields
 
 
@@ -21,7 +22,7 @@ class SkillSerializer(serializers.ModelSerializer):
 
     class Meta:
         model = Skill
-        fields = ["skill_id", "name", "status", "updated_at", "components"]
+        fields = [*SKILL_FIELDS, "components"]
         read_only_fields = fields
 
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from django.urls import path
 
-from . import manager, views
+from . import componentsapi, views
 
 SKILL = "robot/<slug:robot_id>/skill/<slug:skill_id>"
 COMPONENT = f"{SKILL}/component/<slug:component_id>"
 
 urlpatterns = [
-    path("cloud/manager/<str:token>/<path:path>", manager.components_api, name="cloud-components-api"),
+    path("cloud/manager/<str:token>/<path:path>", componentsapi.components_api, name="cloud-components-api"),
     path("robot/<slug:robot_id>/skill/add", views.SkillAddView.as_view(), name="skill-add"),
     path("robot/<slug:robot_id>/skill/remove", views.SkillRemoveView.as_view(), name="skill-remove"),
     path(f"{SKILL}/info", views.SkillInfoView.as_view(), name="skill-info"),

@@ -13,12 +13,12 @@ from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from bridgeos_agent.protocol import Event, Location
+from bridgeos_agent.protocol import Event
 from robots.api.commands import relay, wait_seconds
 from robots.api.views import COMMAND_RESPONSES, WAIT, django_errors, robot_of
 from robots.services import visible_robots
 
-from .. import services
+from .. import services, state
 from ..models import Component, Skill, SkillTemplate
 from .serializers import (
     ComponentDetailSerializer,
@@ -89,7 +89,7 @@ class SkillInfoView(APIView):
 
     @extend_schema(responses={200: SkillDetailSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str, skill_id: str) -> HttpResponse:
-        text = services.skill_state_json(visible_robots(request.user), robot_id, skill_id)
+        text = state.skill_state_json(visible_robots(request.user), robot_id, skill_id)
         if text is None:
             raise Http404("No such skill.")
         return HttpResponse(text, content_type="application/json")
@@ -120,18 +120,10 @@ class ComponentInfoView(APIView):
 
     @extend_schema(responses={200: ComponentDetailSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> HttpResponse:
-        text = services.component_state_json(visible_robots(request.user), robot_id, skill_id, component_id)
+        text = state.component_state_json(visible_robots(request.user), robot_id, skill_id, component_id)
         if text is None:
             raise Http404("No such component.")
         return HttpResponse(text, content_type="application/json")
-
-
-def allowed_at(component: Component, location: str) -> None:
-    """Refuse a location the component's config does not allow."""
-    if component.location not in (location, Location.EITHER):
-        raise ValidationError(
-            {"location": [f"Component {component.component_id} may only run on the {component.location}."]}
-        )
 
 
 class ComponentStartView(APIView):
@@ -141,7 +133,10 @@ class ComponentStartView(APIView):
     def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
         component = component_of(request, robot_id, skill_id, component_id)
         location = validated(ComponentStartSerializer, request)["location"]
-        allowed_at(component, location)
+        try:
+            services.check_location(component, location)
+        except DjangoValidationError as exc:
+            raise django_errors(exc) from None
         data = {"skill": skill_id, "component": component_id, "location": location}
         return relay(robot_id, Event.COMPONENT_START, data, wait_seconds(request))
 
@@ -162,15 +157,13 @@ class ComponentMigrateView(APIView):
     @extend_schema(request=ComponentMigrateSerializer, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
         component = component_of(request, robot_id, skill_id, component_id)
-        target = validated(ComponentMigrateSerializer, request).get("location")
-        if target is None:
-            if not component.active_location:
-                raise ValidationError({"location": ["The component is not running; say where to move it."]})
-            target = Location.CLOUD if component.active_location == Location.ROBOT else Location.ROBOT
-        allowed_at(component, target)
-        if target == component.active_location:
-            raise ValidationError({"location": [f"Component {component_id} runs on the {target} already."]})
-        data = {"skill": skill_id, "component": component_id, "location": str(target)}
+        try:
+            target = services.migration_target(
+                component, validated(ComponentMigrateSerializer, request).get("location")
+            )
+        except DjangoValidationError as exc:
+            raise django_errors(exc) from None
+        data = {"skill": skill_id, "component": component_id, "location": target}
         return relay(robot_id, Event.COMPONENT_MIGRATE, data, wait_seconds(request))
 
 

@@ -341,8 +341,8 @@ async def test_components_reach_their_manager_and_a_recommendation_moves_one(clo
 async def test_a_cloud_copy_reaches_its_skills_manager_through_the_cloud(cloud, tmp_path):
     import httpx
 
+    from skills.cloud.orchestration import cloud_spec
     from skills.models import CloudInstance
-    from skills.orchestration import cloud_spec
 
     config = movable_skill(interval=0.3, threshold=1e6)
     token, _ = await make_robot("man-9", skill=config)

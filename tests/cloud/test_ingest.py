@@ -19,9 +19,11 @@ from django.db import connections, transaction
 from django.utils import timezone
 
 from bridgeos_agent.protocol import MetricPoint
+from bridgeos_cloud.loopowned import close_loop_objects
 from monitoring.ingest import MetricWriter, conninfo_from_settings, format_ts, get_writer
-from monitoring.live import LIVE_GROUP, LiveFeed, publish_on_commit
+from monitoring.live import LIVE_GROUP, LiveFeed, get_live_feed, publish_on_commit
 from monitoring.models import Metric
+from robots.dedup import applied_ids
 from robots.models import Robot
 from robots.services import create_robot
 
@@ -254,6 +256,24 @@ async def test_get_writer_returns_one_writer_per_loop(robots):
         await writer.add("r1", [point("cpu", 1.0, T0)])
     finally:
         await writer.close()
+
+
+async def test_the_loops_writer_feed_and_applied_ids_are_closed_by_their_owner_at_shutdown(robots, redis_layer):
+    writer, feed, ids = get_writer(), get_live_feed(), applied_ids()
+    pending = writer.add("r1", [point("cpu", 1.0, T0)])
+    feed.add_metrics("r1", [point("cpu", 1.0, T0)])
+    ids.add("r1", "frame-1")
+
+    await close_loop_objects()
+
+    # Closing flushed what was pending: the row is stored and the id saved.
+    assert pending.done() and pending.exception() is None
+    assert [row[:5] for row in await stored()] == [("r1", "", "", "cpu", 1.0)]
+    assert writer.closed and feed._task is None
+    # The next use in this loop gets fresh ones, owned again.
+    assert get_writer() is not writer and get_live_feed() is not feed and applied_ids() is not ids
+    assert "frame-1" in await applied_ids().load("r1")
+    await close_loop_objects()
 
 
 async def test_live_feed_coalesces_many_adds_into_one_message_of_latest_values(redis_layer):

@@ -110,7 +110,7 @@ class Stack:
 
 def observe(runtime: str) -> list[Any]:
     """List what this test cloud runs on the engine."""
-    from skills.orchestration import with_runtime
+    from skills.cloud.orchestration import with_runtime
 
     return with_runtime("observer", lambda cloud_runtime: cloud_runtime.observe(), name=runtime)
 
@@ -170,7 +170,7 @@ def make_stack(runtime: str, tmp: Path, **extra: str) -> Iterator[Stack]:
 
 def _remove_networks(runtime: str) -> None:
     """Remove the test cloud's networks, waiting while Swarm still detaches removed copies from them."""
-    from skills.orchestration import with_runtime
+    from skills.cloud.orchestration import with_runtime
 
     async def sweep(cloud_runtime) -> int:
         for name in (await cloud_runtime.networks()).values():
@@ -196,7 +196,7 @@ def robots_disconnect_before_flush(transactional_db) -> Iterator[None]:
     remove what the test's robots ran, networks too (the next test's robot gets the same subnet)."""
     yield
     from robots.models import Robot
-    from skills.cloudruntime import runtime_name
+    from skills.cloud.runtime import runtime_name
 
     deadline = time.monotonic() + 15
     while Robot.objects.filter(connected=True).exists() and time.monotonic() < deadline:

@@ -22,7 +22,7 @@ import docker
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.skillconfig import parse_skill_config
 from monitoring.models import Event, Metric
-from skills.cloudruntime import KIND_ROS_MASTER, object_name
+from skills.cloud.runtime import KIND_ROS_MASTER, object_name
 from skills.models import CloudInstance, Component, RobotCloud
 from tests.agent.test_controller import agent_settings, eventually, make_robot, running
 from tests.e2e.conftest import host_ros_env

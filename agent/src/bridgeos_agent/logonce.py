@@ -10,9 +10,10 @@ __all__ = ["LogOnce"]
 class LogOnce:
     """Say each distinct error of one recurring action once, and say when the action works again."""
 
-    def __init__(self, logger: logging.Logger, action: str) -> None:
+    def __init__(self, logger: logging.Logger, action: str, *, traceback: bool = False) -> None:
         self.logger = logger
         self.action = action
+        self.traceback = traceback  # an unexpected error of a loop: keep where it came from
         self._said: set[str] = set()
 
     def failed(self, exc: BaseException) -> bool:
@@ -24,7 +25,9 @@ class LogOnce:
         if len(self._said) >= 100:
             self._said.clear()
         self._said.add(key)
-        self.logger.warning("%s failed: %s (said once until it works again)", self.action, key)
+        self.logger.warning(
+            "%s failed: %s (said once until it works again)", self.action, key, exc_info=exc if self.traceback else None
+        )
         return True
 
     def worked(self) -> None:

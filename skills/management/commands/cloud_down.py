@@ -7,9 +7,9 @@ from typing import Any
 from django.core.management.base import BaseCommand
 from django.db import transaction
 
-from skills.cloudruntime import CloudRuntime, cloud_id, runtime_name
+from skills.cloud.orchestration import with_runtime
+from skills.cloud.runtime import CloudRuntime, cloud_id, runtime_name
 from skills.models import CloudInstance, Component, RobotCloud
-from skills.orchestration import with_runtime
 
 
 class Command(BaseCommand):

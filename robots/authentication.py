@@ -7,11 +7,11 @@ from typing import Any
 from rest_framework.authentication import BasicAuthentication, TokenAuthentication
 from rest_framework.exceptions import AuthenticationFailed, Throttled
 
+from bridgeos_cloud import bruteforce
 from monitoring.choices import Level
 from monitoring.services import record_event
-from robots.services import api_token
 
-from . import bruteforce
+from .services import api_token
 
 
 class ApiTokenAuthentication(TokenAuthentication):

@@ -15,11 +15,11 @@ from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event
 from bridgeos_cloud.consumers import ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
+from monitoring import prometheus
+from monitoring.live import LIVE_GROUP
 from robots import services as robots
-from skills import services as skills
 
-from . import prometheus, services
-from .live import LIVE_GROUP
+from . import services
 
 log = logging.getLogger(__name__)
 
@@ -152,12 +152,14 @@ class ClientConsumer(ProtocolConsumer):
             if not await database_sync_to_async(robots.can_see)(self.user, robot_id):
                 raise NotFound(f"no robot {robot_id!r}", field="data.robot")
             if envelope.event in STORED_THEN_RELAYED:
-                await database_sync_to_async(store_config_change)(envelope.event, robot_id, payload)
+                await database_sync_to_async(services.store_config_change)(envelope.event, robot_id, payload)
                 await self.relay(envelope, robot_id, stored=True)
             elif envelope.event in RELAYED:
                 await self.relay(envelope, robot_id)
             else:
-                event, data = await database_sync_to_async(answer_from_database)(envelope.event, robot_id, payload)
+                event, data = await database_sync_to_async(services.answer_from_database)(
+                    envelope.event, robot_id, payload
+                )
                 await self.answer(envelope, event, data)
         except NotFound as exc:
             await self.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
@@ -190,35 +192,3 @@ class ClientConsumer(ProtocolConsumer):
             data = {**data, "robot": robot_id}
         answer = reply.model_copy(update={"reply_to": envelope.id, "data": data})
         await self.send_envelope(answer)
-
-
-def store_config_change(event: str, robot_id: str, p: Any) -> None:
-    """Store a client's change of a robot's config before it is relayed."""
-    changes = dict(p.changes) if event == Event.ROBOT_CONFIG_UPDATE else {"offloading": p.mode}
-    robots.update_robot_config(robot_id, changes)
-
-
-def answer_from_database(event: str, robot_id: str, p: Any) -> tuple[Event, dict[str, Any]]:
-    """Answer a client's request from the cloud's own records; return the reply event and data."""
-    if event == Event.ROBOT_CONFIG_GET:
-        return Event.ROBOT_CONFIG, {"robot": robot_id, "config": robots.robot_config(robot_id)}
-    if event == Event.OFFLOADING_GET:
-        return Event.OFFLOADING, {"robot": robot_id, "mode": robots.robot_config(robot_id)["offloading"]}
-    if event == Event.SKILL_STATUS_GET:
-        skill = skills.skill_state(robot_id, p.skill)
-        return Event.SKILL_STATUS, {"robot": robot_id, "skill": skill.skill_id, "status": skill.status}
-    if event == Event.SKILL_CONFIG_GET:
-        skill = skills.skill_state(robot_id, p.skill)
-        return Event.SKILL_CONFIG, {"robot": robot_id, "skill": skill.skill_id, "config": skill.config}
-    if event == Event.COMPONENT_STATUS_GET:
-        component = skills.component_state(robot_id, p.skill, p.component)
-        data = {"robot": robot_id, "skill": p.skill, "component": p.component, "status": component.status}
-        if component.active_location:
-            data["location"] = component.active_location
-        return Event.COMPONENT_STATUS, data
-    if event == Event.METRICS_GET:
-        points = services.latest_metrics(
-            robot_id, names=p.names, skill=p.skill, component=p.component, since=p.since, limit=p.limit or 100
-        )
-        return Event.METRICS, {"robot": robot_id, "metrics": points}
-    raise NotFound(f"event {event!r} is not a request clients can make", field="event")

@@ -19,7 +19,6 @@ import asyncio
 import functools
 import logging
 import math
-import os
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -35,17 +34,12 @@ from docker.types import (
     EndpointSpec,
     IPAMConfig,
     IPAMPool,
-    LogConfig,
-    Mount,
     NetworkAttachmentConfig,
-    Placement,
-    Resources,
     RestartPolicy,
     TaskTemplate,
 )
 
 from bridgeos_agent.runtime.base import (
-    VOLUMES_ENV,
     ComponentSpec,
     ComponentState,
     RuntimeFailure,
@@ -54,11 +48,10 @@ from bridgeos_agent.runtime.base import (
     absent,
     check_ids,
 )
-from bridgeos_agent.runtime.docker import MIN_CPUS, MIN_MEMORY, VOLUMES_MOUNT
 from bridgeos_agent.runtime.engine import open_client
-from bridgeos_agent.runtime.usage import MIB, cpu_share, docker_usage, get_json
+from bridgeos_agent.runtime.usage import cpu_share, docker_usage, get_json
 
-from .cloudruntime import (
+from .runtime import (
     KIND_COMPONENT,
     KIND_ROS_MASTER,
     LABEL_CLOUD,
@@ -78,16 +71,13 @@ from .cloudruntime import (
     ros_networking,
     volumes_root,
 )
+from .swarmspec import STOP_GRACE_NS, log_driver, service_config, task_key, task_state
 
 __all__ = ["SwarmRuntime"]
 
 logger = logging.getLogger(__name__)
 
-# Task states (docker/api/types/swarm/task.go) and what they mean for a copy.
-_STARTING = {"new", "allocated", "pending", "assigned", "accepted", "preparing", "ready", "starting"}
-_FAILED = {"failed", "rejected", "orphaned", "remove"}
-_DONE = {"complete", "shutdown"}
-STOP_GRACE_NS = 10 * 1_000_000_000
+
 STATS_CONCURRENCY = 32
 
 
@@ -135,7 +125,10 @@ class SwarmRuntime(CloudRuntime):
             network = None if self._host_networked(spec) else await self.ensure_network()
             await asyncio.to_thread(self._make_volume_dirs, spec)
             try:
-                created = await self._call(api.create_service, **self._service_config(spec, network))
+                created = await self._call(
+                    api.create_service,
+                    **service_config(self.robot, self.service_name(spec.skill, spec.component), spec, network),
+                )
                 self._ids[name] = created["ID"]
             except docker.errors.APIError as exc:
                 if exc.status_code != 409:  # 409: created meanwhile by a redelivered task
@@ -156,7 +149,7 @@ class SwarmRuntime(CloudRuntime):
         task = await self._newest_task(self.service_name(skill, component))
         if task is None:
             return absent(skill, component)
-        return _task_state(skill, component, task)
+        return task_state(skill, component, task)
 
     async def logs(self, skill: str, component: str, tail: int = 100) -> list[str]:
         """Return the last ``tail`` lines of the service's output (its earlier tasks' too)."""
@@ -350,7 +343,7 @@ class SwarmRuntime(CloudRuntime):
                 container_spec=container,
                 restart_policy=RestartPolicy(condition="none"),
                 networks=[NetworkAttachmentConfig("host")],
-                log_driver=_log_driver(),
+                log_driver=log_driver(),
             )
             try:
                 await self._call(
@@ -381,14 +374,14 @@ class SwarmRuntime(CloudRuntime):
         newest: dict[str, dict[str, Any]] = {}
         for task in tasks:
             sid = task.get("ServiceID", "")
-            if sid not in newest or _task_key(task) > _task_key(newest[sid]):
+            if sid not in newest or task_key(task) > task_key(newest[sid]):
                 newest[sid] = task
         found = []
         for service in services:
             spec_labels = (service.get("Spec") or {}).get("Labels") or {}
             task = newest.get(service["ID"])
             skill, component = spec_labels.get(LABEL_SKILL, ""), spec_labels.get(LABEL_COMPONENT, "")
-            state = _task_state(skill, component, task) if task else absent(skill, component)
+            state = task_state(skill, component, task) if task else absent(skill, component)
             found.append(
                 Observed(
                     robot=spec_labels.get(LABEL_ROBOT, ""),
@@ -420,56 +413,6 @@ class SwarmRuntime(CloudRuntime):
     def _make_volume_dirs(self, spec: ComponentSpec) -> None:
         for volume in spec.volumes:
             (volumes_root() / self.robot / spec.skill / volume).mkdir(parents=True, exist_ok=True)
-
-    def _service_config(self, spec: ComponentSpec, network: str | None) -> dict[str, Any]:
-        """Build the create-service request of a component's cloud copy."""
-        resources = spec.resources
-        limits: dict[str, Any] = {}
-        if resources.cpu > 0:
-            limits["cpu_limit"] = int(min(max(resources.cpu, MIN_CPUS), float(os.cpu_count() or 1)) * 1e9)
-        if resources.ram > 0:
-            limits["mem_limit"] = max(int(resources.ram * MIB), MIN_MEMORY)
-        mounts = [
-            Mount(
-                target=f"{VOLUMES_MOUNT}/{volume}",
-                source=str(volumes_root() / self.robot / spec.skill / volume),
-                type="bind",
-            )
-            for volume in spec.volumes
-        ]
-        own_labels = labels(self.robot, spec.skill, spec.component)
-        if isinstance(spec, CloudSpec) and spec.token:
-            own_labels[LABEL_TOKEN] = spec.token
-        env = {**spec.launch_env(), VOLUMES_ENV: VOLUMES_MOUNT}
-        container = ContainerSpec(
-            image=spec.launch.image,
-            # The launch spec's command replaces the image's CMD, as with docker run.
-            args=spec.launch.command,
-            env=env,
-            labels=own_labels,
-            mounts=mounts,
-            init=True,
-            stop_grace_period=STOP_GRACE_NS,
-            hostname=self.service_name(spec.skill, spec.component),
-        )
-        host = network is None
-        template = TaskTemplate(
-            container_spec=container,
-            resources=Resources(**limits) if limits else None,
-            restart_policy=RestartPolicy(condition="none"),
-            placement=Placement(constraints=list(spec.launch.placement)) if spec.launch.placement else None,
-            networks=[NetworkAttachmentConfig("host" if host else network)],
-            log_driver=_log_driver(),
-        )
-        ports = [
-            {"Protocol": "tcp", "TargetPort": port, "PublishMode": "host"} for port in spec.launch.ports if not host
-        ]
-        return {
-            "task_template": template,
-            "name": self.service_name(spec.skill, spec.component),
-            "labels": own_labels,
-            "endpoint_spec": EndpointSpec(mode="dnsrr", ports=ports or None),
-        }
 
     async def _published_ports(self, task: Mapping[str, Any], container_id: str | None) -> dict[str, int]:
         """Map container port to the host port published for IPv4.
@@ -521,7 +464,7 @@ class SwarmRuntime(CloudRuntime):
             return None
         # Filters match by prefix: keep the service's own tasks.
         tasks = [t for t in tasks if t.get("ServiceID") == service_id]
-        return max(tasks, key=_task_key) if tasks else None
+        return max(tasks, key=task_key) if tasks else None
 
     async def _wait_task(self, name: str, skill: str, component: str, timeout: float) -> ComponentState:
         deadline = time.monotonic() + timeout
@@ -532,7 +475,7 @@ class SwarmRuntime(CloudRuntime):
             if task is None:
                 state = absent(skill, component)
             else:
-                state = _task_state(skill, component, task)
+                state = task_state(skill, component, task)
                 if state.status in (Status.RUNNING, Status.FAILED, Status.EXITED):
                     return state
             if time.monotonic() >= deadline:
@@ -606,41 +549,3 @@ class SwarmRuntime(CloudRuntime):
                 where = self.docker_url or "DOCKER_HOST or /var/run/docker.sock"
                 raise RuntimeFailure(f"cannot reach the Docker engine at {where}: {exc}") from None
         return self._api
-
-
-def _log_driver() -> dict[str, Any]:
-    config = LogConfig(type=LogConfig.types.JSON, config={"max-size": str(10 * MIB), "max-file": "2"})
-    return {"Name": config.type, "Options": config.config}
-
-
-def _task_key(task: Mapping[str, Any]) -> tuple[int, str]:
-    """Order a service's tasks: the newest (highest version, then creation time) last."""
-    return (int((task.get("Version") or {}).get("Index", 0)), str(task.get("CreatedAt", "")))
-
-
-def _task_state(skill: str, component: str, task: Mapping[str, Any]) -> ComponentState:
-    """Map a task's state to a component's state."""
-    status = task.get("Status") or {}
-    state = str(status.get("State", ""))
-    container = status.get("ContainerStatus") or {}
-    code = container.get("ExitCode")
-    message = status.get("Err") or None
-    if state == "running":
-        mapped = Status.RUNNING
-    elif state in _STARTING:
-        mapped = Status.STARTING
-    elif state == "complete":
-        mapped = Status.EXITED
-    elif state in _FAILED or (state in _DONE and code not in (None, 0)):
-        mapped = Status.FAILED
-        message = message or f"task {state} (exit code {code})"
-    else:
-        mapped = Status.STOPPED
-    return ComponentState(
-        skill=skill,
-        component=component,
-        status=mapped,
-        pid_or_container_id=(container.get("ContainerID") or task.get("ID")),
-        exit_code=code if mapped is not Status.RUNNING else None,
-        message=message if mapped is not Status.RUNNING else None,
-    )

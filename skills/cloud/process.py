@@ -35,7 +35,7 @@ from bridgeos_agent.runtime.groups import adopt, signal_group
 from bridgeos_agent.runtime.process import ProcessRuntime
 from bridgeos_agent.runtime.usage import measure
 
-from .cloudruntime import (
+from .runtime import (
     KIND_COMPONENT,
     KIND_ROS_MASTER,
     MASTER_COMPONENT,

@@ -34,7 +34,7 @@ from bridgeos_agent.runtime.base import (
 from bridgeos_agent.runtime.docker import VOLUMES_MOUNT, DockerRuntime
 from bridgeos_agent.runtime.usage import cpu_share, docker_usage
 
-from .cloudruntime import (
+from .runtime import (
     KIND_COMPONENT,
     KIND_ROS_MASTER,
     LABEL_CLOUD,

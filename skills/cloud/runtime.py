@@ -41,7 +41,6 @@ __all__ = [
     "EngineBusy",
     "Observed",
     "cloud_id",
-    "create_cloud_runtime",
     "object_name",
     "runtime_name",
 ]
@@ -204,22 +203,3 @@ class CloudRuntime(Runtime):
     @abstractmethod
     async def remove_network_named(self, name: str) -> None:
         """Remove one of this cloud's networks by name."""
-
-
-def create_cloud_runtime(robot: str, name: str | None = None) -> CloudRuntime:
-    """Build the configured cloud runtime (BRIDGEOS_CLOUD_RUNTIME) for one robot."""
-    name = name or runtime_name()
-    data_dir = Path(settings.DATA_DIR) / "cloud" / "runtime"
-    if name == "swarm":
-        from .swarm import SwarmRuntime
-
-        return SwarmRuntime(robot, data_dir=data_dir)
-    if name == "docker":
-        from .clouddocker import CloudDockerRuntime
-
-        return CloudDockerRuntime(robot, data_dir=data_dir)
-    if name == "process":
-        from .cloudprocess import CloudProcessRuntime
-
-        return CloudProcessRuntime(robot, data_dir=data_dir)
-    raise ConfigError(f"unknown cloud runtime {name!r}: use one of {', '.join(RUNTIMES)}")

@@ -19,8 +19,8 @@ from bridgeos_agent.protocol import VolumeChanges, VolumeChunks, VolumeChunksGet
 from bridgeos_agent.volumesync import VolumeReplica, change_frames, receive_changes
 from bridgeos_cloud.errors import NotFound
 
-from .cloudruntime import volumes_root
-from .models import Skill
+from ..models import Skill
+from .runtime import volumes_root
 
 __all__ = ["CloudVolumes", "declared_volumes"]
 

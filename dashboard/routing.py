@@ -1,4 +1,4 @@
-"""WebSocket routes of monitoring: the live feed for dashboards and apps."""
+"""WebSocket routes of the dashboard app: the live feed and commands for dashboards and apps."""
 
 from __future__ import annotations
 

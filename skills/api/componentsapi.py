@@ -16,7 +16,7 @@ from django.views.decorators.csrf import csrf_exempt
 from bridgeos_agent.protocol import Event, ProtocolError
 from robots.services import CommandTimeout, RobotOffline, relay_command
 
-from ..orchestration import running_copy
+from ..cloud.orchestration import running_copy
 
 WAIT_S = 10.0
 

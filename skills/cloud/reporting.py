@@ -1,0 +1,158 @@
+"""Record what became of a cloud copy and tell the robot and the operators."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from django.db import transaction
+from django.utils import timezone
+
+from bridgeos_agent.protocol import ComponentStatusName as CS
+from bridgeos_agent.protocol import Event, Location
+from bridgeos_agent.runtime.base import RuntimeFailure
+from monitoring.choices import Level
+from monitoring.live import publish_on_commit
+from monitoring.services import record_event
+from robots.services import client_frame, push_to_robot
+
+from ..models import CloudInstance, Component
+from .orchestration import LOG_TAIL, STOPPED, who, with_runtime
+
+logger = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- recording outcomes
+
+
+def set_status(instance: CloudInstance, status: str, message: str = "") -> None:
+    """Record the copy's status, and the component's when the copy is the active instance."""
+    robot_id, skill_id, component_id = who(instance)
+    with transaction.atomic():
+        CloudInstance.objects.filter(pk=instance.pk).update(status=status, message=message, updated_at=timezone.now())
+        instance.status, instance.message = status, message
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is not None and cloud_is_active(component):
+            component.status = status
+            component.save(update_fields=["status", "updated_at"])
+            announce(
+                robot_id,
+                Event.COMPONENT_STATUS,
+                {"skill": skill_id, "component": component_id, "status": status, "location": "cloud"},
+            )
+
+
+def cloud_is_active(component: Component) -> bool:
+    """Tell whether the cloud copy is the component's active instance (not a migration's target)."""
+    return component.active_location == Location.CLOUD and component.status != CS.MIGRATING
+
+
+def record_running(instance: CloudInstance, endpoint: dict[str, Any]) -> None:
+    robot_id, skill_id, component_id = who(instance)
+    with transaction.atomic():
+        CloudInstance.objects.filter(pk=instance.pk).update(
+            status=CS.RUNNING, container=endpoint, message="", restart_at=None, updated_at=timezone.now()
+        )
+        instance.status, instance.container = CS.RUNNING, endpoint
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is None:
+            return
+        component.container = {**component.container, "cloud": endpoint}
+        fields = ["container", "updated_at"]
+        active = cloud_is_active(component)
+        if active:
+            component.status = CS.RUNNING
+            fields.append("status")
+        component.save(update_fields=fields)
+        record_event(
+            f"Cloud copy of {component_id} runs ({endpoint.get('runtime')} {str(endpoint.get('id', ''))[:12]})",
+            robot_id=robot_id,
+            kind="cloud_component_running",
+            skill=skill_id,
+            component=component_id,
+            data={"container": endpoint},
+        )
+        status = {"skill": skill_id, "component": component_id, "status": CS.RUNNING.value, "location": "cloud"}
+        if active:
+            announce(robot_id, Event.COMPONENT_STATUS, status)
+        announce(robot_id, Event.COMPONENT_INFORMATION, info_data(skill_id, component_id, endpoint))
+        tell_robot(robot_id, Event.COMPONENT_STATUS, status)
+        tell_robot(robot_id, Event.COMPONENT_INFORMATION, info_data(skill_id, component_id, endpoint))
+
+
+def fail(instance: CloudInstance, reason: str, *, logs: list[str] | None = None) -> None:
+    """Remove whatever runs of the copy, record why it failed, and tell the robot."""
+    robot_id, skill_id, component_id = who(instance)
+    if logs is None:
+        logs = []
+        try:
+            logs = with_runtime(robot_id, lambda runtime: runtime.logs(skill_id, component_id, LOG_TAIL))
+        except RuntimeFailure:
+            pass
+    try:
+        with_runtime(robot_id, lambda runtime: runtime.stop(skill_id, component_id))
+    except RuntimeFailure as exc:
+        logger.warning("could not remove the failed cloud copy of %s/%s/%s: %s", robot_id, skill_id, component_id, exc)
+    reason = reason[:1800]
+    with transaction.atomic():
+        CloudInstance.objects.filter(pk=instance.pk).update(
+            status=CS.FAILED, desired=STOPPED, message=reason, container={}, restart_at=None, updated_at=timezone.now()
+        )
+        component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
+        if component is None:
+            return
+        if cloud_is_active(component):
+            component.status = CS.FAILED
+            component.save(update_fields=["status", "updated_at"])
+        record_event(
+            f"Cloud copy of {component_id} failed: {reason}",
+            robot_id=robot_id,
+            level=Level.ERROR,
+            kind="cloud_component_failed",
+            skill=skill_id,
+            component=component_id,
+            data={"logs": logs[-LOG_TAIL:]},
+        )
+        status = {
+            "skill": skill_id,
+            "component": component_id,
+            "status": CS.FAILED.value,
+            "location": "cloud",
+            "message": reason,
+        }
+        if cloud_is_active(component):
+            announce(robot_id, Event.COMPONENT_STATUS, status)
+        tell_robot(robot_id, Event.COMPONENT_STATUS, status)
+
+
+def info_data(skill_id: str, component_id: str, endpoint: dict[str, Any]) -> dict[str, Any]:
+    return {"skill": skill_id, "component": component_id, "location": "cloud", "container": endpoint}
+
+
+def announce(robot_id: str, event: Event, data: dict[str, Any]) -> None:
+    publish_on_commit(robot_id, client_frame(event, {"robot": robot_id, **data}))
+
+
+def tell_robot(robot_id: str, event: Event, data: dict[str, Any]) -> None:
+    transaction.on_commit(lambda: push_to_robot(robot_id, event, data), robust=True)
+
+
+def cloud_reports(robot_id: str) -> list[tuple[Event, dict[str, Any]]]:
+    """Return what a (re)connecting robot should hear about its cloud copies that run or failed."""
+    reports: list[tuple[Event, dict[str, Any]]] = []
+    for instance in CloudInstance.objects.select_related("component__skill").filter(
+        component__skill__robot_id=robot_id, status__in=(CS.RUNNING, CS.FAILED)
+    ):
+        skill_id, component_id = instance.component.skill.skill_id, instance.component.component_id
+        status: dict[str, Any] = {
+            "skill": skill_id,
+            "component": component_id,
+            "status": instance.status,
+            "location": "cloud",
+        }
+        if instance.status == CS.FAILED and instance.message:
+            status["message"] = instance.message[:1800]
+        reports.append((Event.COMPONENT_STATUS, status))
+        if instance.status == CS.RUNNING and instance.container:
+            reports.append((Event.COMPONENT_INFORMATION, info_data(skill_id, component_id, instance.container)))
+    return reports
