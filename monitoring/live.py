@@ -2,7 +2,9 @@
 
 A `group_send` per frame caps a consumer at under 1,000 frames/s and overflows subscribers,
 so metrics are coalesced per process to the latest value per series and sent to the
-`live` group as one message every `interval`, each robot's payload already JSON-encoded.
+`live` group as one message, each robot's payload already JSON-encoded. Points arrive once
+their batch commits, so the feed sends right after they arrive (a batch's points together)
+rather than on a clock of its own, which would add up to a second wait to every value.
 Subscribers filter by the robots they may see.
 """
 
@@ -11,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import time
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -40,14 +43,16 @@ SeriesKey = tuple[str | None, str | None, str]
 
 
 class LiveFeed:
-    """Keep the latest value of every series and push the changes to the live group periodically."""
+    """Keep the latest value of every series and push the changes to the live group soon after they arrive."""
 
-    def __init__(self, *, interval: float = 0.25, layer: BaseChannelLayer | None = None) -> None:
-        self.interval = interval
+    def __init__(self, *, interval: float = 0.1, settle: float = 0.01, layer: BaseChannelLayer | None = None) -> None:
+        self.interval = interval  # at most one message per interval
+        self.settle = settle  # the frames of one committed batch resume their handlers within this
         self.layer = layer
         self.messages_sent = 0
         self._latest: dict[str, dict[SeriesKey, MetricPoint]] = {}
         self._task: asyncio.Task[None] | None = None
+        self._wake = asyncio.Event()
 
     def add_metrics(self, robot_id: str, points: Sequence[MetricPoint]) -> None:
         """Remember the newest value of each series among the points."""
@@ -61,9 +66,10 @@ class LiveFeed:
             if known is None or point.ts >= known.ts:
                 series[key] = point
         self.start()
+        self._wake.set()
 
     def start(self) -> None:
-        """Start the periodic sender on the running loop, if not yet started."""
+        """Start the sender on the running loop, if not yet started."""
         if self._task is None:
             self._task = asyncio.get_running_loop().create_task(self._run(), name="live-feed")
 
@@ -94,8 +100,14 @@ class LiveFeed:
 
     async def _run(self) -> None:
         failures = LogOnce(logger, "Sending live metrics", traceback=True)
+        loop = asyncio.get_running_loop()
+        last_sent = -math.inf
         while True:
-            await asyncio.sleep(self.interval)
+            await self._wake.wait()
+            await asyncio.sleep(max(self.settle, self.interval - (loop.time() - last_sent)))
+            # Cleared before send() takes the values: a point added during the send wakes the next round.
+            self._wake.clear()
+            last_sent = loop.time()
             try:
                 await self.send()
             except Exception as exc:
