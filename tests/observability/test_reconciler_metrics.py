@@ -8,8 +8,8 @@ from django.contrib.auth import get_user_model
 from bridgeos_agent.skillconfig import load_sample_skill_config
 from monitoring.prometheus import exposition
 from robots.services import create_robot
+from skills.cloud.reconcile import reconcile
 from skills.models import CloudInstance, Component
-from skills.orchestration import reconcile
 from skills.services import add_skill
 
 from .promutil import value
