@@ -11,10 +11,3 @@ os.environ.setdefault("DJANGO_SETTINGS_MODULE", "bridgeos_cloud.settings")
 app = Celery("bridgeos_cloud")
 app.config_from_object("django.conf:settings", namespace="CELERY")
 app.autodiscover_tasks()
-
-
-@app.on_after_configure.connect
-def _watch_tasks(**_: object) -> None:
-    from monitoring.prometheus import watch_celery_tasks
-
-    watch_celery_tasks()

@@ -13,3 +13,7 @@ class MonitoringConfig(AppConfig):
 
     def ready(self) -> None:
         from . import receivers  # noqa: F401 - connects the receivers
+        from .prometheus import watch_celery_tasks
+
+        # Celery's signals are process-wide: in a worker they fire, elsewhere they never do.
+        watch_celery_tasks()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import atexit
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest, multiprocess
@@ -157,62 +158,55 @@ def reconciled(done: dict[str, int]) -> None:
 # --------------------------------------------------------------------------- state read at scrape time
 
 
-def _label(value: str) -> str:
+def label(value: str) -> str:
     """Escape a label value for the text format."""
     return value.replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
 
 
-def _family(lines: list[str], name: str, doc: str) -> None:
+def family(lines: list[str], name: str, doc: str) -> None:
+    """Start a gauge family in the text format."""
     lines.append(f"# HELP {name} {doc}")
     lines.append(f"# TYPE {name} gauge")
 
 
+# Families read from PostgreSQL at scrape time, each added by the app that owns its rows (in its
+# AppConfig.ready), so this floor of the apps never imports the apps above it. They are written
+# straight to the text format: with a series or two per robot, prometheus_client's generic
+# formatter would spend more than the whole 50 ms scrape budget on 1,000 robots.
+_database_families: list[Callable[[list[str]], None]] = []
+
+
+def add_database_families(write: Callable[[list[str]], None]) -> None:
+    """Register a writer of families read from the database at every scrape."""
+    if write not in _database_families:
+        _database_families.append(write)
+
+
 def database_state() -> bytes:
-    """Report the state PostgreSQL holds: robots connected and last seen, cloud copies by state.
-
-    Written straight to the text format: with a series or two per robot, prometheus_client's
-    generic formatter would spend more than the whole 50 ms scrape budget on 1,000 robots.
-    """
-    from robots.models import Robot
-    from skills.choices import COMPONENT_STATUS_CHOICES
-    from skills.models import CloudInstance
-
-    robots = list(Robot.objects.values_list("id", "connected", "last_seen"))
+    """Report the state PostgreSQL holds (robots connected and last seen, cloud copies by state)."""
     lines: list[str] = []
-    _family(lines, "bridgeos_robots_connected", "Robots whose agent is connected.")
-    lines.append(f"bridgeos_robots_connected {float(sum(connected for _, connected, _ in robots))!r}")
-    _family(lines, "bridgeos_robot_connected", "1 while the robot's agent is connected.")
-    lines.extend(
-        f'bridgeos_robot_connected{{robot="{_label(robot_id)}"}} {1.0 if connected else 0.0}'
-        for robot_id, connected, _ in robots
-    )
-    _family(lines, "bridgeos_robot_last_seen_timestamp_seconds", "When the robot was last connected (Unix time).")
-    lines.extend(
-        f'bridgeos_robot_last_seen_timestamp_seconds{{robot="{_label(robot_id)}"}} {seen.timestamp()!r}'
-        for robot_id, _, seen in robots
-        if seen is not None
-    )
-    counts = dict.fromkeys((value for value, _ in COMPONENT_STATUS_CHOICES), 0)
-    restarts = 0
-    for status, copy_restarts in CloudInstance.objects.values_list("status", "restarts"):
-        counts[status] = counts.get(status, 0) + 1
-        restarts += copy_restarts
-    _family(lines, "bridgeos_cloud_copies", "Cloud copies of components by state.")
-    lines.extend(
-        f'bridgeos_cloud_copies{{state="{_label(state)}"}} {float(count)!r}' for state, count in counts.items()
-    )
-    _family(
-        lines,
-        "bridgeos_cloud_copy_restarts",
-        "Restarts of cloud copies since each was last started on request (crash-loop signal).",
-    )
-    lines.append(f"bridgeos_cloud_copy_restarts {float(restarts)!r}")
-    return ("\n".join(lines) + "\n").encode()
+    for write in _database_families:
+        write(lines)
+    return ("\n".join(lines) + "\n").encode() if lines else b""
+
+
+def forget_dead_processes(directory: Path) -> None:
+    """Drop the live gauges of processes that died without saying so (kill -9 runs no atexit)."""
+    for path in directory.glob("gauge_live*_*.db"):
+        pid = int(path.stem.rpartition("_")[2])
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            multiprocess.mark_process_dead(pid, str(directory))
+        except PermissionError:
+            pass  # alive, another user's
 
 
 def exposition() -> bytes:
     """Return every process's metrics and the database's state in the Prometheus text format."""
-    if multiprocess_dir() is not None:
+    directory = multiprocess_dir()
+    if directory is not None:
+        forget_dead_processes(directory)
         registry = CollectorRegistry()
         multiprocess.MultiProcessCollector(registry)
     else:

@@ -319,3 +319,23 @@ def delete_robot(robot: Robot) -> None:
         robot.delete()
         # Pushed live to its owner and staff: open dashboards drop the robot at once.
         record_event(f"Robot {robot_id} deleted", kind="robot_deleted", data={"robot": robot_id}, owner_id=owner_id)
+
+
+def write_robot_families(lines: list[str]) -> None:
+    """Add robots connected and last seen to a /metrics scrape (read from PostgreSQL)."""
+    robots = list(Robot.objects.values_list("id", "connected", "last_seen"))
+    prometheus.family(lines, "bridgeos_robots_connected", "Robots whose agent is connected.")
+    lines.append(f"bridgeos_robots_connected {float(sum(connected for _, connected, _ in robots))!r}")
+    prometheus.family(lines, "bridgeos_robot_connected", "1 while the robot's agent is connected.")
+    lines.extend(
+        f'bridgeos_robot_connected{{robot="{prometheus.label(robot_id)}"}} {1.0 if connected else 0.0}'
+        for robot_id, connected, _ in robots
+    )
+    prometheus.family(
+        lines, "bridgeos_robot_last_seen_timestamp_seconds", "When the robot was last connected (Unix time)."
+    )
+    lines.extend(
+        f'bridgeos_robot_last_seen_timestamp_seconds{{robot="{prometheus.label(robot_id)}"}} {seen.timestamp()!r}'
+        for robot_id, _, seen in robots
+        if seen is not None
+    )

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from django.apps import AppConfig
 
+from monitoring import prometheus
+
 
 class SkillsConfig(AppConfig):
     """Register the skills app."""
@@ -14,3 +16,6 @@ class SkillsConfig(AppConfig):
     def ready(self) -> None:
         # Connect the receivers, and register the Celery tasks the orchestration queues by name.
         from . import receivers, tasks  # noqa: F401
+        from .services import write_cloud_copy_families
+
+        prometheus.add_database_families(write_cloud_copy_families)

@@ -13,14 +13,16 @@ from bridgeos_agent.protocol import ComponentStatusName, Event, Location, SkillS
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_cloud.errors import NotFound
 from bridgeos_cloud.validation import validated_config
+from monitoring import prometheus
 from monitoring.choices import Level, Source
 from monitoring.live import publish_on_commit
 from monitoring.services import record_event
 from robots.models import Robot
 from robots.services import client_frame
 
+from .choices import COMPONENT_STATUS_CHOICES
 from .cloud import orchestration
-from .models import Component, Skill, SkillTemplate
+from .models import CloudInstance, Component, Skill, SkillTemplate
 
 if TYPE_CHECKING:
     from bridgeos_agent.protocol import OffloadingDecision
@@ -311,3 +313,23 @@ def create_template(
 ) -> SkillTemplate:
     """Add a Skill config to the catalog."""
     return SkillTemplate.objects.create(name=name, config=config, description=description, tags=tags or [])
+
+
+def write_cloud_copy_families(lines: list[str]) -> None:
+    """Add cloud copies by state and their restarts to a /metrics scrape (read from PostgreSQL)."""
+    counts = dict.fromkeys((value for value, _ in COMPONENT_STATUS_CHOICES), 0)
+    restarts = 0
+    for status, copy_restarts in CloudInstance.objects.values_list("status", "restarts"):
+        counts[status] = counts.get(status, 0) + 1
+        restarts += copy_restarts
+    prometheus.family(lines, "bridgeos_cloud_copies", "Cloud copies of components by state.")
+    lines.extend(
+        f'bridgeos_cloud_copies{{state="{prometheus.label(state)}"}} {float(count)!r}'
+        for state, count in counts.items()
+    )
+    prometheus.family(
+        lines,
+        "bridgeos_cloud_copy_restarts",
+        "Restarts of cloud copies since each was last started on request (crash-loop signal).",
+    )
+    lines.append(f"bridgeos_cloud_copy_restarts {float(restarts)!r}")
