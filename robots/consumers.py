@@ -28,6 +28,7 @@ from skills.cloud.volumes import CloudVolumes
 
 from . import dedup, services
 from .dedup import applied_ids
+from .presence import get_presence
 
 log = logging.getLogger(__name__)
 
@@ -138,6 +139,10 @@ class RobotConsumer(ProtocolConsumer):
         if robot is None:
             await self.refuse("unknown robot or wrong token", reply_to=envelope.id)
             return False
+        presence = get_presence(self.channel_name)
+        if presence is not None:
+            await presence.joined()
+            presence.consumers.add(self)
         self.robot_id = robot.id
         self.dedup.load(await applied_ids().load(robot.id))
         connected = await database_sync_to_async(services.mark_connected)(

@@ -14,7 +14,7 @@ from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
-from django.db.models import QuerySet
+from django.db.models import Q, QuerySet
 from django.utils import timezone
 
 from bridgeos_agent import protocol
@@ -137,6 +137,20 @@ def mark_disconnected(robot_id: str, channel: str, reason: str) -> bool:
             )
             publish_on_commit(robot_id, connection_frame(Event.CONNECTION_LOST, robot_id, reason))
     return bool(changed)
+
+
+def expire_connections(processes: list[str], reason: str) -> list[str]:
+    """Mark disconnected the robots held by consumers of dead server processes; return their ids."""
+    held_there = Q()
+    for process in processes:
+        held_there |= Q(channel__startswith=process + "!")
+    rows = Robot.objects.filter(held_there, connected=True).values_list("id", "channel")
+    return [robot_id for robot_id, channel in rows if mark_disconnected(robot_id, channel, reason)]
+
+
+def current_channels(channels: list[str]) -> set[str]:
+    """Return which of these consumer channels still hold their robot's connection."""
+    return set(Robot.objects.filter(channel__in=channels, connected=True).values_list("channel", flat=True))
 
 
 def connection_frame(event: Event, robot_id: str, reason: str | None = None) -> dict[str, Any]:
