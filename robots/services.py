@@ -229,12 +229,37 @@ def mark_disconnected(robot_id: str, channel: str, reason: str) -> bool:
 
 
 def expire_connections(processes: list[str], reason: str) -> list[str]:
-    """Mark disconnected the robots held by consumers of dead server processes; return their ids."""
+    """Mark disconnected the robots held by consumers of dead server processes; return their ids.
+
+    In one UPDATE and one INSERT of events: a dead process may have held thousands of robots, and
+    this runs on the ORM thread that the robots reconnecting to this process wait for.
+    """
     held_there = Q()
     for process in processes:
         held_there |= Q(channel__startswith=process + "!")
-    rows = Robot.objects.filter(held_there, connected=True).values_list("id", "channel")
-    return [robot_id for robot_id, channel in rows if mark_disconnected(robot_id, channel, reason)]
+    with transaction.atomic():
+        # Locked, so a robot that reconnects elsewhere meanwhile keeps its new connection.
+        orphans = Robot.objects.select_for_update().filter(held_there, connected=True).order_by("id")
+        robot_ids = list(orphans.values_list("id", flat=True))
+        if not robot_ids:
+            return []
+        Robot.objects.filter(id__in=robot_ids).update(connected=False, channel="", last_seen=timezone.now())
+        record_events(
+            [
+                {
+                    "message": f"Robot {robot_id} disconnected: {reason}",
+                    "robot_id": robot_id,
+                    "level": Level.WARNING,
+                    "kind": Event.CONNECTION_LOST,
+                    "data": {"reason": reason},
+                }
+                for robot_id in robot_ids
+            ]
+        )
+        publish_all_on_commit(
+            [(robot_id, connection_frame(Event.CONNECTION_LOST, robot_id, reason)) for robot_id in robot_ids]
+        )
+    return robot_ids
 
 
 def current_channels(channels: list[str]) -> set[str]:

@@ -62,27 +62,29 @@ def lost_reasons(robot_id: str) -> list[str]:
 async def test_robot_of_a_killed_process_goes_offline_and_commands_get_409(daphne_server, doomed_daphne):
     doomed, process = doomed_daphne
     owner, api_token = await make_owner("owner")
-    stranded = await make_robot("stranded", owner, with_skill=False)
+    stranded = [f"stranded-{i}" for i in range(3)]
+    stranded_links = [await robot_link(doomed, robot_id, await make_robot(robot_id, owner)) for robot_id in stranded]
     survivor = await make_robot("survivor", owner, with_skill=False)
-    stranded_link = await robot_link(doomed, "stranded", stranded)
     survivor_link = await robot_link(daphne_server, "survivor", survivor)
-    assert await connected("stranded") and await connected("survivor")
+    assert all([await connected(robot_id) for robot_id in [*stranded, "survivor"]])
 
     process.send_signal(signal.SIGKILL)
     process.wait(timeout=10)
     killed = time.monotonic()
     async with asyncio.timeout(OFFLINE_WITHIN_S):
-        while await connected("stranded"):
+        while any([await connected(robot_id) for robot_id in stranded]):
             await asyncio.sleep(0.1)
     took = time.monotonic() - killed
 
     assert took < OFFLINE_WITHIN_S
-    assert await lost_reasons("stranded") == [DEAD_PROCESS_REASON]
+    for robot_id in stranded:
+        assert await lost_reasons(robot_id) == [DEAD_PROCESS_REASON]
     # The live process's robot is not taken for an orphan.
     assert await connected("survivor") and await lost_reasons("survivor") == []
     async with httpx.AsyncClient(base_url=daphne_server.url) as http:
         headers = {"Authorization": f"Token {api_token}"}
-        response = await http.post("/api/robot/stranded/start", headers=headers, params={"wait": "2"})
+        response = await http.post("/api/robot/stranded-0/start", headers=headers, params={"wait": "2"})
     assert response.status_code == 409, response.text
     await survivor_link.close()
-    await stranded_link.close()
+    for link in stranded_links:
+        await link.close()
