@@ -257,6 +257,10 @@ BENCHMARKS: dict[str, list[Figure]] = {
         _f("lag_p95_ms", "lag to the dashboard p95", "ms", goal=1000, goal_source="issue 3"),
         _f("dropped_connections", "dropped connections", "", goal=0, goal_source="issue 3"),
     ],
+    "connect_storm": [
+        _f("connected_s", "1,000 robots connecting at once, all connected", "s", goal=5, goal_source="issue 23"),
+        _f("dropped", "robots dropped in the storm", "", goal=0, goal_source="issue 23"),
+    ],
     "api_load": [
         _f("read_p99_ms", "API read p99", "ms", goal=50, goal_source="issue 4"),
         _f("list_p99_ms", "robot list p99", "ms", goal=50, goal_source="issue 4"),

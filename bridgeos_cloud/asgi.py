@@ -23,6 +23,7 @@ django_asgi_app = PooledASGIHandler(threads=settings.BRIDGEOS["HTTP_THREADS"])
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
 
 from bridgeos_cloud.routing import BrowserOriginValidator, websocket_urlpatterns  # noqa: E402
+from robots.presence import start_presence  # noqa: E402
 
 application = ProtocolTypeRouter(
     {
@@ -33,7 +34,7 @@ application = ProtocolTypeRouter(
 
 
 def close_at_shutdown() -> None:
-    """Have daphne's reactor close the loop's metric writer, live feed and applied ids before it stops."""
+    """Have daphne's reactor register this process at start and close the loop's objects before it stops."""
     reactor = sys.modules.get("twisted.internet.reactor")
     if reactor is None:
         return  # not served by daphne (a test's in-process server): its loop's owner closes nothing
@@ -45,6 +46,8 @@ def close_at_shutdown() -> None:
         return Deferred.fromFuture(asyncio.ensure_future(close_loop_objects()))
 
     reactor.addSystemEventTrigger("before", "shutdown", close)
+    # Registered at startup, so this process sweeps up dead processes' robots before it holds any.
+    reactor.callWhenRunning(lambda: asyncio.ensure_future(start_presence()))
 
 
 close_at_shutdown()

@@ -35,6 +35,35 @@ class FailureLimit:
                 return max(1.0, expires)
         return 0.0
 
+    def blocked_for_many(self, logins: list[list[tuple[str, int]]], window: float) -> list[float]:
+        """Return ``blocked_for`` of many logins at once: one Redis round trip for all of them."""
+        if self._redis is None:
+            return [self.blocked_for(keys, window) for keys in logins]
+        pipe = self._redis.pipeline()
+        for keys in logins:
+            for key, _ in keys:
+                pipe.get(self.prefix + key)
+                pipe.ttl(self.prefix + key)
+        answers = iter(pipe.execute())
+        retries = []
+        for keys in logins:
+            retry = 0.0
+            for _, limit in keys:
+                count, ttl = next(answers), next(answers)
+                if not retry and int(count or 0) >= limit:
+                    retry = max(1.0, float(ttl if ttl and ttl > 0 else window))
+            retries.append(retry)
+        return retries
+
+    def succeeded_many(self, keys: list[str]) -> None:
+        """Forget the failures of identities that just proved themselves, in one round trip."""
+        if self._redis is not None:
+            if keys:
+                self._redis.delete(*(self.prefix + key for key in keys))
+        else:
+            for key in keys:
+                self.succeeded(key)
+
     def failed(self, keys: list[tuple[str, int]], window: float) -> bool:
         """Count a failure against every key; return True when one of them just reached its limit."""
         tripped = False
@@ -108,6 +137,19 @@ def window() -> float:
 def blocked(scope: str, identity: str, address: str) -> float:
     """Return for how many seconds more logins of this identity from this address are refused (0: not)."""
     return failures().blocked_for(login_keys(scope, identity, address), window())
+
+
+def blocked_many(scope: str, logins: list[tuple[str, str]]) -> list[float]:
+    """Return ``blocked`` for many (identity, address) logins at once."""
+    return failures().blocked_for_many([login_keys(scope, identity, address) for identity, address in logins], window())
+
+
+def attempted_many(scope: str, logins: list[tuple[str, str, bool]]) -> None:
+    """Count many login attempts at once: successes clear in one round trip, failures count one by one."""
+    failures().succeeded_many([login_keys(scope, identity, address)[0][0] for identity, address, ok in logins if ok])
+    for identity, address, ok in logins:
+        if not ok:
+            attempted(scope, identity, address, ok)
 
 
 def attempted(scope: str, identity: str, address: str, ok: bool) -> None:

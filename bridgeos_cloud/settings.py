@@ -312,6 +312,10 @@ BRIDGEOS = {
     "CLOUD_RESTART_BACKOFF_MAX_S": env_float("BRIDGEOS_CLOUD_RESTART_BACKOFF_MAX_S", 60.0),
     "CLOUD_MAX_RESTARTS": env_int("BRIDGEOS_CLOUD_MAX_RESTARTS", 5),
     "CLOUD_RESTART_WINDOW_S": env_float("BRIDGEOS_CLOUD_RESTART_WINDOW_S", 300.0),
+    # Each server process refreshes its liveness key this often; a process silent for PROCESS_TTL_S
+    # is taken for dead and its robots are marked disconnected by the others.
+    "PROCESS_HEARTBEAT_S": env_float("BRIDGEOS_PROCESS_HEARTBEAT_S", 2.0),
+    "PROCESS_TTL_S": env_float("BRIDGEOS_PROCESS_TTL_S", 10.0),
     # Failed logins (/api/auth, robot tokens) allowed per identity and address, and per address, in a window.
     "AUTH_FAILURES": env_int("BRIDGEOS_AUTH_FAILURES", 10),
     "AUTH_FAILURES_PER_ADDRESS": env_int("BRIDGEOS_AUTH_FAILURES_PER_ADDRESS", 100),

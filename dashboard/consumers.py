@@ -137,6 +137,11 @@ class ClientConsumer(ProtocolConsumer):
         if allowed:
             await self.send_text(json.dumps(message["frame"], separators=(",", ":")))
 
+    async def live_events(self, message: dict[str, Any]) -> None:
+        """Pass on many state changes published together (a connect storm), each as live_event would."""
+        for event in message["events"]:
+            await self.live_event(event)
+
     # ---------------------------------------------------------------- commands
 
     async def handle(self, envelope: Envelope) -> None:

@@ -37,6 +37,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 LIVE_GROUP = "live"
+# State events per group message when many are published at once (bounded message size).
+PUBLISH_CHUNK = 250
 
 # (skill, component, name) of one series of one robot.
 SeriesKey = tuple[str | None, str | None, str]
@@ -169,6 +171,16 @@ def publish_log_event_on_commit(event: Event, *, owner_id: int | None = None) ->
     An entry about a robot that is gone (``robot_deleted``) names it in its data; ``owner_id``
     lets its owner hear of it although the robot no longer says whose it was.
     """
+    robot_id, frame = log_event_frame(event)
+
+    def send() -> None:
+        async_to_sync(publish)(robot_id, frame, owner_id=owner_id)
+
+    transaction.on_commit(send, using=event._state.db, robust=True)
+
+
+def log_event_frame(event: Event) -> tuple[str | None, dict[str, Any]]:
+    """Return the robot an event-log entry is about and the frame that shows it to dashboards."""
     robot_id = event.robot_id or (event.data or {}).get("robot")
     data = {
         "robot": robot_id,
@@ -182,9 +194,26 @@ def publish_log_event_on_commit(event: Event, *, owner_id: int | None = None) ->
         "message": event.message[:4000],
         "data": event.data or {},
     }
-    frame = json.loads(protocol.encode(protocol.make(ProtocolEvent.LOG_EVENT, data, now=time.time())))
+    return robot_id, json.loads(protocol.encode(protocol.make(ProtocolEvent.LOG_EVENT, data, now=time.time())))
+
+
+def publish_all_on_commit(frames: list[tuple[str | None, dict[str, Any]]], *, using: str | None = None) -> None:
+    """Publish many (robot, frame) state events once the transaction commits, a few hundred per message."""
+
+    async def publish_all() -> None:
+        layer = get_channel_layer()
+        if layer is None:
+            return
+        # One group message per chunk, not per frame: a connect storm publishes thousands.
+        for start in range(0, len(frames), PUBLISH_CHUNK):
+            events = [
+                {"type": "live.event", "robot": robot_id, "frame": frame}
+                for robot_id, frame in frames[start : start + PUBLISH_CHUNK]
+            ]
+            await layer.group_send(LIVE_GROUP, {"type": "live.events", "events": events})
 
     def send() -> None:
-        async_to_sync(publish)(robot_id, frame, owner_id=owner_id)
+        async_to_sync(publish_all)()
 
-    transaction.on_commit(send, using=event._state.db, robust=True)
+    if frames:
+        transaction.on_commit(send, using=using, robust=True)

@@ -11,7 +11,7 @@ from django.db.models import QuerySet
 from django.utils import timezone
 
 from .choices import Level, Source
-from .live import publish_log_event_on_commit
+from .live import log_event_frame, publish_all_on_commit, publish_log_event_on_commit
 from .models import Event, Metric
 
 
@@ -42,6 +42,16 @@ def record_event(
     )
     publish_log_event_on_commit(event, owner_id=owner_id)
     return event
+
+
+def record_events(entries: list[dict[str, Any]]) -> list[Event]:
+    """Append many entries (``record_event``'s keywords, no owner) in one INSERT; push them on commit."""
+    now = timezone.now()
+    events = Event.objects.bulk_create(
+        [Event(**{"ts": now, "level": Level.INFO, "source": Source.CLOUD, "data": {}, **entry}) for entry in entries]
+    )
+    publish_all_on_commit([log_event_frame(event) for event in events])
+    return events
 
 
 def prune_metrics(older_than: timedelta | None = None, *, now: datetime | None = None, batch: int = 50_000) -> int:

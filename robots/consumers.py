@@ -16,18 +16,21 @@ from django.core.exceptions import ValidationError
 from bridgeos_agent import protocol
 from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
+from bridgeos_cloud.batching import Batcher
 from bridgeos_cloud.consumers import CLOSE_TOO_MANY_FAILURES, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
+from bridgeos_cloud.loopowned import loop_object
 from monitoring import prometheus
 from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
-from skills.cloud.reporting import cloud_reports
+from skills.cloud.reporting import cloud_reports_for
 from skills.cloud.volumes import CloudVolumes
 
 from . import dedup, services
 from .dedup import applied_ids
+from .presence import get_presence
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +40,22 @@ CHUNK_WAIT_S = 30.0
 MAX_OPEN_REQUESTS = 1000
 CLOSE_REPLACED = 4009
 CLOSE_REVOKED = 4004
+
+
+def connect_batch(logins: list[services.Login]) -> list[tuple[services.Connected, list[tuple[Event, dict[str, Any]]]]]:
+    """Authenticate and connect robots together, each with the reports about its cloud copies."""
+    outcomes = services.connect_robots(logins)
+    reports = cloud_reports_for([outcome.robot for outcome in outcomes if outcome.robot])
+    return [(outcome, reports.get(outcome.robot or "", [])) for outcome in outcomes]
+
+
+def login_queue() -> Batcher[services.Login, tuple[services.Connected, list[tuple[Event, dict[str, Any]]]]]:
+    """Return this event loop's queue of robot logins, batched so a connect storm shares its round trips."""
+    return loop_object(
+        "robot logins",
+        lambda: Batcher(connect_batch, key=lambda login: login.robot_id),
+        usable=lambda batcher: not batcher.closed,
+    )
 
 
 class RobotConsumer(ProtocolConsumer):
@@ -130,35 +149,40 @@ class RobotConsumer(ProtocolConsumer):
         """Check the robot's id and token, mark it connected and send it its config."""
         credentials = protocol.parse_payload(envelope)
         address = (self.scope.get("client") or ["?"])[0]
-        try:
-            robot = await database_sync_to_async(services.login_robot)(credentials.robot, credentials.token, address)
-        except services.LoginBlocked:
+        presence = get_presence(self.channel_name)
+        if presence is not None:
+            # Registered before its first robot is marked connected here, so no sweep takes that for an orphan.
+            await presence.joined()
+        login = services.Login(credentials.robot, credentials.token, address, self.channel_name, credentials.ros_master)
+        connected, reports = await login_queue().submit(login)
+        if connected.blocked_s:
             await self.refuse("too many failed attempts; try again later", envelope.id, CLOSE_TOO_MANY_FAILURES)
             return False
-        if robot is None:
+        if connected.robot is None:
             await self.refuse("unknown robot or wrong token", reply_to=envelope.id)
             return False
-        self.robot_id = robot.id
-        self.dedup.load(await applied_ids().load(robot.id))
-        connected = await database_sync_to_async(services.mark_connected)(
-            robot.id, self.channel_name, credentials.ros_master
-        )
-        if connected["replaced_channel"]:
-            await self.channel_layer.send(connected["replaced_channel"], {"type": "robot.replaced"})
+        if presence is not None:
+            presence.consumers.add(self)
+        self.robot_id = connected.robot
+        self.dedup.load(await applied_ids().load(connected.robot))
+        if connected.replaced_channel:
+            await self.channel_layer.send(connected.replaced_channel, {"type": "robot.replaced"})
         await self.send_envelope(
             protocol.make(
                 Event.AUTHENTICATION_SUCCESS,
-                {"robot": robot.id, "ros_master": connected["ros_master"]},
+                {"robot": connected.robot, "ros_master": connected.ros_master},
                 reply_to=envelope.id,
                 now=time.time(),
             )
         )
-        await self.send_reliably(protocol.make(Event.CONNECTION_ESTABLISHED, {"robot": robot.id}, now=time.time()))
-        await self.send_reliably(protocol.make(Event.ROBOT_CONFIG, {"config": connected["config"]}, now=time.time()))
+        await self.send_reliably(
+            protocol.make(Event.CONNECTION_ESTABLISHED, {"robot": connected.robot}, now=time.time())
+        )
+        await self.send_reliably(protocol.make(Event.ROBOT_CONFIG, {"config": connected.config}, now=time.time()))
         # What became of its cloud copies while it was away (a start it waits for may have finished).
-        for event, data in await database_sync_to_async(cloud_reports)(robot.id):
+        for event, data in reports:
             await self.send_reliably(protocol.make(event, data, now=time.time()))
-        self.volumes = CloudVolumes(robot.id)
+        self.volumes = CloudVolumes(connected.robot)
         if await asyncio.to_thread(self.volumes.exists):
             self.scan_volumes()
         return True

@@ -28,7 +28,9 @@ class AppliedIds:
         if redis_url:
             import redis.asyncio as aioredis
 
-            self._redis = aioredis.Redis.from_url(redis_url)
+            # A blocking pool: a connect storm's thousand loads wait for a connection instead of failing.
+            pool = aioredis.BlockingConnectionPool.from_url(redis_url, max_connections=100, timeout=30)
+            self._redis = aioredis.Redis.from_pool(pool)
         self._local: dict[str, list[str]] = defaultdict(list)
         self._unsaved: dict[str, list[str]] = defaultdict(list)
         self._flusher: asyncio.TimerHandle | None = None

@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import asyncio
+import hmac
 import json
 import secrets
 import time
-from datetime import timedelta
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 from typing import Any
 
 from asgiref.sync import async_to_sync, sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
-from django.db import transaction
-from django.db.models import QuerySet
+from django.db import connection, transaction
+from django.db.models import Q, QuerySet
 from django.utils import timezone
 
 from bridgeos_agent import protocol
@@ -23,8 +25,8 @@ from bridgeos_agent.robotconfig import merge_config_changes
 from bridgeos_cloud import bruteforce
 from monitoring import prometheus
 from monitoring.choices import Level
-from monitoring.live import publish_on_commit
-from monitoring.services import record_event
+from monitoring.live import publish_all_on_commit, publish_on_commit
+from monitoring.services import record_event, record_events
 
 from .choices import RobotStatus
 from .models import ApiToken, Robot, hash_token
@@ -104,21 +106,108 @@ def login_robot(robot_id: str, token: str, address: str) -> Robot | None:
     return robot
 
 
-def mark_connected(robot_id: str, channel: str, ros_master: str | None = None) -> dict[str, Any]:
-    """Record that a robot connected on a channel; return its config and the ROS master to use."""
+@dataclass(frozen=True)
+class Login:
+    """A robot presenting its token on a consumer channel, from an address."""
+
+    robot_id: str
+    token: str
+    address: str
+    channel: str
+    ros_master: str | None = None
+
+
+@dataclass
+class Connected:
+    """What became of a Login: refused (``robot`` None, maybe ``blocked_s``) or connected."""
+
+    robot: str | None = None
+    blocked_s: float = 0.0
+    config: dict[str, Any] = field(default_factory=dict)
+    replaced_channel: str = ""
+    ros_master: str | None = None
+
+
+def connect_robots(logins: list[Login]) -> list[Connected]:
+    """Check many robots' tokens and mark the good ones connected, in a few round trips for them all.
+
+    The same checks as ``login_robot`` (brute-force limits, each robot's hashed token compared in
+    constant time), then the robots are marked connected with their events: one Redis pipeline,
+    two SELECTs, one UPDATE and one INSERT of events per batch, so a connect storm is not a queue
+    of round trips per robot. The robots of one batch must be distinct.
+    """
+    outcomes = [Connected() for _ in logins]
+    retries = bruteforce.blocked_many("robot", [(login.robot_id, login.address) for login in logins])
+    for outcome, retry in zip(outcomes, retries, strict=True):
+        outcome.blocked_s = retry
+    candidates = [i for i, retry in enumerate(retries) if not retry]
+    hashes = dict(Robot.objects.filter(id__in=[logins[i].robot_id for i in candidates]).values_list("id", "token_hash"))
+    proven = []
+    for i in candidates:
+        stored = hashes.get(logins[i].robot_id, "")
+        # Hashed even for an unknown robot, so a wrong id costs the same time as a wrong token.
+        presented = hash_token(logins[i].token)
+        if stored and hmac.compare_digest(stored, presented):
+            proven.append(i)
+    good = set(proven)
+    bruteforce.attempted_many("robot", [(logins[i].robot_id, logins[i].address, i in good) for i in candidates])
+    if proven:
+        _mark_all_connected([logins[i] for i in proven], [outcomes[i] for i in proven])
+    return outcomes
+
+
+def _mark_all_connected(logins: list[Login], outcomes: list[Connected]) -> None:
+    """Record that robots connected on their channels, filling in each one's config and ROS master."""
     now = timezone.now()
     with transaction.atomic():
-        robot = Robot.objects.select_for_update().get(id=robot_id)
-        # A robot without a ROS master of its own gets the cloud's: a shared one, or its own in the cloud.
-        answers = [answer for _, answer in ros_master_wanted.send(sender=Robot, robot_id=robot_id, reported=ros_master)]
-        master = next((answer for answer in answers if answer is not None), ros_master or "")
-        replaced = robot.channel if robot.connected and robot.channel != channel else ""
-        Robot.objects.filter(id=robot_id).update(
-            connected=True, channel=channel, last_seen=now, status=RobotStatus.RUNNING, ros_master=master
+        # Locked in id order, so two batches (of two processes) never deadlock.
+        robots = {
+            robot.id: robot
+            for robot in Robot.objects.select_for_update()
+            .filter(id__in=[login.robot_id for login in logins])
+            .order_by("id")
+        }
+        changed, events, frames = [], [], []
+        for login, outcome in zip(logins, outcomes, strict=True):
+            robot = robots.get(login.robot_id)
+            if robot is None:
+                continue  # deleted since its token was checked
+            reported = login.ros_master
+            answers = [answer for _, answer in ros_master_wanted.send(Robot, robot_id=robot.id, reported=reported)]
+            master = next((answer for answer in answers if answer is not None), reported or "")
+            outcome.robot, outcome.config, outcome.ros_master = robot.id, robot.config, master or None
+            outcome.replaced_channel = robot.channel if robot.connected and robot.channel != login.channel else ""
+            robot.connected, robot.channel, robot.last_seen = True, login.channel, now
+            robot.status, robot.ros_master = RobotStatus.RUNNING, master
+            changed.append(robot)
+            events.append(
+                {"message": f"Robot {robot.id} connected", "robot_id": robot.id, "kind": Event.CONNECTION_ESTABLISHED}
+            )
+            frames.append((robot.id, connection_frame(Event.CONNECTION_ESTABLISHED, robot.id)))
+        _update_connected(changed, now)
+        record_events(events)
+        publish_all_on_commit(frames)
+
+
+def _update_connected(robots: list[Robot], now: datetime) -> None:
+    """Mark robots connected on their channels in one UPDATE (bulk_update's CASE per row is far slower)."""
+    if not robots:
+        return
+    if connection.vendor != "postgresql":
+        # The embedded SQLite has no column list on VALUES; it serves one small fleet anyway.
+        Robot.objects.bulk_update(robots, ["connected", "channel", "last_seen", "status", "ros_master"])
+        return
+    table = connection.ops.quote_name(Robot._meta.db_table)
+    rows = ", ".join(["(%s, %s, %s)"] * len(robots))
+    # Only the table name and placeholders are formatted in; every value is a query parameter.
+    params: list[Any] = [value for robot in robots for value in (robot.id, robot.channel, robot.ros_master)]
+    with connection.cursor() as cursor:
+        cursor.execute(
+            f"UPDATE {table} SET connected = TRUE, last_seen = %s, status = %s,"
+            f" channel = v.channel, ros_master = v.ros_master FROM (VALUES {rows}) AS v(id, channel, ros_master)"
+            f" WHERE {table}.id = v.id",
+            [now, RobotStatus.RUNNING, *params],
         )
-        record_event(f"Robot {robot_id} connected", robot_id=robot_id, kind=Event.CONNECTION_ESTABLISHED)
-        publish_on_commit(robot_id, connection_frame(Event.CONNECTION_ESTABLISHED, robot_id))
-    return {"config": robot.config, "replaced_channel": replaced, "ros_master": master or None}
 
 
 def mark_disconnected(robot_id: str, channel: str, reason: str) -> bool:
@@ -137,6 +226,45 @@ def mark_disconnected(robot_id: str, channel: str, reason: str) -> bool:
             )
             publish_on_commit(robot_id, connection_frame(Event.CONNECTION_LOST, robot_id, reason))
     return bool(changed)
+
+
+def expire_connections(processes: list[str], reason: str) -> list[str]:
+    """Mark disconnected the robots held by consumers of dead server processes; return their ids.
+
+    In one UPDATE and one INSERT of events: a dead process may have held thousands of robots, and
+    this runs on the ORM thread that the robots reconnecting to this process wait for.
+    """
+    held_there = Q()
+    for process in processes:
+        held_there |= Q(channel__startswith=process + "!")
+    with transaction.atomic():
+        # Locked, so a robot that reconnects elsewhere meanwhile keeps its new connection.
+        orphans = Robot.objects.select_for_update().filter(held_there, connected=True).order_by("id")
+        robot_ids = list(orphans.values_list("id", flat=True))
+        if not robot_ids:
+            return []
+        Robot.objects.filter(id__in=robot_ids).update(connected=False, channel="", last_seen=timezone.now())
+        record_events(
+            [
+                {
+                    "message": f"Robot {robot_id} disconnected: {reason}",
+                    "robot_id": robot_id,
+                    "level": Level.WARNING,
+                    "kind": Event.CONNECTION_LOST,
+                    "data": {"reason": reason},
+                }
+                for robot_id in robot_ids
+            ]
+        )
+        publish_all_on_commit(
+            [(robot_id, connection_frame(Event.CONNECTION_LOST, robot_id, reason)) for robot_id in robot_ids]
+        )
+    return robot_ids
+
+
+def current_channels(channels: list[str]) -> set[str]:
+    """Return which of these consumer channels still hold their robot's connection."""
+    return set(Robot.objects.filter(channel__in=channels, connected=True).values_list("channel", flat=True))
 
 
 def connection_frame(event: Event, robot_id: str, reason: str | None = None) -> dict[str, Any]:

@@ -139,9 +139,14 @@ def tell_robot(robot_id: str, event: Event, data: dict[str, Any]) -> None:
 
 def cloud_reports(robot_id: str) -> list[tuple[Event, dict[str, Any]]]:
     """Return what a (re)connecting robot should hear about its cloud copies that run or failed."""
-    reports: list[tuple[Event, dict[str, Any]]] = []
+    return cloud_reports_for([robot_id])[robot_id]
+
+
+def cloud_reports_for(robot_ids: list[str]) -> dict[str, list[tuple[Event, dict[str, Any]]]]:
+    """Return ``cloud_reports`` of many robots in one query (robots connecting at once)."""
+    reports: dict[str, list[tuple[Event, dict[str, Any]]]] = {robot_id: [] for robot_id in robot_ids}
     for instance in CloudInstance.objects.select_related("component__skill").filter(
-        component__skill__robot_id=robot_id, status__in=(CS.RUNNING, CS.FAILED)
+        component__skill__robot_id__in=robot_ids, status__in=(CS.RUNNING, CS.FAILED)
     ):
         skill_id, component_id = instance.component.skill.skill_id, instance.component.component_id
         status: dict[str, Any] = {
@@ -152,7 +157,8 @@ def cloud_reports(robot_id: str) -> list[tuple[Event, dict[str, Any]]]:
         }
         if instance.status == CS.FAILED and instance.message:
             status["message"] = instance.message[:1800]
-        reports.append((Event.COMPONENT_STATUS, status))
+        robot_reports = reports[instance.component.skill.robot_id]
+        robot_reports.append((Event.COMPONENT_STATUS, status))
         if instance.status == CS.RUNNING and instance.container:
-            reports.append((Event.COMPONENT_INFORMATION, info_data(skill_id, component_id, instance.container)))
+            robot_reports.append((Event.COMPONENT_INFORMATION, info_data(skill_id, component_id, instance.container)))
     return reports
