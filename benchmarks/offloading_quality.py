@@ -37,6 +37,7 @@ import argparse
 import asyncio
 import itertools
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -258,6 +259,7 @@ class Run:
 
     timeline: list[tuple[float, tuple[str, ...]]] = field(default_factory=list)
     moves: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, component, from, to
+    rewards: dict[str, dict[float, tuple[float, float]]] = field(default_factory=dict)  # name -> at -> (t, reward)
     decisions: int = 0
     trusted: int = 0
     trained: int = 0
@@ -306,6 +308,9 @@ async def run_scenario(ws_url: str, token: str, script: Script, data_dir: Path, 
                         log(f"t={elapsed:5.1f} s {name}: {before} -> {after}")
             last = placement
             run.timeline.append((elapsed, placement))
+            manager = record.supervisor.context.get("manager") if record.supervisor else None
+            for name, decision in (manager.last if manager is not None else {}).items():
+                run.rewards.setdefault(name, {})[decision.at] = (elapsed, decision.estimated_reward)
             next_at += TIMELINE_STEP
             await asyncio.sleep(max(0.0, next_at - loop.time()))
         manager = record.supervisor.context.get("manager") if record.supervisor else None
@@ -374,6 +379,18 @@ def stable_moves(run: Run, script: Script) -> list[tuple[float, str]]:
         return []
     start, end = script.bounds(len(script.phases) - 1)
     return [(t, name) for t, name, _, _ in run.moves if start + SETTLE_S <= t < end]
+
+
+def reward_noise(run: Run, script: Script) -> dict[str, float]:
+    """Return each component's estimated-reward standard deviation in the stable phase after SETTLE_S."""
+    start, end = script.bounds(len(script.phases) - 1)
+    noise = {}
+    for name, decided in run.rewards.items():
+        values = [reward for t, reward in decided.values() if start + SETTLE_S <= t < end]
+        if len(values) > 1:
+            mean = sum(values) / len(values)
+            noise[name] = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
+    return noise
 
 
 def stop_quickly(daphne: Daphne) -> None:
@@ -517,6 +534,8 @@ def main() -> None:
             f"stable phase: {len(noise_moves)} moves in {stable_minutes:.1f} min after its first {SETTLE_S:.0f} s"
             f" = {stable_per_10min:.2f} per 10 min   goal <= 1"
         )
+        spread = ", ".join(f"{name} {sd:.2f}" for name, sd in reward_noise(run, script).items())
+        print(f"stable phase: estimated reward standard deviation (cost units): {spread}")
     print(f"decision networks trained: {run.trained}/{len(names)}; last decisions by a trusted network: {run.trusted}")
     print(f"machine load (1 min) {load_before[0]:.2f} before, {load_after[0]:.2f} after, on {os.cpu_count()} cores")
     print(
