@@ -177,7 +177,7 @@ class ScriptedRobot(SimulatedRobot):
         return sample
 
 
-def skill_config() -> SkillConfig:
+def skill_config(noise_margin: float | None = None) -> SkillConfig:
     """Return the benchmark's Skill: four movable burners under the delay policy."""
     components = {}
     for name, usage in COMPONENTS.items():
@@ -199,6 +199,7 @@ def skill_config() -> SkillConfig:
                 "threshold": THRESHOLD,
                 "hysteresis": HYSTERESIS,
                 "cooldown": COOLDOWN,
+                **({} if noise_margin is None else {"noise_margin": noise_margin}),
                 "decision_interval": DECISION_INTERVAL,
                 # Trusted early, so the run shows the network deciding (or the trust gate refusing it).
                 "neural_network": {"trained_after": 100},
@@ -411,6 +412,9 @@ def main() -> None:
     parser.add_argument(
         "--stable-s", type=float, help="seconds of the stable phase after the changes (default 300, --quick 20, 0 none)"
     )
+    parser.add_argument(
+        "--noise-margin", type=float, help="the manager's noise_margin (default: its own; 0 waits for no confirmation)"
+    )
     parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
     args = parser.parse_args()
@@ -448,7 +452,7 @@ def main() -> None:
     from robots.services import create_robot, update_robot_config
     from skills.services import add_skill
 
-    config = skill_config()
+    config = skill_config(args.noise_margin)
     Robot.objects.filter(id=ROBOT_ID).delete()
     owner, _ = get_user_model().objects.get_or_create(username="offload-bench")
     robot, token = create_robot(ROBOT_ID, owner)
