@@ -216,19 +216,20 @@ def test_noise_margin_keeps_a_noisy_stable_reward_from_flapping_without_a_cooldo
         assert damped.reward_noise == pytest.approx(0.3, rel=0.5)
 
 
-def test_a_reward_within_the_noise_moves_only_when_two_decisions_in_a_row_clear_the_hysteresis() -> None:
+def test_a_reward_within_the_noise_moves_only_when_three_decisions_in_a_row_clear_the_hysteresis() -> None:
     decider = Decider("detector", manager(threshold=0.1, trained_after=1_000_000), hysteresis=0.05, cooldown=0.0)
     rng = random.Random(4)
     stays = [decider.decide(at_robot(-0.5 + rng.gauss(0, 0.2)), now=float(second)) for second in range(30)]
     assert not any(d.migrate for d in stays)
     assert stays[-1].margin is not None and stays[-1].margin > 3 * 0.1  # the noise's, not the hysteresis
-    first = decider.decide(at_robot(0.3), now=30.0)
-    assert not first.migrate and "within the noise" in first.reason
-    assert decider.decide(at_robot(0.3), now=31.0).migrate
-    decider.decide(DecisionInput(location="cloud", estimated_reward=0.3), now=32.0)
-    away = decider.decide(DecisionInput(location="cloud", estimated_reward=-0.5), now=33.0)
-    again = decider.decide(DecisionInput(location="cloud", estimated_reward=0.3), now=34.0)
-    assert not away.migrate and not again.migrate  # the confirmation must come from the decision just before
+    first, second = (decider.decide(at_robot(0.3), now=now) for now in (30.0, 31.0))
+    assert not first.migrate and not second.migrate and "within the noise" in second.reason
+    assert decider.decide(at_robot(0.3), now=32.0).migrate  # the third in a row
+    cloud = [
+        decider.decide(DecisionInput(location="cloud", estimated_reward=r), now=33.0 + i)
+        for i, r in enumerate([0.3, 0.3, -0.5, 0.3, 0.3])
+    ]
+    assert not any(d.migrate for d in cloud)  # the run of confirmations was broken
 
 
 def test_noise_margin_still_moves_at_once_on_a_real_change() -> None:
@@ -300,7 +301,7 @@ def test_hysteresis_and_cooldown_come_from_the_manager_config() -> None:
     assert not decider.decide(at_robot(5.0), now=45.0).migrate  # cooling down
     assert decider.decide(at_robot(5.0), now=46.1).migrate
     assert ManagerConfig().cooldown == 30.0 and ManagerConfig().hysteresis == 0.05
-    assert ManagerConfig().noise_margin == 3.0 and Decider("d", ManagerConfig(noise_margin=1.5)).noise_margin == 1.5
+    assert ManagerConfig().noise_margin == 4.0 and Decider("d", ManagerConfig(noise_margin=1.5)).noise_margin == 1.5
 
 
 def test_batched_training_step_equals_a_single_step() -> None:

@@ -11,7 +11,7 @@ fixed-length feature vector (:data:`FEATURES`) to the predicted migration reward
 functions), records every decision as a sample and trains every ``warmup_train_every`` of them;
 afterwards it decides by the model's prediction and retrains every ``train_every`` decisions
 (Algorithm 9). Unlike the thesis, a move needs the reward to clear the threshold by a margin
-(hysteresis), in two decisions running unless it clears it by ``noise_margin`` times the reward's
+(hysteresis), in three decisions running unless it clears it by ``noise_margin`` times the reward's
 recent noise, and none may follow another within a cooldown: components do not flap when the
 reward is noisy, while a real change, whose reward jumps far above the noise, moves at once; and a
 trained network decides only while its recent error against the estimate stays within the hysteresis margin (an
@@ -77,6 +77,8 @@ TRUST_WINDOW = 5
 #: Recent estimated rewards from which their noise is measured, and how many it takes to measure it.
 NOISE_WINDOW = 20
 NOISE_MIN_SAMPLES = 6
+#: Decisions in a row whose reward must clear threshold + hysteresis when it is within the noise.
+CONFIRMATIONS = 3
 #: median |X - Y| of two independent N(0, s) draws is 0.6745 * sqrt(2) * s: this turns it back into s.
 _MEDIAN_DIFFERENCE_TO_SD = 1 / (0.6745 * math.sqrt(2))
 
@@ -468,7 +470,8 @@ class Decider:
         self._errors: deque[float] = deque(maxlen=TRUST_WINDOW)
         # The reward of running in the cloud rather than on the robot, so a move does not flip its sign.
         self._cloud_gains: deque[float] = deque(maxlen=NOISE_WINDOW)
-        self._cleared_at: Side | None = None  # where the last decision's reward cleared threshold + hysteresis
+        # Where the last decisions' rewards cleared threshold + hysteresis, and how many in a row.
+        self._cleared: tuple[Side | None, int] = (None, 0)
 
     @property
     def reward_noise(self) -> float | None:
@@ -484,10 +487,10 @@ class Decider:
 
     @property
     def margin(self) -> float:
-        """Return the margin above the threshold that moves at once; below it, a move needs two decisions in a row.
+        """Return the margin above the threshold that moves at once; below it, a move needs CONFIRMATIONS in a row.
 
         It is the hysteresis, or ``noise_margin`` times the reward's noise when larger: a real change
-        jumps past it and moves at once, a noisy stable reward must clear the hysteresis twice running.
+        jumps past it and moves at once, a noisy stable reward must clear the hysteresis CONFIRMATIONS times running.
         """
         noise = self.reward_noise
         return self.hysteresis if noise is None else max(self.hysteresis, self.noise_margin * noise)
@@ -539,12 +542,12 @@ class Decider:
         margin = self.margin
         self._cloud_gains.append(given.estimated_reward if given.location == "robot" else -given.estimated_reward)
         clears = reward >= threshold + self.hysteresis
-        confirmed = self._cleared_at == given.location
-        self._cleared_at = given.location if clears else None
+        at, run = self._cleared
+        self._cleared = (given.location, run + 1 if at == given.location else 1) if clears else (None, 0)
         if not clears:
             migrate, reason = False, f"{source} below threshold + hysteresis"
-        elif reward < threshold + margin and not confirmed:
-            # Within the noise of a stable reward: one lucky draw does not move, two in a row do.
+        elif reward < threshold + margin and self._cleared[1] < CONFIRMATIONS:
+            # Within the noise of a stable reward: one lucky draw does not move, a run of them does.
             migrate, reason = False, f"{source} above threshold + hysteresis but within the noise, unconfirmed"
         elif self.last_move is not None and now - self.last_move < self.cooldown:
             migrate, reason = False, f"{source} above threshold, but cooling down after the last move"

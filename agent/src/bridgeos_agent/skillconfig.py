@@ -199,13 +199,13 @@ class ManagerConfig(_Model):
         description="Seconds a component stays put after a move before it may move again.",
     )
     noise_margin: float = Field(
-        default=3.0,
+        default=4.0,
         ge=0,
         le=100,
         allow_inf_nan=False,
         description=(
             "A reward above threshold + hysteresis but within this many standard deviations of its recent"
-            " noise moves only if the previous decision's reward cleared it too (0: never waits)."
+            " noise moves only if the two decisions before cleared it too (0: never waits)."
         ),
     )
     neural_network: NeuralNetworkConfig = Field(default_factory=NeuralNetworkConfig)
