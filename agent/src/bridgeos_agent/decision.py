@@ -14,8 +14,9 @@ afterwards it decides by the model's prediction and retrains every ``train_every
 (hysteresis), in three decisions running unless it clears it by ``noise_margin`` times the reward's
 recent noise, and none may follow another within a cooldown: components do not flap when the
 reward is noisy, while a real change, whose reward jumps far above the noise, moves at once; and a
-trained network decides only while its recent error against the estimate stays within the hysteresis margin (an
-under-trained network that never moves anything costs more than the estimate it learns from).
+trained network decides only while its recent error against the estimate stays within the
+hysteresis margin (an under-trained network that never moves anything costs more than the estimate
+it learns from).
 
 All models of one shape are evaluated together: one batched matmul per layer for inference and
 one batched forward/backward with an elementwise Adam for training, so 2000 components cost about
@@ -475,11 +476,8 @@ class Decider:
 
     @property
     def reward_noise(self) -> float | None:
-        """Return the standard deviation of the estimated reward's recent noise (None until measured).
-
-        Measured from successive differences with a median, so a real change (one large step)
-        does not count as noise.
-        """
+        """Return the standard deviation of the estimated reward's recent noise (None until measured)."""
+        # The median of successive differences: a real change is one large step, not noise.
         if len(self._cloud_gains) < NOISE_MIN_SAMPLES:
             return None
         steps = [abs(b - a) for a, b in pairwise(self._cloud_gains)]
@@ -487,11 +485,8 @@ class Decider:
 
     @property
     def margin(self) -> float:
-        """Return the margin above the threshold that moves at once; below it, a move needs CONFIRMATIONS in a row.
-
-        It is the hysteresis, or ``noise_margin`` times the reward's noise when larger: a real change
-        jumps past it and moves at once, a noisy stable reward must clear the hysteresis CONFIRMATIONS times running.
-        """
+        """Return the margin above the threshold that moves at once (below it, CONFIRMATIONS in a row)."""
+        # A real change jumps past noise_margin times the noise; a noisy stable reward does not.
         noise = self.reward_noise
         return self.hysteresis if noise is None else max(self.hysteresis, self.noise_margin * noise)
 
