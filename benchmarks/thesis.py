@@ -249,6 +249,7 @@ BENCHMARKS: dict[str, list[Figure]] = {
         _f("cost_over_oracle", "adaptive cost / hindsight oracle", "x", goal=1.05, goal_source="issue 10"),
         _f("adapt_s", "time to adapt after a change", "s", goal=10, goal_source="issue 10"),
         _f("flaps_per_10min", "flaps per 10 min", "", goal=1, goal_source="issue 10"),
+        _f("stable_moves_per_10min", "moves per 10 min in a stable phase", "", goal=1, goal_source="issue 22"),
         _f("migrations", "migrations", ""),
     ],
     "usecases": _usecase_figures(),

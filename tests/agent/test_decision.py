@@ -200,11 +200,72 @@ def moves_in_an_hour(decider: Decider, seed: int) -> int:
 
 def test_hysteresis_and_cooldown_stop_flapping_under_noise() -> None:
     config = manager(trained_after=1_000_000)
-    naive = moves_in_an_hour(Decider("detector", config, hysteresis=0.0, cooldown=0.0), seed=7)
-    damped = moves_in_an_hour(Decider("detector", config, hysteresis=0.05, cooldown=120.0), seed=7)
+    naive = moves_in_an_hour(Decider("detector", config, hysteresis=0.0, cooldown=0.0, noise_margin=0.0), seed=7)
+    damped = moves_in_an_hour(Decider("detector", config, hysteresis=0.05, cooldown=120.0, noise_margin=0.0), seed=7)
     assert naive > 500
     assert damped <= 3600 / 120 + 1
     assert damped >= 1
+
+
+def test_noise_margin_keeps_a_noisy_stable_reward_from_flapping_without_a_cooldown() -> None:
+    config = manager(trained_after=1_000_000)
+    for seed in (1, 2, 3):
+        single = moves_in_an_hour(Decider("d", config, hysteresis=0.3, cooldown=0.0, noise_margin=0.0), seed=seed)
+        damped = Decider("d", config, hysteresis=0.3, cooldown=0.0, noise_margin=3.0)
+        assert moves_in_an_hour(damped, seed=seed) <= single / 10
+        assert damped.reward_noise == pytest.approx(0.3, rel=0.5)
+
+
+def test_a_reward_within_the_noise_moves_only_when_three_decisions_in_a_row_clear_the_hysteresis() -> None:
+    decider = Decider("detector", manager(threshold=0.1, trained_after=1_000_000), hysteresis=0.05, cooldown=0.0)
+    rng = random.Random(4)
+    stays = [decider.decide(at_robot(-0.5 + rng.gauss(0, 0.2)), now=float(second)) for second in range(30)]
+    assert not any(d.migrate for d in stays)
+    assert stays[-1].margin is not None and stays[-1].margin > 3 * 0.1  # the noise's, not the hysteresis
+    first, second = (decider.decide(at_robot(0.3), now=now) for now in (30.0, 31.0))
+    assert not first.migrate and not second.migrate and "within the noise" in second.reason
+    assert decider.decide(at_robot(0.3), now=32.0).migrate  # the third in a row
+    cloud = [
+        decider.decide(DecisionInput(location="cloud", estimated_reward=r), now=33.0 + i)
+        for i, r in enumerate([0.3, 0.3, -0.5, 0.3, 0.3])
+    ]
+    assert not any(d.migrate for d in cloud)  # the run of confirmations was broken
+
+
+def test_noise_margin_still_moves_at_once_on_a_real_change() -> None:
+    decider = Decider("detector", manager(threshold=0.1, trained_after=1_000_000), hysteresis=0.05, cooldown=0.0)
+    rng = random.Random(4)
+    for second in range(30):
+        decider.decide(at_robot(-0.5 + rng.gauss(0, 0.2)), now=float(second))
+    jump = decider.decide(at_robot(5.0), now=30.0)  # the conditions changed: far above the noise
+    assert jump.migrate and jump.target == "cloud"
+
+
+def test_noise_margin_is_the_hysteresis_until_the_noise_is_measured_or_when_quiet() -> None:
+    decider = Decider("detector", manager(threshold=0.1), hysteresis=0.05, cooldown=0.0)
+    assert decider.reward_noise is None and decider.margin == 0.05
+    for second in range(10):
+        decider.decide(at_robot(-0.2), now=float(second))
+    assert decider.reward_noise == 0.0 and decider.margin == 0.05
+    assert decider.decide(at_robot(0.151), now=10.0).migrate
+
+
+def test_noise_is_measured_across_a_move_as_the_cloud_gain() -> None:
+    decider = Decider("detector", manager(threshold=0.1), hysteresis=0.05, cooldown=0.0, noise_margin=3.0)
+    for second in range(10):
+        location = "robot" if second % 2 else "cloud"
+        gain = 0.02 if second % 2 else -0.02  # the same cloud gain, seen from either side
+        decider.decide(DecisionInput(location=location, estimated_reward=gain), now=float(second))
+    assert decider.reward_noise == 0.0
+
+
+@pytest.mark.parametrize("setting", ["hysteresis", "cooldown", "noise_margin"])
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf")])
+def test_bad_hysteresis_cooldown_or_noise_margin_is_refused(setting: str, value: float) -> None:
+    with pytest.raises(ValueError, match=setting):
+        Decider("detector", manager(), **{setting: value})
+    with pytest.raises(ValueError, match=setting):
+        ManagerConfig(**{setting: value})
 
 
 def test_decision_record_is_plain_data_for_the_cloud() -> None:
@@ -240,6 +301,7 @@ def test_hysteresis_and_cooldown_come_from_the_manager_config() -> None:
     assert not decider.decide(at_robot(5.0), now=45.0).migrate  # cooling down
     assert decider.decide(at_robot(5.0), now=46.1).migrate
     assert ManagerConfig().cooldown == 30.0 and ManagerConfig().hysteresis == 0.05
+    assert ManagerConfig().noise_margin == 4.0 and Decider("d", ManagerConfig(noise_margin=1.5)).noise_margin == 1.5
 
 
 def test_batched_training_step_equals_a_single_step() -> None:

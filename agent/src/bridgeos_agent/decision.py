@@ -11,10 +11,12 @@ fixed-length feature vector (:data:`FEATURES`) to the predicted migration reward
 functions), records every decision as a sample and trains every ``warmup_train_every`` of them;
 afterwards it decides by the model's prediction and retrains every ``train_every`` decisions
 (Algorithm 9). Unlike the thesis, a move needs the reward to clear the threshold by a margin
-(hysteresis), none may follow another within a cooldown, so components do not flap when the reward
-is noisy, and a trained network decides only while its recent error against the estimate stays
-within the hysteresis margin (an under-trained network that never moves anything costs more than
-the estimate it learns from).
+(hysteresis), in three decisions running unless it clears it by ``noise_margin`` times the reward's
+recent noise, and none may follow another within a cooldown: components do not flap when the
+reward is noisy, while a real change, whose reward jumps far above the noise, moves at once; and a
+trained network decides only while its recent error against the estimate stays within the
+hysteresis margin (an under-trained network that never moves anything costs more than the estimate
+it learns from).
 
 All models of one shape are evaluated together: one batched matmul per layer for inference and
 one batched forward/backward with an elementwise Adam for training, so 2000 components cost about
@@ -26,6 +28,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import statistics
 from array import array
 from collections import deque
 from collections.abc import Sequence
@@ -72,6 +75,13 @@ N_FEATURES = len(FEATURES)
 
 #: Decisions over which a trained network's error against the estimate is averaged (the trust gate).
 TRUST_WINDOW = 5
+#: Recent estimated rewards from which their noise is measured, and how many it takes to measure it.
+NOISE_WINDOW = 20
+NOISE_MIN_SAMPLES = 6
+#: Decisions in a row whose reward must clear threshold + hysteresis when it is within the noise.
+CONFIRMATIONS = 3
+#: median |X - Y| of two independent N(0, s) draws is 0.6745 * sqrt(2) * s: this turns it back into s.
+_MEDIAN_DIFFERENCE_TO_SD = 1 / (0.6745 * math.sqrt(2))
 
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
@@ -427,6 +437,7 @@ class Decision:
     features: dict[str, float | str]
     network_error: float | None = None  # the network's recent mean error against the estimate
     trusted: bool = False  # whether the network's prediction decided
+    margin: float | None = None  # the margin above the threshold that moved at once (see Decider.margin)
 
     def as_dict(self) -> dict[str, Any]:
         """Return the record as JSON-ready plain data."""
@@ -444,14 +455,40 @@ class Decider:
         model: DecisionModel | None = None,
         hysteresis: float | None = None,
         cooldown: float | None = None,
+        noise_margin: float | None = None,
     ) -> None:
         self.component = component
         self.config = config or ManagerConfig()
         self.hysteresis = self.config.hysteresis if hysteresis is None else hysteresis
         self.cooldown = self.config.cooldown if cooldown is None else cooldown
+        self.noise_margin = self.config.noise_margin if noise_margin is None else noise_margin
+        for name in ("hysteresis", "cooldown", "noise_margin"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, not {value!r}")
         self._model = model
         self.last_move: float | None = None
         self._errors: deque[float] = deque(maxlen=TRUST_WINDOW)
+        # The reward of running in the cloud rather than on the robot, so a move does not flip its sign.
+        self._cloud_gains: deque[float] = deque(maxlen=NOISE_WINDOW)
+        # Where the last decisions' rewards cleared threshold + hysteresis, and how many in a row.
+        self._cleared: tuple[Side | None, int] = (None, 0)
+
+    @property
+    def reward_noise(self) -> float | None:
+        """Return the standard deviation of the estimated reward's recent noise (None until measured)."""
+        # The median of successive differences: a real change is one large step, not noise.
+        if len(self._cloud_gains) < NOISE_MIN_SAMPLES:
+            return None
+        steps = [abs(b - a) for a, b in pairwise(self._cloud_gains)]
+        return statistics.median(steps) * _MEDIAN_DIFFERENCE_TO_SD
+
+    @property
+    def margin(self) -> float:
+        """Return the margin above the threshold that moves at once (below it, CONFIRMATIONS in a row)."""
+        # A real change jumps past noise_margin times the noise; a noisy stable reward does not.
+        noise = self.reward_noise
+        return self.hysteresis if noise is None else max(self.hysteresis, self.noise_margin * noise)
 
     @property
     def network_error(self) -> float | None:
@@ -496,16 +533,27 @@ class Decider:
         reward = prediction if trusted and prediction is not None else given.estimated_reward
         source = "prediction" if trusted else "estimate"
         threshold = self.config.threshold
-        if not reward >= threshold + self.hysteresis:
+        # The noise is measured on earlier decisions: the reward that may be a real change is not yet in it.
+        margin = self.margin
+        self._cloud_gains.append(given.estimated_reward if given.location == "robot" else -given.estimated_reward)
+        clears = reward >= threshold + self.hysteresis
+        at, run = self._cleared
+        self._cleared = (given.location, run + 1 if at == given.location else 1) if clears else (None, 0)
+        if not clears:
             migrate, reason = False, f"{source} below threshold + hysteresis"
+        elif reward < threshold + margin and self._cleared[1] < CONFIRMATIONS:
+            # Within the noise of a stable reward: one lucky draw does not move, a run of them does.
+            migrate, reason = False, f"{source} above threshold + hysteresis but within the noise, unconfirmed"
         elif self.last_move is not None and now - self.last_move < self.cooldown:
             migrate, reason = False, f"{source} above threshold, but cooling down after the last move"
         else:
             migrate, reason = True, f"{source} above threshold + hysteresis"
+        if margin > self.hysteresis:
+            reason += f" (noise margin {margin:.3g})"
         if usable and not trusted:
             reason += f" (network error {self.network_error:.3g} exceeds the hysteresis)"
         due = self.model.record(given.features.vector(), given.estimated_reward)
-        return self._record(given, now, migrate, reason, prediction, trusted), due
+        return self._record(given, now, migrate, reason, prediction, trusted, margin), due
 
     def _record(
         self,
@@ -515,6 +563,7 @@ class Decider:
         reason: str,
         prediction: float | None,
         trusted: bool = False,
+        margin: float | None = None,
     ) -> Decision:
         """Build the decision record and remember a move for the cooldown."""
         if migrate:
@@ -537,6 +586,7 @@ class Decider:
             features=given.features.as_dict(),
             network_error=self.network_error if prediction is not None else None,
             trusted=trusted,
+            margin=margin,
         )
 
 

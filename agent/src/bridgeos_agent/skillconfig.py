@@ -198,6 +198,16 @@ class ManagerConfig(_Model):
         allow_inf_nan=False,
         description="Seconds a component stays put after a move before it may move again.",
     )
+    noise_margin: float = Field(
+        default=4.0,
+        ge=0,
+        le=100,
+        allow_inf_nan=False,
+        description=(
+            "A reward above threshold + hysteresis but within this many standard deviations of its recent"
+            " noise moves only if the two decisions before cleared it too (0: never waits)."
+        ),
+    )
     neural_network: NeuralNetworkConfig = Field(default_factory=NeuralNetworkConfig)
     constants: dict[Identifier, FiniteFloat] = Field(
         default_factory=dict,
