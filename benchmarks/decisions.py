@@ -1,6 +1,6 @@
 """Offloading decisions on the robot agent (thesis Algorithms 8-9, section 4.2).
 
-Times the per-component decision network of bridgeos_agent.decision without containers or I/O:
+Times the per-component decision network of bridgeos_agent.decision and decisionmodel without containers or I/O:
 one prediction alone and batched over 2000 components (goal <=0.2 ms a component), one training
 step (goal <=1 ms), the memory a component's module holds (goal <=50 KB), the CPU share of one
 core for 2000 components deciding at 1 Hz (goal <=10%, measured with time.process_time over a
@@ -40,10 +40,10 @@ from bridgeos_agent.decision import (
     DecisionInput,
     DecisionModel,
     Features,
-    _load_torch,
     decide_batch,
     predict_many,
 )
+from bridgeos_agent.decisionmodel import _load_torch
 from bridgeos_agent.skillconfig import ManagerConfig, parse_skill_config
 
 COMPONENTS = 2000
