@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: run test test-fast services images lint bench install clean
+.PHONY: run test test-fast services images lint bench chaos install clean
 
 ## Create .venv and install the cloud, the agent and the test tools (torch first: the CPU build on disk).
 install: $(STAMP)
@@ -44,6 +44,10 @@ lint: install
 ## Run every benchmark and write .data/bench/report.md beside the thesis's figures (BENCH_ARGS="--quick", "--only router", "--strict").
 bench: install
 	@$(PY) scripts/bench.py $(BENCH_ARGS)
+
+## Break every real part on purpose and print what survived (benchmarks/faults.py, every scenario in full; CHAOS_ARGS="--only link").
+chaos: install services
+	@$(PY) benchmarks/faults.py $(CHAOS_ARGS)
 
 clean:
 	rm -rf $(VENV) .data .pytest_cache .hypothesis
