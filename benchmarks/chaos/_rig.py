@@ -8,6 +8,7 @@ that reports per robot what it sent, whether it is connected and what it still o
 
     python -m benchmarks.chaos._rig robots --prefix P --count N   # (run by create_robots) print ids and tokens
     python -m benchmarks.chaos._rig fleet SPEC.json               # (run by Fleet) host the agents of a spec
+    python -m benchmarks.chaos._rig api-token                     # (run by api_token) a key for the robots' owner
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import psycopg
 from benchmarks._common import ROOT, ensure_postgres_database, free_port, migrate
 
 __all__ = [
+    "AgentProcess",
     "Beat",
     "Cloud",
     "Fleet",
@@ -41,6 +43,7 @@ __all__ = [
     "PrivateRedis",
     "StoredPoints",
     "Worker",
+    "api_token",
     "cloud_env",
     "count_stored",
     "create_robots",
@@ -165,6 +168,32 @@ def _create_robots_here(prefix: str, count: int) -> list[tuple[str, str]]:
     return pairs
 
 
+def api_token(env: dict[str, str]) -> str:
+    """Issue a REST API token for the owner of the robots create_robots makes."""
+    out = subprocess.run(
+        [PYTHON, "-m", "benchmarks.chaos._rig", "api-token"],
+        cwd=ROOT,
+        env={**os.environ, **env},
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return out.stdout.strip().splitlines()[-1]
+
+
+def _api_token_here() -> str:
+    os.environ.setdefault("DJANGO_SETTINGS_MODULE", "bridgeos_cloud.settings")
+    import django
+
+    django.setup()
+    from django.contrib.auth import get_user_model
+
+    from robots.services import issue_api_token
+
+    owner, _ = get_user_model().objects.get_or_create(username=OWNER)
+    return issue_api_token(owner)[0]
+
+
 @dataclass
 class StoredPoints:
     """What PostgreSQL holds for some robots: every row, and the distinct points among them."""
@@ -177,13 +206,13 @@ class StoredPoints:
         return self.rows - self.distinct
 
 
-def count_stored(database_url: str, prefix: str) -> StoredPoints:
-    """Count the metric rows of the robots named ``PREFIX-*`` and the distinct points among them."""
+def count_stored(database_url: str, robots: list[str]) -> StoredPoints:
+    """Count the metric rows of some robots and the distinct points among them."""
     with psycopg.connect(database_url, autocommit=True, connect_timeout=10) as conn:
         rows, distinct = conn.execute(
             "SELECT count(*), count(DISTINCT (robot_id, skill, component, name, ts)) "
-            "FROM monitoring_metric WHERE robot_id LIKE %s",
-            [prefix.replace("_", r"\_") + "-%"],
+            "FROM monitoring_metric WHERE robot_id = ANY(%s)",
+            [robots],
         ).fetchone()  # type: ignore[misc]
     return StoredPoints(rows, distinct)
 
@@ -422,6 +451,45 @@ class PrivatePostgres:
         )
 
 
+# --------------------------------------------------------------------------- real agents
+
+
+class AgentProcess:
+    """`bridgeos-agent run` itself, in its own process: the one to `kill -9` (its components live on)."""
+
+    def __init__(self, master: str, robot: str, token: str, data_dir: Path, *extra: str) -> None:
+        self.command = [str(BIN / "bridgeos-agent"), "run", "--master", master, "--robot", robot, "--token", token]
+        self.command += ["--data-dir", str(data_dir), "--firewall", "off", *extra]
+        self.data_dir = data_dir
+        self.starts = 0
+        self.process: subprocess.Popen[bytes] | None = None
+
+    def log_path(self, start: int | None = None) -> Path:
+        return self.data_dir.parent / f"agent-{start or self.starts}.log"
+
+    def start(self) -> None:
+        self.starts += 1
+        with self.log_path().open("wb") as out:
+            self.process = subprocess.Popen(self.command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+
+    def kill(self) -> None:
+        """kill -9 the agent process alone: the components it started run on in their own sessions."""
+        if self.process is not None:
+            self.process.kill()
+            self.process.wait(10)
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(20)
+            except subprocess.TimeoutExpired:
+                self.kill()
+
+    def log(self) -> str:
+        return "".join(self.log_path(n).read_text(errors="replace") for n in range(1, self.starts + 1))
+
+
 # --------------------------------------------------------------------------- a fleet of real agents
 
 
@@ -569,9 +637,12 @@ def main(argv: list[str]) -> None:
     robots.add_argument("--count", type=int, required=True)
     fleet = commands.add_parser("fleet", help="host the agents of a fleet spec")
     fleet.add_argument("spec", type=Path)
+    commands.add_parser("api-token", help="print a REST API token of the robots' owner")
     args = parser.parse_args(argv)
     if args.command == "robots":
         print(json.dumps(_create_robots_here(args.prefix, args.count)))
+    elif args.command == "api-token":
+        print(_api_token_here())
     else:
         logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
         asyncio.run(_host_fleet(json.loads(args.spec.read_text())))

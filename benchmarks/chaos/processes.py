@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 import uuid
+from pathlib import Path
 
 import psycopg
 
@@ -61,17 +62,19 @@ def run(quick: bool) -> list[Outcome]:
         BRIDGEOS_CLOUD_RECONCILE_S="1",
     )
     prepare_database(env["DATABASE_URL"], env)
+    worker = Worker(env, workdir)
     try:
         return [
             daphne_killed(env, workdir, robots=10 if quick else 50, down_s=3.0 if quick else 12.0, quick=quick),
-            worker_killed(env, workdir, visibility),
-            beat_killed(env, workdir),
+            worker_killed(env, workdir, worker, visibility),
+            beat_killed(env, workdir, worker),
         ]
     finally:
+        worker.stop()
         shutil.rmtree(workdir, ignore_errors=True)
 
 
-def daphne_killed(env: dict[str, str], workdir, *, robots: int, down_s: float, quick: bool) -> Outcome:
+def daphne_killed(env: dict[str, str], workdir: Path, *, robots: int, down_s: float, quick: bool) -> Outcome:
     """kill -9 daphne while the fleet streams; restart it on the same port; count what was stored."""
     injected = f"daphne kill -9, down {down_s:.0f} s, {robots} robots streaming"
     prefix = f"chaos-dk-{uuid.uuid4().hex[:6]}"
@@ -82,18 +85,18 @@ def daphne_killed(env: dict[str, str], workdir, *, robots: int, down_s: float, q
         cloud.start()
         fleet.start()
         fleet.wait_connected(timeout=60)
-        time.sleep(3.0 if quick else 10.0)
+        time.sleep(2.0 if quick else 10.0)
         killed_at = time.time()
         cloud.kill()
         time.sleep(down_s)
         back_at = cloud.start()
         last_connected = fleet.wait_connected(since=killed_at, timeout=120)
         reconnect_s = round(last_connected - back_at, 2)
-        time.sleep(3.0 if quick else 10.0)
+        time.sleep(1.0 if quick else 10.0)
         fleet.quiesce()
         fleet.wait_delivered(timeout=120)
         sent = fleet.sent()
-        stored = count_stored(env["DATABASE_URL"], prefix)
+        stored = count_stored(env["DATABASE_URL"], [robot for robot, _ in pairs])
     finally:
         fleet.stop()
         cloud.stop()
@@ -140,7 +143,7 @@ def _waiting_delete(database_url: str) -> bool:
     return bool(row and row[0])
 
 
-def worker_killed(env: dict[str, str], workdir, visibility: float) -> Outcome:
+def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility: float) -> Outcome:
     """kill -9 the worker (and its pool) while a retention task is mid-DELETE; a new worker must finish it."""
     injected = "Celery worker kill -9 mid-task (prune_metrics blocked mid-DELETE)"
     database_url = env["DATABASE_URL"]
@@ -148,7 +151,6 @@ def worker_killed(env: dict[str, str], workdir, visibility: float) -> Outcome:
     robot = create_robots(env, prefix, 1)[0][0]
     points = 2000
     _old_points(database_url, robot, points)
-    worker = Worker(env, workdir)
     holder = psycopg.connect(database_url)
     try:
         # The task's DELETE waits behind this lock: the worker is killed while it runs the task.
@@ -179,7 +181,6 @@ def worker_killed(env: dict[str, str], workdir, visibility: float) -> Outcome:
         done = worker.succeeded("monitoring.tasks.prune_metrics")
     finally:
         holder.close()
-        worker.stop()
     left = _count_old(database_url, robot)
     passed = left_after_kill == points and left == 0 and done == 1
     return Outcome(
@@ -196,18 +197,18 @@ def worker_killed(env: dict[str, str], workdir, visibility: float) -> Outcome:
     )
 
 
-def beat_killed(env: dict[str, str], workdir) -> Outcome:
+def beat_killed(env: dict[str, str], workdir: Path, worker: Worker) -> Outcome:
     """kill -9 beat while the reconciler's round runs every second; restarted, the rounds resume."""
     injected = "Celery beat kill -9 (reconcile every 1 s)"
     task = "skills.tasks.reconcile_cloud"
-    worker = Worker(env, workdir)
     beat = Beat(env, workdir)
     try:
-        worker.start()
+        if worker.process is None or worker.process.poll() is not None:
+            worker.start()
         beat.start()
         eventually(lambda: worker.succeeded(task) >= 2, timeout=30, what="two reconcile rounds")
         beat.kill()
-        time.sleep(2.0)
+        time.sleep(1.0)
         before = worker.succeeded(task)
         restarted_at = time.monotonic()
         beat.start()
@@ -220,7 +221,6 @@ def beat_killed(env: dict[str, str], workdir) -> Outcome:
         after = worker.succeeded(task)
     finally:
         beat.stop()
-        worker.stop()
     passed = recover_s is not None and after >= before + 3
     return Outcome(
         scenario=NAME,

@@ -52,8 +52,9 @@ def run(quick: bool) -> list[Outcome]:
         cloud = Cloud(env, workdir)
         cloud.start()
         robots = 10 if quick else 50
+        pairs = create_robots(env, f"chaos-st-{uuid.uuid4().hex[:6]}", 2 * robots)
         faults: list[tuple[str, float, Callable[[], None], Callable[[], None]]] = [
-            ("Redis killed", 5.0 if quick else 10.0, redis.kill, redis.start),
+            ("Redis killed", 4.0 if quick else 10.0, redis.kill, redis.start),
             (
                 "PostgreSQL stopped -m immediate",
                 3.0 if quick else 10.0,
@@ -66,14 +67,14 @@ def run(quick: bool) -> list[Outcome]:
                 f"{what}, down {down_s:.0f} s, {robots} robots streaming",
                 env,
                 cloud,
-                workdir,
-                robots=robots,
-                stream_s=3.0 if quick else 10.0,
+                workdir / f"fleet-{n}",
+                pairs[n * robots : (n + 1) * robots],
+                stream_s=2.0 if quick else 10.0,
                 down_s=down_s,
                 stop=stop,
                 start=start,
             )
-            for what, down_s, stop, start in faults
+            for n, (what, down_s, stop, start) in enumerate(faults)
         ]
     finally:
         if cloud is not None:
@@ -87,9 +88,9 @@ def _break_store(
     injected: str,
     env: dict[str, str],
     cloud: Cloud,
-    workdir: Path,
+    fleet_dir: Path,
+    pairs: list[tuple[str, str]],
     *,
-    robots: int,
     stream_s: float,
     down_s: float,
     stop: Callable[[], None],
@@ -97,10 +98,9 @@ def _break_store(
 ) -> Outcome:
     """Stop one store for ``down_s`` while a fleet streams; count what was stored and how fast it caught up."""
     database_url = env["DATABASE_URL"]
-    prefix = f"chaos-st-{uuid.uuid4().hex[:6]}"
-    fleet_dir = workdir / prefix
+    robots = [robot for robot, _ in pairs]
     fleet_dir.mkdir()
-    fleet = Fleet(cloud.ws_url, create_robots(env, prefix, robots), fleet_dir)
+    fleet = Fleet(cloud.ws_url, pairs, fleet_dir)
     try:
         fleet.start()
         fleet.wait_connected(timeout=60)
@@ -112,7 +112,7 @@ def _break_store(
         made_before = fleet.sent()
         try:
             eventually(
-                lambda: count_stored(database_url, prefix).distinct >= made_before,
+                lambda: count_stored(database_url, robots).distinct >= made_before,
                 timeout=120,
                 every=0.2,
                 what="every point made before the store's return stored",
@@ -120,11 +120,11 @@ def _break_store(
             recover_s: float | None = round(time.monotonic() - back_at, 2)
         except TimeoutError:
             recover_s = None
-        time.sleep(stream_s)
+        time.sleep(stream_s / 2)
         fleet.quiesce()
         fleet.wait_delivered(timeout=120)
         sent = fleet.sent()
-        stored = count_stored(database_url, prefix)
+        stored = count_stored(database_url, robots)
     finally:
         fleet.stop()
     lost = max(0, sent - stored.distinct)
