@@ -81,14 +81,15 @@ INGESTED_FRAMES_KEPT_FOR = timedelta(days=1)
 
 
 def prune_ingested_frames(*, now: datetime | None = None) -> int:
-    """Forget the ids of ingested frames older than a day, except each robot's newest; return how many went."""
+    """Forget the ids of ingested frames older than a day (except each robot's newest) or of deleted robots."""
     cutoff = (now or timezone.now()) - INGESTED_FRAMES_KEPT_FOR
     table = IngestedFrame._meta.db_table
+    robots = Metric._meta.get_field("robot").related_model._meta.db_table
     with transaction.atomic(), connection.cursor() as cursor:
         cursor.execute(
-            f"DELETE FROM {table} WHERE created < %s AND id NOT IN ("
+            f"DELETE FROM {table} WHERE robot_id NOT IN (SELECT id FROM {robots}) OR (created < %s AND id NOT IN ("
             f"SELECT id FROM (SELECT id, row_number() OVER (PARTITION BY robot_id ORDER BY id DESC) AS newest "
-            f"FROM {table}) ranked WHERE newest <= %s)",
+            f"FROM {table}) ranked WHERE newest <= %s))",
             [cutoff, INGESTED_FRAMES_KEPT_PER_ROBOT],
         )
         return cursor.rowcount

@@ -91,11 +91,14 @@ def test_pruning_keeps_each_robots_newest_frame_ids(robot):
             for i in range(services.INGESTED_FRAMES_KEPT_PER_ROBOT + 50)
         ]
     )
-    IngestedFrame.objects.create(robot_id="r2", frame_id="young")
+    other = create_robot("r2", get_user_model().objects.get(username="owner"))[0].id
+    IngestedFrame.objects.create(robot_id=other, frame_id="young")
+    IngestedFrame.objects.create(robot_id="deleted-robot", frame_id="young")
 
     deleted = services.prune_ingested_frames(now=old + timedelta(days=2))
 
-    assert deleted == 50
+    assert deleted == 51
     assert IngestedFrame.objects.filter(robot_id=robot).count() == services.INGESTED_FRAMES_KEPT_PER_ROBOT
     assert not IngestedFrame.objects.filter(robot_id=robot, frame_id="f0").exists()
-    assert IngestedFrame.objects.filter(robot_id="r2").exists()
+    assert IngestedFrame.objects.filter(robot_id=other).exists()
+    assert not IngestedFrame.objects.filter(robot_id="deleted-robot").exists()
