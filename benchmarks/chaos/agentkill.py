@@ -137,7 +137,6 @@ def run(quick: bool) -> list[Outcome]:
         cloud.ws_url, robot, token, workdir / "agent", "--simulate", "--runtime", "process", "--sample-interval", "0.2"
     )
     outbox = workdir / "agent" / "outbox.sqlite3"
-    component_pid = None
     try:
         cloud.start()
         agent.start()
@@ -169,8 +168,10 @@ def run(quick: bool) -> list[Outcome]:
     finally:
         agent.stop()
         cloud.stop()
-        if component_pid is not None and _alive(component_pid):
-            os.killpg(component_pid, 9)
+        # The agent leaves its components running on exit (for the next agent to adopt): end every copy here.
+        for pid in {int(p) for p in starts.read_text().split()} if starts.exists() else ():
+            if _alive(pid):
+                os.killpg(pid, 9)
         if not os.environ.get("CHAOS_KEEP"):
             shutil.rmtree(workdir, ignore_errors=True)
 
