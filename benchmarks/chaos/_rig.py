@@ -287,7 +287,8 @@ class Worker:
     def log_path(self) -> Path:
         return self.log_dir / f"worker-{self.starts}.log"
 
-    def start(self) -> None:
+    def start(self, *, wait: bool = True) -> None:
+        """Start the worker; with ``wait``, return once it consumes its queue."""
         self.starts += 1
         queue = self.env["CELERY_TASK_DEFAULT_QUEUE"]
         command = [str(BIN / "celery"), "-A", "bridgeos_cloud", "worker", "-P", "prefork", "-c", str(self.concurrency)]
@@ -302,6 +303,11 @@ class Worker:
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
             )
+        if wait:
+            self.wait_ready()
+
+    def wait_ready(self) -> None:
+        """Return once the worker consumes its queue."""
         eventually(
             lambda: "ready." in self.log_path.read_text(errors="replace") or self._died(),
             timeout=60,

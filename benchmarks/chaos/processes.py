@@ -63,6 +63,8 @@ def run(quick: bool) -> list[Outcome]:
     )
     prepare_database(env["DATABASE_URL"], env)
     worker = Worker(env, workdir)
+    # Its start-up overlaps the daphne case; the worker case needs it only later.
+    worker.start(wait=False)
     try:
         return [
             daphne_killed(env, workdir, robots=10 if quick else 50, down_s=3.0 if quick else 12.0, quick=quick),
@@ -155,7 +157,7 @@ def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility
     try:
         # The task's DELETE waits behind this lock: the worker is killed while it runs the task.
         holder.execute("LOCK TABLE monitoring_metric IN SHARE MODE")
-        worker.start()
+        worker.wait_ready()
         subprocess.run(
             [
                 *(str(BIN / "celery"), "-A", "bridgeos_cloud", "call", "monitoring.tasks.prune_metrics"),
