@@ -179,7 +179,18 @@ if ! docker info >/dev/null 2>&1; then
     exit 1
 fi
 if (($#)); then wanted=("$@"); else wanted=("${DEFAULT_IMAGES[@]}"); fi
-if [[ " ${wanted[*]} " == *" stack "* ]]; then wanted=("${wanted[@]/stack/}" "${STACK_IMAGES[@]}"); fi
+if [[ " ${wanted[*]} " == *" stack "* ]]; then
+    # Two chains that share nothing but the base (python -> cloud, agent; the Debian services),
+    # built side by side: each waits mostly on downloads and unpacking, not on the other.
+    ensure base
+    failed=0
+    bash "${BASH_SOURCE[0]}" python cloud agent & chain_python=$!
+    bash "${BASH_SOURCE[0]}" postgres redis haproxy & chain_debian=$!
+    wait "$chain_python" || failed=1
+    wait "$chain_debian" || failed=1
+    ((failed == 0)) || exit 1
+    wanted=("${wanted[@]/stack/}")
+fi
 for name in "${wanted[@]}"; do
     [[ -n $name ]] || continue
     [[ " ${IMAGES[*]} " == *" $name "* ]] || { echo "build-images: unknown image $name (known: ${IMAGES[*]})" >&2; exit 2; }
