@@ -16,7 +16,10 @@ export BRIDGEOS_SECRETS_DIR=${BRIDGEOS_SECRETS_DIR:-$ROOT_DIR/.data/deploy/$STAC
 export DAPHNE_REPLICAS=${DAPHNE_REPLICAS:-2}
 export WORKER_REPLICAS=${WORKER_REPLICAS:-1}
 WAIT_S=${BRIDGEOS_DEPLOY_WAIT_S:-300}
-SERVICES=(postgres redis daphne worker beat lb)
+# The serving path must be healthy before the URL is printed; Celery's parts need only be running
+# (the worker's health check pings it through the broker every 30 s, the first time 30 s after start).
+HEALTHY=(postgres redis daphne lb)
+RUNNING=(worker beat)
 
 say() { printf '%s\n' "deploy: $*"; }
 die() { printf '%s\n' "deploy: $*" >&2; exit 1; }
@@ -53,7 +56,7 @@ write_secret() {  # name, generator command...
 random_token() { head -c 32 /dev/urandom | base64 | tr -d '/+=\n' | head -c 40; }
 fernet_key() { head -c 32 /dev/urandom | base64 | tr '+/' '-_'; }
 
-replicas_ready() {  # service: every wanted task running, and healthy where the service has a check
+replicas_ready() {  # service [running]: every wanted task healthy (or, with "running", started)
     local svc="${STACK}_$1" want running
     want=$(docker service inspect --format '{{if .Spec.Mode.Replicated}}{{.Spec.Mode.Replicated.Replicas}}{{end}}' "$svc")
     running=0
@@ -61,7 +64,8 @@ replicas_ready() {  # service: every wanted task running, and healthy where the 
     for cid in $(docker ps -q --filter "label=com.docker.swarm.service.name=$svc"); do
         local health
         health=$(docker inspect --format '{{if .State.Health}}{{.State.Health.Status}}{{else}}running{{end}}' "$cid")
-        [[ $health == healthy || $health == running ]] && running=$((running + 1))
+        [[ $health == healthy || $health == running || ($2 == running && $health == starting) ]] &&
+            running=$((running + 1))
     done
     [[ $running -ge $want ]]
 }
@@ -100,7 +104,8 @@ deploy() {
     local deadline=$((SECONDS + WAIT_S)) svc pending
     while :; do
         pending=()
-        for svc in "${SERVICES[@]}"; do replicas_ready "$svc" || pending+=("$svc"); done
+        for svc in "${HEALTHY[@]}"; do replicas_ready "$svc" healthy || pending+=("$svc"); done
+        for svc in "${RUNNING[@]}"; do replicas_ready "$svc" running || pending+=("$svc"); done
         if ((${#pending[@]} == 0)) && lb_answers; then break; fi
         if ((SECONDS > deadline)); then
             docker stack ps --no-trunc "$STACK" >&2 || true
