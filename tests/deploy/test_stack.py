@@ -2,9 +2,9 @@
 
 The stack is built and deployed by the project's own command (scripts/deploy.sh, i.e. `make deploy`)
 under a unique name and a free port, and removed with its volumes afterwards, failed or not. Real
-agents (`bridgeos-agent run --simulate`) connect through the load balancer; the test then checks,
-through the same door an operator uses, that the replicas behave as one cloud, and that killing
-one (`docker kill`) loses and duplicates nothing.
+agents (`bridgeos-agent run --simulate`, half of them from the bridgeos/agent image) connect through
+the load balancer; the test then checks, through the same door an operator uses, that the replicas
+behave as one cloud, and that killing one (`docker kill`) loses and duplicates nothing.
 """
 
 from __future__ import annotations
@@ -57,13 +57,50 @@ def swarm_active() -> bool:
 
 
 @dataclass
+class Agent:
+    """One simulated robot's agent: a process from the venv, or a bridgeos/agent container."""
+
+    robot_id: str
+    process: subprocess.Popen | None = None
+    container: str = ""
+
+    def freeze(self) -> None:
+        """Stop the agent dead, sockets open, as a hung robot would be."""
+        if self.container:
+            run("docker", "pause", self.container)
+        else:
+            assert self.process is not None
+            self.process.send_signal(signal.SIGSTOP)
+
+    def thaw(self) -> None:
+        if self.container:
+            run("docker", "unpause", self.container)
+        else:
+            assert self.process is not None
+            self.process.send_signal(signal.SIGCONT)
+
+    def stop(self) -> None:
+        """Stop the agent for good, frozen or not."""
+        if self.container:
+            subprocess.run(["docker", "rm", "-f", self.container], capture_output=True, timeout=60, check=False)
+            return
+        assert self.process is not None
+        self.process.send_signal(signal.SIGCONT)  # a frozen agent would not see SIGTERM
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+
+
+@dataclass
 class Stack:
     """A deployed stack: its name, the load balancer's port, and ways into its containers."""
 
     name: str
     port: int
     operator_password: str
-    agents: dict[str, subprocess.Popen] = field(default_factory=dict)
+    agents: dict[str, Agent] = field(default_factory=dict)
 
     @property
     def url(self) -> str:
@@ -114,15 +151,8 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         deployed = Stack(name, int(env["BRIDGEOS_HTTP_PORT"]), (secrets / "operator_password").read_text().strip())
         yield deployed
     finally:
-        agents = list(deployed.agents.values()) if deployed else []
-        for agent in agents:
-            agent.send_signal(signal.SIGCONT)  # a frozen agent would not see SIGTERM
-            agent.terminate()
-        for agent in agents:
-            try:
-                agent.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                agent.kill()
+        for agent in deployed.agents.values() if deployed else []:
+            agent.stop()
         subprocess.run(["bash", str(DEPLOY), "down", "--volumes"], env=env, timeout=180, check=False)
 
 
@@ -133,17 +163,31 @@ def api_token(stack: Stack) -> str:
 
 
 def start_agents(stack: Stack, tmp_path: Path) -> dict[str, Path]:
-    """Create robots in the stack and start a simulated agent for each; return their data dirs."""
+    """Create robots in the stack and start a simulated agent for each; return their data dirs.
+
+    Every other agent runs from the bridgeos/agent image, the rest from this checkout's venv.
+    """
     data_dirs = {}
     for n in range(ROBOTS):
         robot_id = f"deploy-{n}"
         token = stack.exec("daphne", "bridgeos-cloud", "manage", "create_robot", robot_id, "--owner", "operator")
         data_dir = tmp_path / robot_id
         data_dir.mkdir()
-        command = [str(AGENT), "run", "--master", f"ws://127.0.0.1:{stack.port}", "--robot", robot_id]
-        command += ["--token", token.strip(), "--runtime", "process", "--simulate", "--data-dir", str(data_dir)]
-        with (tmp_path / f"{robot_id}.log").open("ab") as log:
-            stack.agents[robot_id] = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+        args = ["run", "--master", f"ws://127.0.0.1:{stack.port}", "--robot", robot_id, "--token", token.strip()]
+        args += ["--runtime", "process", "--simulate"]
+        if n % 2:
+            data_dir.chmod(0o777)  # the image's agent runs as its own unprivileged user
+            container = run(
+                "docker", "run", "-d", "--network", "host", "--name", f"{stack.name}-{robot_id}",
+                "-v", f"{data_dir}:/data", "bridgeos/agent:latest", *args, "--data-dir", "/data",
+            ).strip()  # fmt: skip
+            stack.agents[robot_id] = Agent(robot_id, container=container)
+        else:
+            with (tmp_path / f"{robot_id}.log").open("ab") as log:
+                process = subprocess.Popen(
+                    [str(AGENT), *args, "--data-dir", str(data_dir)], stdout=log, stderr=subprocess.STDOUT
+                )
+            stack.agents[robot_id] = Agent(robot_id, process=process)
         data_dirs[robot_id] = data_dir
     return data_dirs
 
@@ -228,7 +272,7 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
     # replica's sweep of the dead process can make its `connected` state honest.
     frozen = {process: min(rid for rid, (_, p) in robots.items() if p == process) for process in processes}
     for robot_id in frozen.values():
-        stack.agents[robot_id].send_signal(signal.SIGSTOP)
+        stack.agents[robot_id].freeze()
     # Kill one replica while the other robots stream metrics.
     victim = daphnes[0]
     run("docker", "kill", victim)
@@ -259,7 +303,7 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
 
     # Thawed, the dead replica's frozen robot finds its socket closed and reconnects to a live replica.
     for robot_id in frozen.values():
-        stack.agents[robot_id].send_signal(signal.SIGCONT)
+        stack.agents[robot_id].thaw()
     wait_until(
         lambda: all(c and p != dead_process for c, p in stack.robots().values()),
         60,
