@@ -25,19 +25,16 @@ say() { printf '%s\n' "deploy: $*"; }
 die() { printf '%s\n' "deploy: $*" >&2; exit 1; }
 
 undeploy() {  # [--volumes]
-    if docker stack ls --format '{{.Name}}' | grep -qx "$STACK"; then
-        docker stack rm "$STACK" >/dev/null
-        # Tasks and the network go asynchronously; volumes can be removed only once containers are gone.
-        local deadline=$((SECONDS + 60))
-        while docker ps -aq --filter "label=com.docker.stack.namespace=$STACK" | grep -q . ||
-              docker network ls -q --filter "label=com.docker.stack.namespace=$STACK" | grep -q .; do
-            ((SECONDS < deadline)) || die "stack $STACK still has containers or networks after 60 s"
-            sleep 1
-        done
-        say "removed stack $STACK"
-    else
-        say "no stack $STACK"
-    fi
+    # Always asked, even when no service is listed: a deploy that failed half-way leaves secrets and networks.
+    docker stack rm "$STACK" >/dev/null 2>&1 || true
+    # Tasks and the network go asynchronously; volumes can be removed only once containers are gone.
+    local deadline=$((SECONDS + 60))
+    while docker ps -aq --filter "label=com.docker.stack.namespace=$STACK" | grep -q . ||
+          docker network ls -q --filter "label=com.docker.stack.namespace=$STACK" | grep -q .; do
+        ((SECONDS < deadline)) || die "stack $STACK still has containers or networks after 60 s"
+        sleep 1
+    done
+    say "removed stack $STACK"
     if [[ ${1:-} == --volumes ]]; then
         local volumes; volumes=$(docker volume ls -q --filter "label=com.docker.stack.namespace=$STACK")
         [[ -z $volumes ]] || docker volume rm $volumes >/dev/null
