@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: run test test-fast services images lint bench chaos install clean
+.PHONY: run test test-fast services images lint bench chaos install clean deploy undeploy
 
 ## Create .venv and install the cloud, the agent and the test tools (torch first: the CPU build on disk).
 install: $(STAMP)
@@ -35,6 +35,14 @@ services:
 
 images:
 	@bash docker/build-images.sh
+
+## Build the stack's images and deploy docker/stack.yml on this machine's Swarm; print the URL and login (README "Deploying").
+deploy:
+	@bash scripts/deploy.sh
+
+## Remove the deployed stack; its volumes stay (UNDEPLOY_ARGS=--volumes deletes them).
+undeploy:
+	@bash scripts/deploy.sh down $(UNDEPLOY_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check .

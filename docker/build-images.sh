@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Build the local bridgeOS images, skipping each one whose inputs have not changed.
 #
-#   docker/build-images.sh          # every image, in dependency order
+#   docker/build-images.sh          # the images the tests use: base and ros
 #   docker/build-images.sh ros      # one image (and, first, what it is built on)
+#   docker/build-images.sh stack    # what docker/stack.yml runs: cloud agent postgres redis haproxy
 #
 # No registry is reachable, so everything starts from a debootstrapped Debian base.
 # Each image carries the label org.bridgeos.inputs = sha256 of what it is made from
@@ -11,7 +12,10 @@
 set -euo pipefail
 
 DOCKER_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
-IMAGES=(base ros)
+IMAGES=(base ros python cloud agent postgres redis haproxy)
+# Built only when asked (scripts/deploy.sh, the deploy test): CI's services.sh builds base and ros.
+DEFAULT_IMAGES=(base ros)
+STACK_IMAGES=(cloud agent postgres redis haproxy)
 LABEL=org.bridgeos.inputs
 LOG_DIR=${BRIDGEOS_LOG_DIR:-/var/log}
 # The classic builder runs in the daemon itself: no buildx plugin needed on the host.
@@ -89,6 +93,79 @@ image_ros() {
 PARENT_base=""
 PARENT_ros=base
 
+# --- the deployed stack (docker/stack.yml) -------------------------------------------
+# bridgeos/python holds Debian's Python and a venv with the agent's dependencies; the agent and
+# the cloud build on it, the cloud adding its own dependencies in one more layer. Dependencies are
+# listed from the pyproject files, so a code change rebuilds only the layers that copy code.
+AGENT_SOURCES=(../agent/pyproject.toml ../agent/src)
+CLOUD_SOURCES=(../pyproject.toml ../manage.py ../scripts/daphne ../bridgeos_cloud ../robots ../skills
+               ../monitoring ../dashboard ../network ../templates ../static)
+
+requirements() {  # pyproject.toml: its [project] dependencies, one a line, without our own packages
+    "${PYTHON:-python3}" -c '
+import sys, tomllib
+with open(sys.argv[1], "rb") as f:
+    deps = tomllib.load(f)["project"]["dependencies"]
+print("\n".join(d for d in deps if not d.startswith("bridgeos-")))' "$1"
+}
+
+stage_agent() {  # context dir: the agent package's pyproject and sources, as agent/
+    mkdir -p "$1/agent"
+    cp "$DOCKER_DIR/../agent/pyproject.toml" "$1/agent/"
+    (cd "$DOCKER_DIR/../agent" && find src -type f -not -path '*/__pycache__/*' -exec cp --parents {} "$1/agent/" \;)
+}
+
+python_context() {
+    cp -r "$DOCKER_DIR/python/." "$1/" && requirements "$DOCKER_DIR/../agent/pyproject.toml" >"$1/requirements-agent.txt" &&
+        cp "${PIP_CERT:-${SSL_CERT_FILE:-/etc/ssl/certs/ca-certificates.crt}}" "$1/pip-ca.crt"
+}
+agent_context() { cp -r "$DOCKER_DIR/agent/." "$1/" && stage_agent "$1"; }
+cloud_context() {
+    cp -r "$DOCKER_DIR/cloud/." "$1/" && stage_agent "$1" || return
+    requirements "$DOCKER_DIR/../pyproject.toml" >"$1/requirements-cloud.txt" || return
+    mkdir -p "$1/src/scripts"
+    (cd "$DOCKER_DIR/.." && find manage.py pyproject.toml bridgeos_cloud robots skills monitoring dashboard network \
+        templates static -type f -not -path '*/__pycache__/*' -exec cp --parents {} "$1/src/" \;)
+    cp "$DOCKER_DIR/../scripts/daphne" "$1/src/scripts/"
+}
+
+staged() {  # staging function, tag, hash: build from a temporary context the function fills
+    local fill=$1 ctx status=0; shift
+    ctx=$(mktemp -d /tmp/bridgeos-context.XXXXXX)
+    { "$fill" "$ctx" && docker_build "$ctx" "$@"; } || status=$?
+    rm -rf "$ctx"
+    return "$status"
+}
+
+image_python() {
+    build_image bridgeos/python:bookworm \
+        "$(inputs_hash "$(image_id bridgeos/base:bookworm)" python ../agent/pyproject.toml)" staged python_context
+}
+image_agent() {
+    build_image bridgeos/agent:latest \
+        "$(inputs_hash "$(image_id bridgeos/python:bookworm)" agent "${AGENT_SOURCES[@]}")" staged agent_context
+}
+image_cloud() {
+    build_image bridgeos/cloud:latest \
+        "$(inputs_hash "$(image_id bridgeos/python:bookworm)" cloud "${AGENT_SOURCES[@]}" "${CLOUD_SOURCES[@]}")" \
+        staged cloud_context
+}
+
+# The supporting services come from Debian's packages: there is no registry to pull their images from.
+debian_service() {  # name, tag
+    build_image "$2" "$(inputs_hash "$(image_id bridgeos/base:bookworm)" "$1")" docker_build "$1"
+}
+image_postgres() { debian_service postgres bridgeos/postgres:15; }
+image_redis() { debian_service redis bridgeos/redis:7; }
+image_haproxy() { debian_service haproxy bridgeos/haproxy:2.6; }
+
+PARENT_python=base
+PARENT_cloud=python
+PARENT_agent=python
+PARENT_postgres=base
+PARENT_redis=base
+PARENT_haproxy=base
+
 ensure() {  # image name: its parents first, each once
     local name=$1 parent_var="PARENT_$1"
     [[ -n ${DONE[$name]:-} ]] && return
@@ -101,8 +178,21 @@ if ! docker info >/dev/null 2>&1; then
     echo "build-images: docker is not reachable; run scripts/services.sh docker" >&2
     exit 1
 fi
-if (($#)); then wanted=("$@"); else wanted=("${IMAGES[@]}"); fi
+if (($#)); then wanted=("$@"); else wanted=("${DEFAULT_IMAGES[@]}"); fi
+if [[ " ${wanted[*]} " == *" stack "* ]]; then
+    # Two chains that share nothing but the base (python -> cloud, agent; the Debian services),
+    # built side by side: each waits mostly on downloads and unpacking, not on the other.
+    ensure base
+    failed=0
+    bash "${BASH_SOURCE[0]}" python cloud agent & chain_python=$!
+    bash "${BASH_SOURCE[0]}" postgres redis haproxy & chain_debian=$!
+    wait "$chain_python" || failed=1
+    wait "$chain_debian" || failed=1
+    ((failed == 0)) || exit 1
+    wanted=("${wanted[@]/stack/}")
+fi
 for name in "${wanted[@]}"; do
+    [[ -n $name ]] || continue
     [[ " ${IMAGES[*]} " == *" $name "* ]] || { echo "build-images: unknown image $name (known: ${IMAGES[*]})" >&2; exit 2; }
     ensure "$name"
 done

@@ -1,0 +1,338 @@
+"""The deployed stack: docker/stack.yml on this machine's Swarm, two daphne replicas behind HAProxy.
+
+The stack is built and deployed by the project's own command (scripts/deploy.sh, i.e. `make deploy`)
+under a unique name and a free port, and removed with its volumes afterwards, failed or not. Real
+agents (`bridgeos-agent run --simulate`, half of them from the bridgeos/agent image) connect through
+the load balancer; the test then checks, through the same door an operator uses, that the replicas
+behave as one cloud, and that killing one (`docker kill`) loses and duplicates nothing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import pytest
+
+from bridgeos_agent.link import Link
+from bridgeos_agent.protocol import Event
+from tests.conftest import ROOT, free_port
+
+pytestmark = [pytest.mark.docker, pytest.mark.slow, pytest.mark.timeout(900)]
+
+DEPLOY = ROOT / "scripts" / "deploy.sh"
+AGENT = ROOT / ".venv" / "bin" / "bridgeos-agent"
+ROBOTS = 4
+# Short, so the test sees a dead replica's robots expire soon; the stack's default is 10 s.
+PROCESS_TTL_S = 6.0
+PROCESS_HEARTBEAT_S = 1.0
+
+
+def run(*command: str, timeout: float = 60, env: dict[str, str] | None = None) -> str:
+    """Run a command, return its stdout, and fail the test with its output if it fails."""
+    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=env)
+    if done.returncode:
+        pytest.fail(f"{' '.join(command)} exited {done.returncode}:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    return done.stdout
+
+
+def swarm_active() -> bool:
+    try:
+        state = subprocess.run(
+            ["docker", "info", "--format", "{{.Swarm.LocalNodeState}}"], capture_output=True, text=True, timeout=20
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return state.stdout.strip() == "active"
+
+
+@dataclass
+class Agent:
+    """One simulated robot's agent: a process from the venv, or a bridgeos/agent container."""
+
+    robot_id: str
+    process: subprocess.Popen | None = None
+    container: str = ""
+
+    def freeze(self) -> None:
+        """Stop the agent dead, sockets open, as a hung robot would be."""
+        if self.container:
+            run("docker", "pause", self.container)
+        else:
+            assert self.process is not None
+            self.process.send_signal(signal.SIGSTOP)
+
+    def thaw(self) -> None:
+        if self.container:
+            run("docker", "unpause", self.container)
+        else:
+            assert self.process is not None
+            self.process.send_signal(signal.SIGCONT)
+
+    def stop(self) -> None:
+        """Stop the agent for good, frozen or not."""
+        if self.container:
+            subprocess.run(["docker", "rm", "-f", self.container], capture_output=True, timeout=60, check=False)
+            return
+        assert self.process is not None
+        self.process.send_signal(signal.SIGCONT)  # a frozen agent would not see SIGTERM
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+
+
+@dataclass
+class Stack:
+    """A deployed stack: its name, the load balancer's port, and ways into its containers."""
+
+    name: str
+    port: int
+    operator_password: str
+    agents: dict[str, Agent] = field(default_factory=dict)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def containers(self, service: str) -> list[str]:
+        """Return the ids of the service's running containers."""
+        label = f"label=com.docker.swarm.service.name={self.name}_{service}"
+        return run("docker", "ps", "-q", "--filter", label).split()
+
+    def exec(self, service: str, *command: str) -> str:
+        """Run a command in one of the service's containers."""
+        return run("docker", "exec", self.containers(service)[0], *command, timeout=120)
+
+    def sql(self, query: str) -> list[list[str]]:
+        """Query the stack's PostgreSQL (inside its container, as the postgres user) and return rows."""
+        out = self.exec("postgres", "psql", "-U", "postgres", "-d", "bridgeos", "-tAF", "\t", "-c", query)
+        return [line.split("\t") for line in out.splitlines() if line]
+
+    def robots(self) -> dict[str, tuple[bool, str]]:
+        """Return {robot id: (connected, the server process holding it)} from the database."""
+        rows = self.sql("SELECT id, connected, channel FROM robots_robot ORDER BY id")
+        # channels-redis names a consumer's channel `<process prefix>!<suffix>` (robots.presence.process_of).
+        return {rid: (connected == "t", channel.partition("!")[0]) for rid, connected, channel in rows}
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+    """Deploy the stack with `scripts/deploy.sh` and remove it, volumes included, whatever happens."""
+    if not swarm_active():
+        pytest.skip("needs dockerd in an active Swarm: scripts/services.sh swarm")
+    name = f"bdt{uuid.uuid4().hex[:8]}"
+    secrets = tmp_path_factory.mktemp("secrets")
+    env = {
+        **os.environ,
+        "BRIDGEOS_STACK": name,
+        "BRIDGEOS_HTTP_PORT": str(free_port()),
+        "BRIDGEOS_SECRETS_DIR": str(secrets),
+        "DAPHNE_REPLICAS": "2",
+        "WORKER_REPLICAS": "1",
+        "BRIDGEOS_PROCESS_TTL_S": str(PROCESS_TTL_S),
+        "BRIDGEOS_PROCESS_HEARTBEAT_S": str(PROCESS_HEARTBEAT_S),
+    }
+    deployed = None
+    try:
+        # Builds whichever stack image is missing or stale (bash docker/build-images.sh stack), then deploys.
+        run("bash", str(DEPLOY), env=env, timeout=900)
+        deployed = Stack(name, int(env["BRIDGEOS_HTTP_PORT"]), (secrets / "operator_password").read_text().strip())
+        yield deployed
+    finally:
+        for agent in deployed.agents.values() if deployed else []:
+            agent.stop()
+        subprocess.run(["bash", str(DEPLOY), "down", "--volumes"], env=env, timeout=180, check=False)
+
+
+def api_token(stack: Stack) -> str:
+    answer = httpx.post(f"{stack.url}/api/auth", auth=("operator", stack.operator_password), timeout=10)
+    assert answer.status_code == 200, answer.text
+    return answer.json()["token"]
+
+
+def start_agents(stack: Stack, tmp_path: Path) -> dict[str, Path]:
+    """Create robots in the stack and start a simulated agent for each; return their data dirs.
+
+    Every other agent runs from the bridgeos/agent image, the rest from this checkout's venv.
+    """
+    data_dirs = {}
+    for n in range(ROBOTS):
+        robot_id = f"deploy-{n}"
+        token = stack.exec("daphne", "bridgeos-cloud", "manage", "create_robot", robot_id, "--owner", "operator")
+        data_dir = tmp_path / robot_id
+        data_dir.mkdir()
+        args = ["run", "--master", f"ws://127.0.0.1:{stack.port}", "--robot", robot_id, "--token", token.strip()]
+        args += ["--runtime", "process", "--simulate"]
+        if n % 2:
+            data_dir.chmod(0o777)  # the image's agent runs as its own unprivileged user
+            container = run(
+                "docker", "run", "-d", "--network", "host", "--name", f"{stack.name}-{robot_id}",
+                "-v", f"{data_dir}:/data", "bridgeos/agent:latest", *args, "--data-dir", "/data",
+            ).strip()  # fmt: skip
+            stack.agents[robot_id] = Agent(robot_id, container=container)
+        else:
+            with (tmp_path / f"{robot_id}.log").open("ab") as log:
+                process = subprocess.Popen(
+                    [str(AGENT), *args, "--data-dir", str(data_dir)], stdout=log, stderr=subprocess.STDOUT
+                )
+            stack.agents[robot_id] = Agent(robot_id, process=process)
+        data_dirs[robot_id] = data_dir
+    return data_dirs
+
+
+def wait_until(predicate, timeout: float, what: str, every: float = 0.5):
+    """Poll until the predicate returns something truthy; return it, or fail saying what never happened."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if value := predicate():
+            return value
+        time.sleep(every)
+    pytest.fail(f"{what} within {timeout:g} s")
+
+
+def outbox_through(data_dir: Path) -> int:
+    """Return the sequence number of the last frame an agent put in its outbox (acked frames leave it)."""
+    with sqlite3.connect(f"file:{data_dir / 'outbox.sqlite3'}?mode=ro", uri=True, timeout=5) as db:
+        row = db.execute("SELECT seq FROM sqlite_sequence WHERE name = 'outbox'").fetchone()
+    return row[0] if row else 0
+
+
+def owed_up_to(data_dir: Path, seq: int) -> int:
+    """Return how many frames up to seq the agent still waits to see acknowledged."""
+    with sqlite3.connect(f"file:{data_dir / 'outbox.sqlite3'}?mode=ro", uri=True, timeout=5) as db:
+        return db.execute("SELECT count(*) FROM outbox WHERE seq <= ?", (seq,)).fetchone()[0]
+
+
+async def live_robots(stack: Stack, token: str, seconds: float) -> tuple[set[str], str]:
+    """Watch /ws/client/ through the load balancer; return the robots whose metrics arrived, and the replica."""
+    link = Link(f"ws://127.0.0.1:{stack.port}/ws/client/")
+    await link.connect(Event.AUTHENTICATION_CLIENT, {"token": token})
+    replica = link.ws.response.headers.get("X-Bridgeos-Replica", "")
+    seen: set[str] = set()
+    deadline = time.monotonic() + seconds
+    try:
+        while (left := deadline - time.monotonic()) > 0 and len(seen) < ROBOTS:
+            try:
+                frame = await link.next(timeout=left)
+            except TimeoutError:
+                break
+            if frame.event == Event.METRICS and frame.data.get("robot"):
+                seen.add(frame.data["robot"])
+    finally:
+        await link.close()
+    return seen, replica
+
+
+def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tmp_path: Path) -> None:
+    daphnes = stack.containers("daphne")
+    assert len(daphnes) == 2, "the stack runs two daphne replicas"
+    data_dirs = start_agents(stack, tmp_path)
+
+    # Robots spread over both replicas (the least-connections balance), each held by exactly one.
+    robots = wait_until(
+        lambda: (r := stack.robots()) and all(c for c, _ in r.values()) and len(r) == ROBOTS and r,
+        60,
+        "every robot connected through the load balancer",
+    )
+    processes = {process for _, process in robots.values()}
+    assert len(processes) == 2, f"robots on both replicas: {robots}"
+
+    # A REST command through the load balancer reaches each robot from both replicas, and its reply comes back.
+    token = api_token(stack)
+    headers = {"Authorization": f"Token {token}"}
+    for robot_id in robots:
+        served_by: set[str] = set()
+        for _ in range(20):
+            answer = httpx.post(f"{stack.url}/api/robot/{robot_id}/start", headers=headers, timeout=15)
+            assert answer.status_code == 200, answer.text
+            assert answer.json()["accepted"] is True, answer.json()
+            served_by.add(answer.headers["X-Bridgeos-Replica"])
+            if len(served_by) == 2:
+                break
+        # Each robot sits on one replica, so one of the two answers crossed between processes.
+        assert len(served_by) == 2, f"{robot_id}'s commands were all served by {served_by}"
+
+    # A dashboard client on one replica sees live frames of the robots on both.
+    seen, client_replica = asyncio.run(live_robots(stack, token, 30))
+    assert seen == set(robots), f"client on {client_replica} saw metrics of {seen} only"
+
+    # Freeze one robot on each replica: a frozen agent cannot reconnect, so only the surviving
+    # replica's sweep of the dead process can make its `connected` state honest.
+    frozen = {process: min(rid for rid, (_, p) in robots.items() if p == process) for process in processes}
+    for robot_id in frozen.values():
+        stack.agents[robot_id].freeze()
+    # Kill one replica while the other robots stream metrics.
+    victim = daphnes[0]
+    run("docker", "kill", victim)
+    killed_at = time.monotonic()
+
+    def settled() -> tuple[dict[str, tuple[bool, str]], str] | None:
+        """The state once the victim's live robots moved and its frozen robot went offline, else None."""
+        now = stack.robots()
+        dead = {robots[rid][1] for rid, (connected, process) in now.items() if connected and process != robots[rid][1]}
+        if len(dead) != 1:
+            return None
+        (dead_process,) = dead
+        for robot_id, (connected, process) in now.items():
+            expected_online = robot_id != frozen[dead_process]
+            if connected != expected_online or (connected and process == dead_process):
+                return None
+        return now, dead_process
+
+    # The sweep runs on the survivors' heartbeat: the dead process's frozen robot is offline within its TTL.
+    limit = PROCESS_TTL_S + 2 * PROCESS_HEARTBEAT_S + 3
+    after, dead_process = wait_until(settled, limit, "the dead replica's robots moved or marked offline", every=0.25)
+    settled_s = time.monotonic() - killed_at
+    moved = {rid for rid, (connected, process) in after.items() if connected and process != robots[rid][1]}
+    assert moved == {rid for rid, (_, process) in robots.items() if process == dead_process} - {frozen[dead_process]}
+    survivor_frozen = frozen[next(p for p in processes if p != dead_process)]
+    assert after[survivor_frozen] == robots[survivor_frozen], "a robot on the live replica was left alone"
+    print(f"robots before the kill {robots}, after {after}; settled {settled_s:.1f} s after the kill")
+
+    # Thawed, the dead replica's frozen robot finds its socket closed and reconnects to a live replica.
+    for robot_id in frozen.values():
+        stack.agents[robot_id].thaw()
+    wait_until(
+        lambda: all(c and p != dead_process for c, p in stack.robots().values()),
+        60,
+        "every robot connected again to a live replica",
+    )
+
+    # Every frame an agent queued up to now (the kill and the reconnection included) gets acknowledged,
+    # and an acknowledgement comes only after the points are committed: none was lost.
+    marks = {rid: outbox_through(d) for rid, d in data_dirs.items()}
+    wait_until(
+        lambda: all(owed_up_to(data_dirs[rid], seq) == 0 for rid, seq in marks.items()),
+        60,
+        "every frame sent across the kill acknowledged",
+    )
+    # And none was stored twice, though frames in flight at the kill were resent to the other replica.
+    duplicates = stack.sql(
+        "SELECT robot_id, name, skill, component, ts, count(*) FROM monitoring_metric "
+        "GROUP BY robot_id, name, skill, component, ts, labels::text HAVING count(*) > 1 LIMIT 5"
+    )
+    assert duplicates == [], f"points stored twice: {duplicates}"
+    points = {rid: int(n) for rid, n in stack.sql("SELECT robot_id, count(*) FROM monitoring_metric GROUP BY 1")}
+    assert set(points) == set(robots) and all(points.values()), points
+    print(f"points stored per robot {points}; frames acknowledged through outbox seq {marks}")
+
+    # The killed task is replaced by Swarm, and the stack is whole again behind the same address.
+    wait_until(
+        lambda: len(stack.containers("daphne")) == 2 and victim not in stack.containers("daphne"),
+        90,
+        "Swarm replaced the killed replica",
+    )
+    health = httpx.get(f"{stack.url}/api/health", timeout=10)
+    assert health.status_code == 200 and json.loads(health.text)["status"] == "ok"
