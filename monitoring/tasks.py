@@ -6,7 +6,7 @@ from datetime import timedelta
 
 from celery import shared_task
 
-from . import services
+from . import partitions, services
 
 
 @shared_task(acks_late=True, autoretry_for=(OSError,), retry_backoff=True, max_retries=5)
@@ -14,3 +14,9 @@ def prune_metrics(older_than_seconds: float | None = None) -> int:
     """Delete metric points past the retention age; return the number deleted."""
     older_than = None if older_than_seconds is None else timedelta(seconds=older_than_seconds)
     return services.prune_metrics(older_than)
+
+
+@shared_task(acks_late=True, autoretry_for=(OSError,), retry_backoff=True, max_retries=5)
+def ensure_metric_partitions() -> int:
+    """Create the metric partitions of the coming days that are missing; return how many were created."""
+    return len(partitions.ensure_partitions())
