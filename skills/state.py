@@ -88,18 +88,19 @@ FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
 WHERE ro.id IN ({{robots}}) ORDER BY ro.id
 """
 
-ROBOTS_JSON_SQL = f"""
-SELECT ro.id, {ROBOT_VERSION_SQL}, row_to_json(r)::text
-FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
-CROSS JOIN LATERAL (
-  SELECT {ROBOT_COLUMNS},
-    coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
+# A robot's skills, each with its components, as a JSON array (`ro` is the robot's row).
+SKILLS_JSON_SQL = f"""coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
       SELECT {SKILL_COLUMNS},
         coalesce((SELECT json_agg(c ORDER BY c.component_id) FROM (
           SELECT {COMPONENT_COLUMNS}
           FROM skills_component co WHERE co.skill_id = sk.id) c), '[]') AS components
-      FROM skills_skill sk WHERE sk.robot_id = ro.id) s), '[]') AS skills
-) r
+      FROM skills_skill sk WHERE sk.robot_id = ro.id) s), '[]')"""
+
+
+ROBOTS_JSON_SQL = f"""
+SELECT ro.id, {ROBOT_VERSION_SQL}, row_to_json(r)::text
+FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
+CROSS JOIN LATERAL (SELECT {ROBOT_COLUMNS}, {SKILLS_JSON_SQL} AS skills) r
 WHERE ro.id = ANY(%s)
 """
 
@@ -177,13 +178,6 @@ def fleet_state_json(robots: QuerySet[Robot]) -> str:
 
 # What `fields=` may pick from a robot's state: its own fields and its skills (with their components).
 FLEET_FIELDS = (*ROBOT_FIELDS, "skills")
-
-SKILLS_JSON_SQL = f"""coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
-      SELECT {SKILL_COLUMNS},
-        coalesce((SELECT json_agg(c ORDER BY c.component_id) FROM (
-          SELECT {COMPONENT_COLUMNS}
-          FROM skills_component co WHERE co.skill_id = sk.id) c), '[]') AS components
-      FROM skills_skill sk WHERE sk.robot_id = ro.id) s), '[]')"""
 
 
 def fleet_fields_json(robots: QuerySet[Robot], fields: list[str]) -> str:
