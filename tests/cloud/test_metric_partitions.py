@@ -19,8 +19,8 @@ from .apiutil import robot_of, user_with_token
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
-BEFORE = ("monitoring", "0003_metric_robot_no_own_index")
-PARTITIONED = ("monitoring", "0004_metric_partitioned_by_day")
+BEFORE = ("monitoring", "0004_ingested_frame")
+PARTITIONED = ("monitoring", "0005_metric_partitioned_by_day")
 
 
 @pytest.fixture

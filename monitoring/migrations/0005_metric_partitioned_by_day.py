@@ -28,7 +28,8 @@ SEQUENCE = f"{TABLE}_id_seq"
 def _foreign_key(cursor, table: str) -> tuple[str, str]:
     """Return the name and definition of the table's foreign key to robots."""
     cursor.execute(
-        "SELECT conname, pg_get_constraintdef(oid) FROM pg_constraint WHERE conrelid = to_regclass(%s) AND contype = 'f'",
+        "SELECT conname, pg_get_constraintdef(oid) FROM pg_constraint"
+        " WHERE conrelid = to_regclass(%s) AND contype = 'f'",
         [table],
     )
     return cursor.fetchone()
@@ -103,5 +104,5 @@ def unpartition(apps, schema_editor):
 class Migration(migrations.Migration):
     # One transaction: a failure half-way leaves the plain table as it was.
     atomic = True
-    dependencies = [("monitoring", "0003_metric_robot_no_own_index")]
+    dependencies = [("monitoring", "0004_ingested_frame")]
     operations = [migrations.RunPython(partition, unpartition)]
