@@ -45,6 +45,8 @@ def partition(apps, schema_editor):
     connection = schema_editor.connection
     if connection.vendor != "postgresql":
         return  # SQLite (make run's default) keeps a plain table and deletes expired rows
+    if partitions.is_partitioned(connection):
+        return  # converted already (by an earlier copy of this migration): nothing to do
     with connection.cursor() as cursor:
         cursor.execute(f"LOCK TABLE {TABLE} IN ACCESS EXCLUSIVE MODE")
         fk_name, fk_definition = _foreign_key(cursor, TABLE)
@@ -79,7 +81,7 @@ def partition(apps, schema_editor):
 
 def unpartition(apps, schema_editor):
     connection = schema_editor.connection
-    if connection.vendor != "postgresql":
+    if connection.vendor != "postgresql" or not partitions.is_partitioned(connection):
         return
     with connection.cursor() as cursor:
         cursor.execute(f"LOCK TABLE {TABLE} IN ACCESS EXCLUSIVE MODE")
