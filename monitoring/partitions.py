@@ -63,6 +63,23 @@ def is_partitioned(connection: Any = default_connection) -> bool:
     return row is not None and row[0] == "p"
 
 
+def _locked_and_absent(cursor: Any, name: str) -> bool:
+    """Take this transaction's lock on partition maintenance, then tell whether the partition is missing.
+
+    Beat's hourly tasks, `prune_metrics` and several processes may create or drop the same day at
+    once; one at a time, each re-reading what exists, none fails on another's work.
+    """
+    cursor.execute("SELECT pg_advisory_xact_lock(hashtext(%s))", [TABLE])
+    # pg_class itself, not to_regclass: an advisory lock does not refresh the catalog cache,
+    # which may still hold a partition another process dropped.
+    cursor.execute(
+        "SELECT NOT EXISTS (SELECT FROM pg_class c JOIN pg_namespace n ON n.oid = c.relnamespace"
+        " WHERE c.relname = %s AND n.nspname = current_schema())",
+        [name],
+    )
+    return cursor.fetchone()[0]
+
+
 def partition_days(connection: Any = default_connection) -> list[date]:
     """Return the days that have a partition, oldest first."""
     with connection.cursor() as cursor:
@@ -91,6 +108,8 @@ def create_partitions(days: Iterable[date], connection: Any = default_connection
     for day in sorted(set(days) - existing):
         name, start, end = partition_name(day), day_start(day), day_start(day + timedelta(days=1))
         with transaction.atomic(using=connection.alias), connection.cursor() as cursor:
+            if not _locked_and_absent(cursor, name):
+                continue  # another process created it meanwhile
             # Rows of this day that went to the default partition would make attaching it fail:
             # build the partition beside the table, move them in, then attach it.
             cursor.execute(f"CREATE TABLE {name} (LIKE {TABLE} INCLUDING DEFAULTS)")
@@ -125,6 +144,8 @@ def drop_expired_partitions(cutoff: datetime, connection: Any = default_connecti
     for day in expired_days(partition_days(connection), cutoff):
         name = partition_name(day)
         with transaction.atomic(using=connection.alias), connection.cursor() as cursor:
+            if _locked_and_absent(cursor, name):
+                continue  # another process dropped it meanwhile
             # Counted under the same lock as the drop, so the figure is what was dropped.
             cursor.execute(f"LOCK TABLE {name} IN ACCESS EXCLUSIVE MODE")
             cursor.execute(f"SELECT count(*) FROM {name}")

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC, datetime, timedelta
 
 import pytest
-from django.db import connection
+from django.db import connection, connections
 from django.db.migrations.executor import MigrationExecutor
 from django.test import Client
 from django.utils import timezone
@@ -175,3 +176,23 @@ def test_a_query_past_the_statement_timeout_fails_clearly_and_fast(monkeypatch):
     answer = http.post("/api/database/query", body, content_type="application/json")
     assert answer.status_code == 200
     assert sum(row["points"] for row in answer.json()["results"]) > 0
+
+
+def test_processes_creating_and_dropping_the_same_partitions_at_once_all_succeed(robot):
+    days = partitions.days_between(datetime(2032, 1, 1, tzinfo=UTC).date(), datetime(2032, 1, 6, tzinfo=UTC).date())
+    cutoff = datetime(2032, 2, 1, tzinfo=UTC)
+
+    def maintain(work):
+        try:
+            return work()
+        finally:
+            connections.close_all()
+
+    with ThreadPoolExecutor(4) as pool:
+        created = list(pool.map(maintain, [lambda: partitions.create_partitions(days)] * 4))
+    assert sorted(day for batch in created for day in batch) == days
+    Metric.objects.create(robot_id=robot, name="cpu", value=1.0, ts=partitions.day_start(days[2]) + timedelta(hours=1))
+    with ThreadPoolExecutor(4) as pool:
+        dropped = list(pool.map(maintain, [lambda: partitions.drop_expired_partitions(cutoff)] * 4))
+    assert sum(dropped) == 1
+    assert not set(days) & set(partitions.partition_days())
