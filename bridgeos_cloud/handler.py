@@ -13,6 +13,8 @@ from django.db import close_old_connections
 from django.http import HttpRequest, HttpResponse
 from django.urls import set_script_prefix
 
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
 
 class PooledASGIHandler(ASGIHandler):
     """Serve HTTP like Django's ASGIHandler, but run the (all-sync) request path on a thread pool.
@@ -30,9 +32,13 @@ class PooledASGIHandler(ASGIHandler):
         # Rebuild the chain as plain sync code: the pool threads call it directly.
         self.load_middleware(is_async=False)
         pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="http")
+        # Writes have a pool of their own: a command waits seconds for its robot's reply while
+        # holding its thread, and a burst of them must not leave reads queued behind.
+        write_pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="http-write")
         # Through asgiref, so async_to_sync in a view (commands relayed over the channel
         # layer) runs on the server's event loop, not on a new loop per thread.
         self._in_pool = lambda function: sync_to_async(function, thread_sensitive=False, executor=pool)
+        self._in_write_pool = lambda function: sync_to_async(function, thread_sensitive=False, executor=write_pool)
 
     async def __call__(self, scope, receive, send) -> None:  # type: ignore[no-untyped-def]
         if scope["type"] != "http":
@@ -52,7 +58,8 @@ class PooledASGIHandler(ASGIHandler):
             await self._in_pool(error_response.close)()
             return
         try:
-            response = await self._in_pool(self._respond)(request, scope)
+            in_pool = self._in_pool if request.method in SAFE_METHODS else self._in_write_pool
+            response = await in_pool(self._respond)(request, scope)
             response._handler_class = self.__class__
             try:
                 await self.send_response(response, send)

@@ -241,6 +241,11 @@ CELERY_BEAT_SCHEDULE = {
         "task": "monitoring.tasks.prune_metrics",
         "schedule": 3600.0,
     },
+    # Metric partitions of the coming days exist before their first point (the default partition is a net).
+    "ensure-metric-partitions": {
+        "task": "monitoring.tasks.ensure_metric_partitions",
+        "schedule": 3600.0,
+    },
     # Desired cloud components vs what runs: restart the crashed, remove orphans, collect stats.
     "reconcile-cloud": {
         "task": "skills.tasks.reconcile_cloud",
@@ -286,6 +291,8 @@ BRIDGEOS = {
     "METRICS_ALLOW": env_list("BRIDGEOS_METRICS_ALLOW", ["127.0.0.1/32", "::1/128"]),
     "METRICS_TOKEN": env_str("BRIDGEOS_METRICS_TOKEN", ""),
     "METRIC_RETENTION_DAYS": env_float("BRIDGEOS_METRIC_RETENTION_DAYS", 30.0),
+    # Daily metric partitions (PostgreSQL) kept created this many days ahead of today.
+    "METRIC_PARTITION_AHEAD_DAYS": env_int("BRIDGEOS_METRIC_PARTITION_AHEAD_DAYS", 7),
     # Per WebSocket connection: frames per second on average, and the burst allowed above it.
     "ROBOT_FRAMES_PER_S": env_float("BRIDGEOS_ROBOT_FRAMES_PER_S", 200.0),
     "ROBOT_FRAME_BURST": env_float("BRIDGEOS_ROBOT_FRAME_BURST", 1000.0),

@@ -10,6 +10,7 @@ from django.db import connection, transaction
 from django.db.models import QuerySet
 from django.utils import timezone
 
+from . import partitions
 from .choices import Level, Source
 from .live import log_event_frame, publish_all_on_commit, publish_log_event_on_commit
 from .models import Event, IngestedFrame, Metric
@@ -55,11 +56,19 @@ def record_events(entries: list[dict[str, Any]]) -> list[Event]:
 
 
 def prune_metrics(older_than: timedelta | None = None, *, now: datetime | None = None, batch: int = 50_000) -> int:
-    """Delete metric points older than the retention age and return how many went."""
+    """Remove metric points older than the retention age and return how many went.
+
+    On PostgreSQL whole day partitions past the age are dropped; only the rows of the day the
+    cutoff falls in (and of the default partition) are deleted one by one.
+    """
     if older_than is None:
         older_than = timedelta(days=settings.BRIDGEOS["METRIC_RETENTION_DAYS"])
-    cutoff = (now or timezone.now()) - older_than
+    now = now or timezone.now()
+    cutoff = now - older_than
     deleted = 0
+    if partitions.is_partitioned():
+        deleted += partitions.drop_expired_partitions(cutoff)
+        partitions.ensure_partitions(now)
     # Deleting in bounded batches keeps each transaction and its locks short on a big table.
     while True:
         with transaction.atomic():
@@ -68,7 +77,8 @@ def prune_metrics(older_than: timedelta | None = None, *, now: datetime | None =
                 return deleted
             if connection.vendor == "postgresql":
                 with connection.cursor() as cursor:
-                    cursor.execute("DELETE FROM monitoring_metric WHERE id = ANY(%s)", [ids])
+                    # The time bound prunes the partitions the ids are looked up in.
+                    cursor.execute("DELETE FROM monitoring_metric WHERE ts < %s AND id = ANY(%s)", [cutoff, ids])
             else:
                 Metric.objects.filter(id__in=ids).delete()
         deleted += len(ids)

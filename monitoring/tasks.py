@@ -6,7 +6,7 @@ from datetime import timedelta
 
 from celery import shared_task
 
-from . import services
+from . import partitions, services
 
 
 @shared_task(acks_late=True, autoretry_for=(OSError,), retry_backoff=True, max_retries=5)
@@ -16,3 +16,9 @@ def prune_metrics(older_than_seconds: float | None = None) -> int:
     deleted = services.prune_metrics(older_than)
     services.prune_ingested_frames()
     return deleted
+
+
+@shared_task(acks_late=True, autoretry_for=(OSError,), retry_backoff=True, max_retries=5)
+def ensure_metric_partitions() -> int:
+    """Create the metric partitions of the coming days that are missing; return how many were created."""
+    return len(partitions.ensure_partitions())

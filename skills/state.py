@@ -88,18 +88,19 @@ FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
 WHERE ro.id IN ({{robots}}) ORDER BY ro.id
 """
 
-ROBOTS_JSON_SQL = f"""
-SELECT ro.id, {ROBOT_VERSION_SQL}, row_to_json(r)::text
-FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
-CROSS JOIN LATERAL (
-  SELECT {ROBOT_COLUMNS},
-    coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
+# A robot's skills, each with its components, as a JSON array (`ro` is the robot's row).
+SKILLS_JSON_SQL = f"""coalesce((SELECT json_agg(s ORDER BY s.skill_id) FROM (
       SELECT {SKILL_COLUMNS},
         coalesce((SELECT json_agg(c ORDER BY c.component_id) FROM (
           SELECT {COMPONENT_COLUMNS}
           FROM skills_component co WHERE co.skill_id = sk.id) c), '[]') AS components
-      FROM skills_skill sk WHERE sk.robot_id = ro.id) s), '[]') AS skills
-) r
+      FROM skills_skill sk WHERE sk.robot_id = ro.id) s), '[]')"""
+
+
+ROBOTS_JSON_SQL = f"""
+SELECT ro.id, {ROBOT_VERSION_SQL}, row_to_json(r)::text
+FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id
+CROSS JOIN LATERAL (SELECT {ROBOT_COLUMNS}, {SKILLS_JSON_SQL} AS skills) r
 WHERE ro.id = ANY(%s)
 """
 
@@ -173,6 +174,30 @@ def fleet_state_json(robots: QuerySet[Robot]) -> str:
     if connection.vendor != "postgresql":
         return json.dumps(fleet_state(robots), cls=DjangoJSONEncoder, separators=(",", ":"))
     return robot_states.render(robots)
+
+
+# What `fields=` may pick from a robot's state: its own fields and its skills (with their components).
+FLEET_FIELDS = (*ROBOT_FIELDS, "skills")
+
+
+def fleet_fields_json(robots: QuerySet[Robot], fields: list[str]) -> str:
+    """Return only these fields (of FLEET_FIELDS) of each robot's state as a JSON array ordered by id."""
+    chosen = [field for field in FLEET_FIELDS if field in fields]
+    if connection.vendor != "postgresql":
+        states = [{field: state[field] for field in chosen} for state in fleet_state(robots)]
+        return json.dumps(states, cls=DjangoJSONEncoder, separators=(",", ":"))
+    # Built without the per-robot cache: a few columns of thousands of robots cost less than revalidating it.
+    columns = {field: "u.username" if field == "owner" else f"ro.{field}" for field in ROBOT_FIELDS}
+    columns["skills"] = SKILLS_JSON_SQL
+    pairs = ", ".join(f"'{field}', {columns[field]}" for field in chosen)
+    subquery, params = robots.values("id").query.sql_with_params()
+    with connection.cursor() as cursor:
+        cursor.execute(
+            f"SELECT json_build_object({pairs})::text FROM robots_robot ro JOIN auth_user u ON u.id = ro.owner_id"
+            f" WHERE ro.id IN ({subquery}) ORDER BY ro.id",
+            params,
+        )
+        return "[" + ",".join(row[0] for row in cursor.fetchall()) + "]"
 
 
 def skill_state_json(robots: QuerySet[Robot], robot_id: str, skill_id: str) -> str | None:

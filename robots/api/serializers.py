@@ -6,7 +6,7 @@ from rest_framework import serializers
 
 from bridgeos_agent.skillconfig import SLUG_PATTERN
 from skills.api.serializers import SkillSerializer
-from skills.state import ROBOT_FIELDS
+from skills.state import FLEET_FIELDS, ROBOT_FIELDS
 
 from ..models import Robot
 
@@ -83,3 +83,23 @@ class FleetCommandResultSerializer(serializers.Serializer):
 
 class FleetCommandSerializer(serializers.Serializer):
     results = FleetCommandResultSerializer(many=True)
+
+
+class FleetQuerySerializer(serializers.Serializer):
+    """GET /api/robot's optional page and fields; without them the answer is the whole fleet as before."""
+
+    limit = serializers.IntegerField(min_value=1, max_value=1000, required=False, help_text="Robots per page.")
+    offset = serializers.IntegerField(min_value=0, required=False, help_text="Robots to skip (by id order).")
+    # Blank is let through to validate_fields, so `?fields=` is refused instead of ignored.
+    fields = serializers.CharField(
+        required=False, allow_blank=True, help_text=f"Comma-separated, of: {', '.join(FLEET_FIELDS)}. Default: all."
+    )
+
+    def validate_fields(self, value: str) -> list[str]:
+        fields = [field.strip() for field in value.split(",")]
+        unknown = [field for field in fields if field not in FLEET_FIELDS]
+        if unknown:
+            raise serializers.ValidationError(
+                f"Unknown field(s): {', '.join(repr(f) for f in unknown)}; choose from {', '.join(FLEET_FIELDS)}."
+            )
+        return fields

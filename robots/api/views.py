@@ -16,11 +16,12 @@ from rest_framework.exceptions import PermissionDenied, ValidationError
 from rest_framework.permissions import IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
+from rest_framework.utils.urls import replace_query_param
 from rest_framework.views import APIView
 
 from bridgeos_agent.protocol import Event
 from monitoring.services import record_event
-from skills.state import fleet_state_json
+from skills.state import fleet_fields_json, fleet_state_json
 
 from .. import services
 from ..authentication import ApiTokenAuthentication, PasswordAuthentication
@@ -30,6 +31,7 @@ from .serializers import (
     AuthTokenSerializer,
     CommandResultSerializer,
     FleetCommandSerializer,
+    FleetQuerySerializer,
     RenewedTokenSerializer,
     RobotCreatedSerializer,
     RobotCreateSerializer,
@@ -70,6 +72,22 @@ def json_state(request: Request, robots: QuerySet[Robot], *, one: bool = False) 
         # The array holds exactly one robot: answer with the object inside it.
         text = text[1:-1]
     return HttpResponse(text, content_type="application/json")
+
+
+DEFAULT_PAGE = 100
+
+
+def fleet_page(request: Request, robots: QuerySet[Robot], query: dict) -> HttpResponse:
+    """Answer with one page of robots in id order: their count, the next and previous page's URLs, the page."""
+    offset, limit = query.get("offset", 0), query.get("limit", DEFAULT_PAGE)
+    count = robots.count()
+    page = robots.order_by("id")[offset : offset + limit]
+    text = fleet_fields_json(page, query["fields"]) if "fields" in query else fleet_state_json(page)
+    url = request.build_absolute_uri()
+    following = replace_query_param(url, "offset", offset + limit) if offset + limit < count else None
+    previous = replace_query_param(url, "offset", max(0, offset - limit)) if offset > 0 else None
+    head = json.dumps({"count": count, "next": following, "previous": previous})[:-1]
+    return HttpResponse(f'{head}, "results": {text}}}', content_type="application/json")
 
 
 def robot_of(request: Request, robot_id: str) -> Robot:
@@ -117,17 +135,29 @@ class RobotListView(APIView):
     """List the robots you may see with their skills and components, or add a robot."""
 
     @extend_schema(
-        parameters=[OpenApiParameter("connected", bool, description="Only connected (true) or offline (false).")],
+        parameters=[
+            OpenApiParameter("connected", bool, description="Only connected (true) or offline (false)."),
+            FleetQuerySerializer,
+        ],
         responses={200: RobotSerializer(many=True)},
+        description="Without `limit`/`offset` the answer is the array of every robot; with either, a page: "
+        "`{count, next, previous, results}`. `fields` keeps only those fields of each robot.",
     )
-    def get(self, request: Request) -> Response:
+    def get(self, request: Request) -> HttpResponse:
         robots = services.visible_robots(request.user)
         connected = request.query_params.get("connected")
         if connected is not None:
             if connected not in ("true", "false"):
                 raise ValidationError({"connected": ["Use true or false."]})
             robots = robots.filter(connected=connected == "true")
-        return json_state(request, robots)
+        form = FleetQuerySerializer(data=request.query_params)
+        form.is_valid(raise_exception=True)
+        query = form.validated_data
+        if "limit" not in query and "offset" not in query:
+            if "fields" in query:
+                return HttpResponse(fleet_fields_json(robots, query["fields"]), content_type="application/json")
+            return json_state(request, robots)
+        return fleet_page(request, robots, query)
 
     @extend_schema(request=RobotCreateSerializer, responses={201: RobotCreatedSerializer, 400: OpenApiResponse()})
     def post(self, request: Request) -> Response:
