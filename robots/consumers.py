@@ -62,6 +62,15 @@ def login_queue() -> Batcher[services.Login, tuple[services.Connected, list[tupl
     )
 
 
+def goodbye_queue() -> Batcher[services.Departure, bool]:
+    """Return this event loop's queue of closed robot connections, recorded in batches like logins."""
+    return loop_object(
+        "robot goodbyes",
+        lambda: Batcher(services.disconnect_robots, key=lambda departure: departure.robot_id),
+        usable=lambda batcher: not batcher.closed,
+    )
+
+
 class RobotConsumer(ProtocolConsumer):
     """One robot's connection: authenticate, apply its reports, relay commands to it."""
 
@@ -316,7 +325,7 @@ class RobotConsumer(ProtocolConsumer):
         if self.robot_id is not None:
             reason = getattr(self, "close_reason", None) or f"connection closed (code {code})"
             await applied_ids().settle(self.robot_id)
-            await database_sync_to_async(services.mark_disconnected)(self.robot_id, self.channel_name, reason)
+            await goodbye_queue().submit(services.Departure(self.robot_id, self.channel_name, reason))
 
 
 def handles(*events: Event) -> Callable:
