@@ -112,6 +112,37 @@ def connected_count() -> int:
         connection.close()
 
 
+def storm(url: str, tokens: list[tuple[str, str]], *, procs: int = 2, hold_s: float = 20.0) -> dict:
+    """Connect every robot to a robot door URL at the same moment, hold them, and return the storm's figures.
+
+    Django must be set up on the storm's database (connected rows are counted there).
+    """
+    start_at = time.time() + 2.0
+    queue: mp.Queue = mp.Queue()
+    shares = [tokens[i::procs] for i in range(procs)]
+    workers = [mp.Process(target=client_worker, args=(url, share, start_at, hold_s, queue)) for share in shares]
+    for worker in workers:
+        worker.start()
+    all_connected_s = None
+    while time.time() < start_at + hold_s:
+        if all_connected_s is None and connected_count() == len(tokens):
+            all_connected_s = time.time() - start_at
+        time.sleep(0.05)
+    times = [took for _ in workers for took in queue.get(timeout=120)]
+    for worker in workers:
+        worker.join(timeout=30)
+    authenticated = sorted(took for took in times if took is not None)
+    slowest = authenticated[-1] if authenticated else None
+    return {
+        "robots": len(tokens),
+        # Until every robot was authenticated and its row said connected (None: some never were).
+        "connected_s": round(max(slowest, all_connected_s), 2) if slowest and all_connected_s else None,
+        "authenticated_p50_s": round(authenticated[len(authenticated) // 2], 3) if authenticated else None,
+        "authenticated_max_s": round(slowest, 3) if slowest else None,
+        "dropped": len(times) - len(authenticated),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=1000)
@@ -138,41 +169,15 @@ def main() -> None:
     try:
         daphne.wait()
         log(f"daphne pid {daphne.pid} on port {daphne.port}")
-        url = daphne.ws_url + "/ws/robot/"
-        start_at = time.time() + 2.0
-        queue: mp.Queue = mp.Queue()
-        shares = [tokens[i :: args.procs] for i in range(args.procs)]
         cpu_before = daphne.cpu_seconds()
-        workers = [mp.Process(target=client_worker, args=(url, share, start_at, args.hold, queue)) for share in shares]
-        for worker in workers:
-            worker.start()
-        all_connected_s = None
-        while time.time() < start_at + args.hold:
-            if all_connected_s is None and connected_count() == args.robots:
-                all_connected_s = time.time() - start_at
-            time.sleep(0.05)
-        times = [took for _ in workers for took in queue.get(timeout=120)]
-        for worker in workers:
-            worker.join(timeout=30)
-        cpu = daphne.cpu_seconds() - cpu_before
+        result = storm(daphne.ws_url + "/ws/robot/", tokens, procs=args.procs, hold_s=args.hold)
+        result["daphne_cpu_s"] = round(daphne.cpu_seconds() - cpu_before, 2)
     except BaseException:
         log(f"daphne log tail:\n{daphne.log_tail()}")
         raise
     finally:
         daphne.stop()
-    authenticated = sorted(took for took in times if took is not None)
-    dropped = len(times) - len(authenticated)
-    slowest = authenticated[-1] if authenticated else None
-    result = {
-        "robots": args.robots,
-        # Until every robot was authenticated and its row said connected (None: some never were).
-        "connected_s": round(max(slowest, all_connected_s), 2) if slowest and all_connected_s else None,
-        "authenticated_p50_s": round(authenticated[len(authenticated) // 2], 3) if authenticated else None,
-        "authenticated_max_s": round(slowest, 3) if slowest else None,
-        "dropped": dropped,
-        "daphne_cpu_s": round(cpu, 2),
-    }
-    log(f"{args.robots} robots: all connected in {result['connected_s']} s, {dropped} dropped")
+    log(f"{args.robots} robots: all connected in {result['connected_s']} s, {result['dropped']} dropped")
     print(json.dumps(result), flush=True)
 
 
