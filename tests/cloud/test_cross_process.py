@@ -78,6 +78,14 @@ async def test_a_rest_command_reaches_a_robot_on_the_other_process_and_its_reply
     assert refused.status_code == 200, refused.text
     assert refused.json()["accepted"] is False
     assert refused.json()["reply"]["data"]["message"] == "busy"
+
+    # The same through an app's WebSocket on A: the robot's answer is the answer to the app's frame.
+    robot.auto_ack = True
+    client = await client_link(daphne_server, api_token)
+    pending = asyncio.ensure_future(client.request(Event.SKILL_START, {"robot": "bot-b", "skill": SKILL}))
+    assert (await robot.next(Event.SKILL_START)).data == {"skill": SKILL}
+    assert (await pending).event == Event.ACK
+    await client.close()
     await robot.close()
 
 
