@@ -330,10 +330,10 @@ def main() -> None:
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/12")
     args = parser.parse_args()
     hold_s = 20.0
-    steps = [500.0, 1000.0, 1500.0, 2000.0, 3000.0, 4000.0]
+    steps = [500.0, 750.0, 1000.0, 1250.0, 1500.0, 1750.0, 2000.0, 2500.0, 3000.0, 4000.0]
     if args.quick:
         hold_s, args.step_s, args.settle, args.commands = 5.0, 2.0, 0.5, 50
-        steps = [600.0, 1200.0, 2400.0, 3600.0]
+        steps = [500.0, 1000.0, 1500.0, 2000.0, 3000.0]
     if args.steps:
         steps = [float(step) for step in args.steps.split(",")]
     if args.robots < 1 or args.ingest_robots < 1 or not steps or min(steps) <= 0:
