@@ -34,15 +34,12 @@ pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.asyncio]
 SKILL = "people-detection"
 
 
-@pytest.fixture
-def process_b(daphne_server, tmp_path):
-    """Start a second daphne of the same cloud beside the session's one."""
-    with another_daphne(tmp_path / "b.log", BRIDGEOS_ROBOT_FRAMES_PER_S="2000") as (server, _):
+@pytest.fixture(scope="module")
+def process_b(daphne_server, tmp_path_factory):
+    """Start a second daphne of the same cloud beside the session's one, for this module's tests."""
+    log = tmp_path_factory.mktemp("process-b") / "daphne.log"
+    with another_daphne(log, BRIDGEOS_ROBOT_FRAMES_PER_S="2000") as (server, _):
         yield server
-        # Its robots' goodbyes recorded before it stops, so the flush of the tables waits for none.
-        deadline = time.monotonic() + 5
-        while Robot.objects.filter(connected=True).exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
 
 
 @sync_to_async
