@@ -22,6 +22,7 @@ from bridgeos_agent.protocol import Event
 from monitoring.ingest import conninfo_from_settings
 from monitoring.models import Event as LogEvent
 from monitoring.models import Metric
+from robots.consumers import SETTLE_WAIT_S
 from robots.models import Robot
 from robots.presence import DEAD_PROCESS_REASON
 from robots.tasks import sweep_dead_processes
@@ -167,6 +168,48 @@ async def test_a_frame_still_being_written_by_one_process_is_not_written_again_b
     assert await count(Metric, robot_id="bot") == 50
     await first.close()
     await second_link.close()
+
+
+async def test_robot_of_a_killed_process_resends_through_the_other_and_every_point_is_stored_once(
+    daphne_server, tmp_path
+):
+    owner, _ = await make_owner("owner")
+    token = await make_robot("streamer", owner)
+    sent = []
+    with another_daphne(tmp_path / "doomed.log", BRIDGEOS_PROCESS_TTL_S="2") as (doomed, process):
+        link = await robot_link(doomed, "streamer", token)
+
+        async def stream() -> None:
+            for i in range(1000):
+                sent.append(await link.send(Event.METRICS, {"metrics": points("streamer", i * 10, 10)}))
+                await asyncio.sleep(0.005)
+
+        streaming = asyncio.ensure_future(stream())
+        await asyncio.sleep(0.6)
+        process.send_signal(signal.SIGKILL)
+        streaming.cancel()
+        process.wait(timeout=10)
+    killed = time.monotonic()
+    with contextlib.suppress(asyncio.CancelledError):
+        await streaming
+    await link.close()
+
+    # The robot comes back through the live process and resends what was never acked (its outbox).
+    again = await robot_link(daphne_server, "streamer", token)
+    reconnect_s = time.monotonic() - killed
+    unacked = [frame for frame in sent if not link.acked[frame.id].is_set()]
+    for frame in unacked:
+        await again.send_envelope(frame)
+    for frame in unacked:
+        await again.wait_acked(frame)
+
+    stored = await sync_to_async(list)(Metric.objects.filter(robot_id="streamer").values_list("ts", flat=True))
+    assert len(sent) > 20, "the robot streamed before its process died"
+    assert len(stored) == len(set(stored)) == 10 * len(sent)
+    assert await connected("streamer")
+    # The new connection waits for the dead one to settle its frames, but not past its bound.
+    assert reconnect_s < SETTLE_WAIT_S + 3
+    await again.close()
 
 
 async def test_state_changed_through_one_process_is_read_at_once_through_the_other(daphne_server, process_b):
