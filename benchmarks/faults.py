@@ -21,8 +21,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks._common import ROOT, log  # noqa: E402
-from benchmarks.chaos import SCENARIOS, Outcome, load, summary  # noqa: E402
+from benchmarks._common import ROOT, log
+from benchmarks.chaos import SCENARIOS, Outcome, load, summary
 
 COLUMNS = ("scenario", "injected", "sent", "stored", "lost", "duplicated", "recover_s", "passed")
 
@@ -32,7 +32,10 @@ def table(outcomes: list[Outcome]) -> str:
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for outcome in outcomes:
         row = outcome.row()
-        cells = ["" if row[c] is None else ("yes" if row[c] is True else "NO" if row[c] is False else str(row[c])) for c in COLUMNS]
+        cells = [
+            "" if row[c] is None else ("yes" if row[c] is True else "NO" if row[c] is False else str(row[c]))
+            for c in COLUMNS
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -46,7 +49,7 @@ def run(names: list[str], quick: bool) -> list[Outcome]:
         log(f"scenario {name}: {module.INJECTS}")
         try:
             got = module.run(quick)
-        except Exception as exc:  # noqa: BLE001 - one broken scenario must not hide the others' figures
+        except Exception as exc:
             traceback.print_exc()
             got = [Outcome(scenario=name, injected=module.INJECTS, detail=f"raised {exc!r}")]
         for outcome in got:

@@ -220,8 +220,15 @@ CELERY_TASK_ACKS_LATE = True
 CELERY_TASK_REJECT_ON_WORKER_LOST = True
 CELERY_WORKER_PREFETCH_MULTIPLIER = 1
 CELERY_RESULT_EXPIRES = 3600
-# A task of a worker that died unacknowledged goes back to the queue after this long.
-CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": env_float("CELERY_VISIBILITY_TIMEOUT_S", 3600.0)}
+# A task of a worker killed mid-task (acked late, so still in Redis) goes back to the queue after this
+# long: longer than any task runs (steps retry within seconds), far shorter than kombu's hour, so a
+# deployment of a killed worker is finished minutes later, not an hour. Every worker sweeps for such
+# tasks every CELERY_UNACKED_RESTORE_S seconds, and once when it starts.
+CELERY_BROKER_TRANSPORT_OPTIONS = {
+    "visibility_timeout": env_float("CELERY_VISIBILITY_TIMEOUT_S", 300.0),
+    "unacked_restore_interval": env_float("CELERY_UNACKED_RESTORE_S", 30.0),
+    "unacked_restore_throttle": 1,
+}
 # Separate queues let several clouds (or test runs) share one Redis database.
 CELERY_TASK_DEFAULT_QUEUE = env_str("CELERY_TASK_DEFAULT_QUEUE", "celery")
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True

@@ -4,6 +4,10 @@ Consumers hand every `metrics` frame to `get_writer().add()` and ack the robot o
 returned future resolves, so a frame is acknowledged only after its rows are committed and
 nothing is lost if the process dies. Rows are buffered and written in batches: with COPY on
 PostgreSQL (tens of thousands of rows per second), with `bulk_create` elsewhere.
+
+A frame's id is committed with its rows (`IngestedFrame`), so a copy the robot resends because
+the ack never reached it (daphne killed, Redis or PostgreSQL restarted between commit and ack)
+is recognised in the same transaction and stored once.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from django.db import IntegrityError, InterfaceError, OperationalError, connecti
 from bridgeos_cloud.loopowned import loop_object
 
 from . import prometheus
-from .models import Metric
+from .models import IngestedFrame, Metric
 
 if TYPE_CHECKING:
     from bridgeos_agent.protocol import MetricPoint
@@ -114,10 +118,13 @@ def format_copy_rows(robot_id: str, points: Iterable[MetricPoint]) -> str:
 class _Entry:
     """The points of one `add()` call, prepared for the sink, and who waits for them."""
 
-    __slots__ = ("future", "payload", "robot_id", "rows")
+    __slots__ = ("frame_id", "future", "payload", "robot_id", "rows")
 
-    def __init__(self, robot_id: str, payload: Any, rows: int, future: asyncio.Future[None]) -> None:
+    def __init__(
+        self, robot_id: str, payload: Any, rows: int, future: asyncio.Future[None], frame_id: str | None = None
+    ) -> None:
         self.robot_id = robot_id
+        self.frame_id = frame_id
         self.payload = payload
         self.rows = rows
         self.future = future
@@ -126,7 +133,7 @@ class _Entry:
 class _Sink(Protocol):
     def prepare(self, robot_id: str, points: Sequence[MetricPoint]) -> Any: ...
 
-    async def write(self, entries: list[_Entry]) -> None: ...
+    async def write(self, entries: list[_Entry]) -> int: ...
 
     async def write_each(self, entries: list[_Entry]) -> list[BaseException | None]: ...
 
@@ -163,6 +170,11 @@ class _PostgresSink:
     def __init__(self, alias: str) -> None:
         self.conninfo = conninfo_from_settings(alias)
         self.copy_sql = f"COPY {Metric._meta.db_table} ({COLUMNS}) FROM STDIN"
+        self.claim_sql = (
+            f"INSERT INTO {IngestedFrame._meta.db_table} (robot_id, frame_id, created) "
+            "SELECT robot, frame, now() FROM unnest(%s::text[], %s::text[]) AS f(robot, frame) "
+            "ON CONFLICT DO NOTHING RETURNING robot_id, frame_id"
+        )
         self.robot_table = Metric._meta.get_field("robot").related_model._meta.db_table
         self.conn: psycopg.AsyncConnection[Any] | None = None
 
@@ -174,10 +186,34 @@ class _PostgresSink:
     def prepare(self, robot_id: str, points: Sequence[MetricPoint]) -> str:
         return format_copy_rows(robot_id, points)
 
-    async def write(self, entries: list[_Entry]) -> None:
+    async def write(self, entries: list[_Entry]) -> int:
         conn = await self._connection()
-        async with conn.transaction(), conn.cursor() as cursor, cursor.copy(self.copy_sql) as copy:
-            await copy.write("".join([entry.payload for entry in entries]))
+        async with conn.transaction(), conn.cursor() as cursor:
+            fresh = await self._claim(cursor, entries)
+            if fresh:
+                async with cursor.copy(self.copy_sql) as copy:
+                    await copy.write("".join([entry.payload for entry in fresh]))
+        return sum(entry.rows for entry in entries) - sum(entry.rows for entry in fresh)
+
+    async def _claim(self, cursor: psycopg.AsyncCursor[Any], entries: list[_Entry]) -> list[_Entry]:
+        """Record the entries' frame ids in this transaction; return the entries not stored before."""
+        framed = [entry for entry in entries if entry.frame_id is not None]
+        if not framed:
+            return entries
+        await cursor.execute(
+            self.claim_sql, [[entry.robot_id for entry in framed], [entry.frame_id for entry in framed]]
+        )
+        # A frame already committed (by an earlier connection, or another process) returns no row here.
+        claimed = {(robot, frame) for robot, frame in await cursor.fetchall()}
+        fresh = []
+        for entry in entries:
+            key = (entry.robot_id, entry.frame_id)
+            if entry.frame_id is None:
+                fresh.append(entry)
+            elif key in claimed:
+                claimed.discard(key)  # the same frame twice in one batch is stored once
+                fresh.append(entry)
+        return fresh
 
     async def write_each(self, entries: list[_Entry]) -> list[BaseException | None]:
         conn = await self._connection()
@@ -186,8 +222,10 @@ class _PostgresSink:
             for entry in entries:
                 try:
                     # A savepoint per entry, so one bad frame does not take the others with it.
-                    async with conn.transaction(), cursor.copy(self.copy_sql) as copy:
-                        await copy.write(entry.payload)
+                    async with conn.transaction():
+                        if await self._claim(cursor, [entry]):
+                            async with cursor.copy(self.copy_sql) as copy:
+                                await copy.write(entry.payload)
                 except (psycopg.DataError, psycopg.IntegrityError, psycopg.ProgrammingError, UnicodeError) as exc:
                     errors.append(exc)
                 else:
@@ -241,10 +279,36 @@ class _OrmSink:
             for point in entry.payload
         ]
 
-    def _write(self, entries: list[_Entry]) -> None:
+    def _write(self, entries: list[_Entry]) -> int:
         with transaction.atomic(using=self.alias):
-            rows = [metric for entry in entries for metric in self._metrics(entry)]
+            fresh = self._claim(entries)
+            rows = [metric for entry in fresh for metric in self._metrics(entry)]
             Metric.objects.using(self.alias).bulk_create(rows, batch_size=1000)
+        return sum(entry.rows for entry in entries) - len(rows)
+
+    def _claim(self, entries: list[_Entry]) -> list[_Entry]:
+        """Record the entries' frame ids in this transaction; return the entries not stored before."""
+        frames = IngestedFrame.objects.using(self.alias)
+        wanted = {(entry.robot_id, entry.frame_id) for entry in entries if entry.frame_id is not None}
+        if not wanted:
+            return entries
+        known = set(
+            frames.filter(
+                robot_id__in={robot for robot, _ in wanted}, frame_id__in={frame for _, frame in wanted}
+            ).values_list("robot_id", "frame_id")
+        )
+        fresh = []
+        for entry in entries:
+            key = (entry.robot_id, entry.frame_id)
+            if entry.frame_id is None:
+                fresh.append(entry)
+            elif key not in known:
+                known.add(key)
+                fresh.append(entry)
+        frames.bulk_create(
+            [IngestedFrame(robot_id=e.robot_id, frame_id=e.frame_id) for e in fresh if e.frame_id is not None]
+        )
+        return fresh
 
     def _write_each(self, entries: list[_Entry]) -> list[BaseException | None]:
         errors: list[BaseException | None] = []
@@ -261,8 +325,8 @@ class _OrmSink:
         robots = Metric._meta.get_field("robot").related_model._default_manager.using(self.alias)
         return set(robots.filter(pk__in=robot_ids).values_list("pk", flat=True))
 
-    async def write(self, entries: list[_Entry]) -> None:
-        await self._run(self._write, entries)
+    async def write(self, entries: list[_Entry]) -> int:
+        return await self._run(self._write, entries)
 
     async def write_each(self, entries: list[_Entry]) -> list[BaseException | None]:
         return await self._run(self._write_each, entries)
@@ -306,6 +370,7 @@ class MetricWriter:
         # Observability: read them from a status view or a debugger.
         self.rows_written = 0
         self.rows_dropped = 0
+        self.rows_already_stored = 0  # rows of resent frames found committed before: not stored twice
         self.batches = 0
         self.last_flush_seconds = 0.0
         self.pending_rows = 0  # added, neither committed nor failed yet
@@ -317,8 +382,8 @@ class MetricWriter:
         self._task: asyncio.Task[None] | None = None
         self._closing = False
 
-    def add(self, robot_id: str, points: Sequence[MetricPoint]) -> asyncio.Future[None]:
-        """Queue the points of one robot; the future resolves once they are committed."""
+    def add(self, robot_id: str, points: Sequence[MetricPoint], frame_id: str | None = None) -> asyncio.Future[None]:
+        """Queue the points of one robot; the future resolves once they are committed (a known frame id: at once)."""
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         if not points:
             future.set_result(None)
@@ -338,7 +403,7 @@ class MetricWriter:
         rows = len(points)
         if not self._buffer:
             self._buffered_since = time.monotonic()
-        self._buffer.append(_Entry(robot_id, payload, rows, future))
+        self._buffer.append(_Entry(robot_id, payload, rows, future, frame_id))
         self._buffered_rows += rows
         self.pending_rows += rows
         if self._buffered_rows >= self.flush_rows:
@@ -442,7 +507,7 @@ class MetricWriter:
         retried = False
         while True:
             try:
-                await sink.write(entries)
+                self.rows_already_stored += await sink.write(entries)
                 return entries, {}
             except Exception as exc:
                 if sink.is_integrity_error(exc):

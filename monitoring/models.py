@@ -52,3 +52,22 @@ class Event(models.Model):
 
     def __str__(self) -> str:
         return f"[{self.level}] {self.message}"
+
+
+class IngestedFrame(models.Model):
+    """A robot's `metrics` frame whose points were committed: written in the same transaction as them.
+
+    A robot resends a frame whose ack it never got (the cloud killed, a store restarted); with its
+    id here, committed with the rows, the resent copy is recognised and not stored twice, whatever
+    happened to the consumers' in-memory and Redis windows meanwhile.
+    """
+
+    robot_id = models.CharField(max_length=64)
+    frame_id = models.CharField(max_length=64)
+    created = models.DateTimeField(default=timezone.now)
+
+    class Meta:
+        constraints = [models.UniqueConstraint(fields=["robot_id", "frame_id"], name="ingested_frame_unique")]
+
+    def __str__(self) -> str:
+        return f"{self.robot_id} {self.frame_id}"

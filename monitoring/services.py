@@ -12,7 +12,7 @@ from django.utils import timezone
 
 from .choices import Level, Source
 from .live import log_event_frame, publish_all_on_commit, publish_log_event_on_commit
-from .models import Event, Metric
+from .models import Event, IngestedFrame, Metric
 
 
 def record_event(
@@ -72,6 +72,27 @@ def prune_metrics(older_than: timedelta | None = None, *, now: datetime | None =
             else:
                 Metric.objects.filter(id__in=ids).delete()
         deleted += len(ids)
+
+
+# A robot resends only the frames in flight when its link dropped, i.e. its newest ones: keep those
+# ids for as long as the robot may stay away, and everything younger than a day.
+INGESTED_FRAMES_KEPT_PER_ROBOT = 1000
+INGESTED_FRAMES_KEPT_FOR = timedelta(days=1)
+
+
+def prune_ingested_frames(*, now: datetime | None = None) -> int:
+    """Forget the ids of ingested frames older than a day (except each robot's newest) or of deleted robots."""
+    cutoff = (now or timezone.now()) - INGESTED_FRAMES_KEPT_FOR
+    table = IngestedFrame._meta.db_table
+    robots = Metric._meta.get_field("robot").related_model._meta.db_table
+    with transaction.atomic(), connection.cursor() as cursor:
+        cursor.execute(
+            f"DELETE FROM {table} WHERE robot_id NOT IN (SELECT id FROM {robots}) OR (created < %s AND id NOT IN ("
+            f"SELECT id FROM (SELECT id, row_number() OVER (PARTITION BY robot_id ORDER BY id DESC) AS newest "
+            f"FROM {table}) ranked WHERE newest <= %s))",
+            [cutoff, INGESTED_FRAMES_KEPT_PER_ROBOT],
+        )
+        return cursor.rowcount
 
 
 def latest_metrics(

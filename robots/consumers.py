@@ -356,7 +356,7 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
     store = applied_ids()
     written = store.in_flight(robot_id, envelope.id)
     if written is None:
-        written = get_writer().add(robot_id, points)
+        written = get_writer().add(robot_id, points, envelope.id)
         store.hold(robot_id, envelope.id, written)
         feed = get_live_feed()
 

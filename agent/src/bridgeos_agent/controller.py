@@ -59,7 +59,9 @@ class AgentSettings:
     startup_parallelism: int = 8
     outbox_max_bytes: int = 64 * 1024 * 1024
     reconnect_initial: float = 1.0
-    reconnect_max: float = 30.0
+    # Retries back off to at most 3 s, so every robot is back within ~5 s of the cloud's return
+    # (issue 20); a refused connect to a cloud that is down costs it nothing.
+    reconnect_max: float = 3.0
     runtime_options: dict[str, Any] = field(default_factory=dict)
     detect_ros_master: bool = True
     stop_components_on_exit: bool = False
