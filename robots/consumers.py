@@ -30,7 +30,7 @@ from skills.cloud.volumes import CloudVolumes
 
 from . import dedup, services
 from .dedup import applied_ids
-from .presence import get_presence, process_of
+from .presence import get_presence
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +40,6 @@ CHUNK_WAIT_S = 30.0
 MAX_OPEN_REQUESTS = 1000
 CLOSE_REPLACED = 4009
 CLOSE_REVOKED = 4004
-# How long a new connection waits for the robot's previous one to finish applying its frames.
-SETTLE_WAIT_S = 2.0
 
 saving_failures = LogOnce(log, "saving applied frame ids in Redis before acking", traceback=True)
 
@@ -188,9 +186,9 @@ class RobotConsumer(ProtocolConsumer):
         if presence is not None:
             presence.consumers.add(self)
         self.robot_id = connected.robot
-        if connected.replaced_channel:
-            await self.take_over_from(connected.replaced_channel)
         self.dedup.load(await applied_ids().load(connected.robot))
+        if connected.replaced_channel:
+            await self.channel_layer.send(connected.replaced_channel, {"type": "robot.replaced"})
         await self.send_envelope(
             protocol.make(
                 Event.AUTHENTICATION_SUCCESS,
@@ -271,31 +269,8 @@ class RobotConsumer(ProtocolConsumer):
         await self.close_with(CLOSE_REVOKED, "credentials revoked")
 
     async def robot_replaced(self, message: dict[str, Any]) -> None:
-        """Close this connection: the robot reconnected on a newer one, which waits until its frames settled."""
+        """Close this connection: the robot reconnected on a newer one."""
         await self.close_with(CLOSE_REPLACED, "replaced by a newer connection")
-        settled_channel = message.get("settled_channel")
-        if settled_channel and self.robot_id is not None:
-            await applied_ids().settle(self.robot_id)
-            await self.channel_layer.send(settled_channel, {"type": "robot.settled"})
-
-    async def take_over_from(self, channel: str) -> None:
-        """Close the robot's previous connection and wait until the frames it was applying are settled.
-
-        The previous connection may be on another server process, still writing frames the robot
-        resends here; their ids must be saved before this one loads them, or they are applied twice.
-        A process that died never answers: the wait is bounded, and what it committed unsaved is lost.
-        """
-        if process_of(channel) == process_of(self.channel_name):
-            # Same process: a resent frame still being written is found in flight here (on_metrics).
-            await self.channel_layer.send(channel, {"type": "robot.replaced"})
-            return
-        settled_channel = await self.channel_layer.new_channel()
-        await self.channel_layer.send(channel, {"type": "robot.replaced", "settled_channel": settled_channel})
-        try:
-            async with asyncio.timeout(SETTLE_WAIT_S):
-                await self.channel_layer.receive(settled_channel)
-        except TimeoutError:
-            log.info("robot %s: its previous connection did not settle within %g s", self.robot_id, SETTLE_WAIT_S)
 
     def _schedule_retransmit(self) -> None:
         if self.retransmit_timer is not None:
@@ -324,7 +299,7 @@ class RobotConsumer(ProtocolConsumer):
         self.requests.clear()
         if self.robot_id is not None:
             reason = getattr(self, "close_reason", None) or f"connection closed (code {code})"
-            await applied_ids().settle(self.robot_id)
+            await applied_ids().flush()
             await goodbye_queue().submit(services.Departure(self.robot_id, self.channel_name, reason))
 
 

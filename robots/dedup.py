@@ -59,14 +59,6 @@ class AppliedIds:
         """Return the pending application of a frame another connection accepted, if any."""
         return self._in_flight.get((robot_id, frame_id))
 
-    async def settle(self, robot_id: str) -> None:
-        """Wait until the robot's frames being applied here are done and every applied id is saved."""
-        applying = [future for (robot, _), future in self._in_flight.items() if robot == robot_id]
-        if applying:
-            # Their own callbacks (registered first) note the applied ids before this wait ends.
-            await asyncio.wait(applying)
-        await self.flush()
-
     async def load(self, robot_id: str) -> list[str]:
         """Return the robot's applied ids, oldest first."""
         await self.flush()

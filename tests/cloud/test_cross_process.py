@@ -22,7 +22,6 @@ from bridgeos_agent.protocol import Event
 from monitoring.ingest import conninfo_from_settings
 from monitoring.models import Event as LogEvent
 from monitoring.models import Metric
-from robots.consumers import SETTLE_WAIT_S
 from robots.models import Robot
 from robots.presence import DEAD_PROCESS_REASON
 from robots.tasks import sweep_dead_processes
@@ -207,8 +206,7 @@ async def test_robot_of_a_killed_process_resends_through_the_other_and_every_poi
     assert len(sent) > 20, "the robot streamed before its process died"
     assert len(stored) == len(set(stored)) == 10 * len(sent)
     assert await connected("streamer")
-    # The new connection waits for the dead one to settle its frames, but not past its bound.
-    assert reconnect_s < SETTLE_WAIT_S + 3
+    assert reconnect_s < 3
     await again.close()
 
 
