@@ -332,8 +332,8 @@ def main() -> None:
     hold_s = 20.0
     steps = [500.0, 750.0, 1000.0, 1250.0, 1500.0, 1750.0, 2000.0, 2500.0, 3000.0, 4000.0]
     if args.quick:
-        hold_s, args.step_s, args.settle, args.commands = 5.0, 2.0, 0.5, 50
-        steps = [500.0, 1000.0, 1500.0, 2000.0, 3000.0]
+        hold_s, args.step_s, args.settle, args.commands = 12.0, 2.0, 0.5, 50
+        steps = [600.0, 1200.0, 2000.0, 3000.0]
     if args.steps:
         steps = [float(step) for step in args.steps.split(",")]
     if args.robots < 1 or args.ingest_robots < 1 or not steps or min(steps) <= 0:
@@ -361,7 +361,7 @@ def main() -> None:
 
         log(f"connect storm: {args.robots} robots on process A")
         cpu0, rss0 = process_a.cpu_seconds(), process_a.memory_mib()[0]
-        storm = connect_storm.storm(process_a.ws_url + "/ws/robot/", storm_tokens, hold_s=hold_s)
+        storm = connect_storm.storm(process_a.ws_url + "/ws/robot/", storm_tokens, hold_s=hold_s, linger_s=1.0)
         storm["daphne_cpu_s"] = round(process_a.cpu_seconds() - cpu0, 2)
         # What holding a robot costs the process: its peak while all were connected, over its size before.
         storm["daphne_kib_per_robot"] = round((process_a.memory_mib()[1] - rss0) * 1024 / args.robots, 1)
