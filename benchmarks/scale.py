@@ -244,7 +244,7 @@ def ingest_capacity(daphnes: list[Daphne], tokens, *, steps: list[float], step_s
     pairs = array("d")
     for report in reports:
         pairs.frombytes(report["lags"])
-    outcome_steps, capacity, capacity_step = [], 0.0, None
+    outcome_steps, capacity, capacity_step, searching = [], 0.0, None, True
     for frames_per_s, t0, t1, cpu in windows:
         lags = [pairs[i + 1] * 1000 for i in range(0, len(pairs), 2) if t0 <= pairs[i] < t1]
         stored = len(lags) * args.points_per_frame / (t1 - t0)
@@ -256,10 +256,12 @@ def ingest_capacity(daphnes: list[Daphne], tokens, *, steps: list[float], step_s
             "daphne_cpu_percent": cpu,
         }
         outcome_steps.append(step)
-        # Within the bound and keeping up with what was offered (a slow client sends less, not counted as more).
-        if p95 is not None and p95 <= args.p95_ms and stored >= 0.9 * frames_per_s * args.points_per_frame:
-            if stored > capacity:
-                capacity, capacity_step = stored, step
+        # Within the bound and keeping up with what was offered (a slow client sends less, not counted as more);
+        # the first rate that is not ends the search, so a lucky higher step does not count.
+        held = p95 is not None and p95 <= args.p95_ms and stored >= 0.9 * frames_per_s * args.points_per_frame
+        searching = searching and held
+        if searching:
+            capacity, capacity_step = stored, step
     return {
         "processes": len(daphnes),
         "capacity_points_per_s": round(capacity),
