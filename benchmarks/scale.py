@@ -216,8 +216,8 @@ def ingest_capacity(daphnes: list[Daphne], tokens, *, steps: list[float], step_s
         # Warm up each robot's first frames (and the processes' connections) before any step counts.
         rate.value = steps[0] / len(tokens) / 4
         time.sleep(args.settle)
-        windows = []
-        for frames_per_s in steps:
+        windows, rates = [], list(steps)
+        for frames_per_s in rates:
             rate.value = frames_per_s / len(tokens)
             time.sleep(args.settle)
             cpu0, t0 = [d.cpu_seconds() for d in daphnes], time.time()
@@ -232,6 +232,8 @@ def ingest_capacity(daphnes: list[Daphne], tokens, *, steps: list[float], step_s
             )
             if backlog > frames_per_s * args.p95_ms / 1000:
                 break  # more waiting than the bound allows: higher rates only wait longer
+            if frames_per_s == rates[-1] and frames_per_s * 1.5 <= args.max_frames_per_s:
+                rates.append(frames_per_s * 1.5)  # kept up with the last step: go on until it does not
         rate.value = 0.0
         stop_event.set()
         reports = [results.get(timeout=90) for _ in workers]
@@ -325,6 +327,7 @@ def main() -> None:
     parser.add_argument("--p95-ms", type=float, default=500.0, help="the ack lag p95 a rate must hold to count")
     parser.add_argument("--steps", default="", help="offered frames/s, comma-separated (default by --quick)")
     parser.add_argument("--step-s", type=float, default=6.0)
+    parser.add_argument("--max-frames-per-s", type=float, default=15000.0, help="where the steps stop rising")
     parser.add_argument("--settle", type=float, default=1.0)
     parser.add_argument("--commands", type=int, default=200)
     parser.add_argument("--client-procs", type=int, default=2)
@@ -335,7 +338,8 @@ def main() -> None:
     steps = [500.0, 750.0, 1000.0, 1250.0, 1500.0, 1750.0, 2000.0, 2500.0, 3000.0, 4000.0]
     if args.quick:
         hold_s, args.step_s, args.settle, args.commands = 12.0, 2.0, 0.5, 50
-        steps = [600.0, 1200.0, 2000.0, 3000.0]
+        steps = [1000.0, 2000.0, 4000.0]
+        args.max_frames_per_s = min(args.max_frames_per_s, 6000.0)
     if args.steps:
         steps = [float(step) for step in args.steps.split(",")]
     if args.robots < 1 or args.ingest_robots < 1 or not steps or min(steps) <= 0:
