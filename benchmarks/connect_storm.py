@@ -22,6 +22,7 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -89,13 +90,21 @@ async def one_robot(url: str, robot_id: str, token: str, start_at: float, hold: 
         return None
 
 
-def client_worker(url: str, tokens: list[tuple[str, str]], start_at: float, hold_s: float, queue: mp.Queue) -> None:
-    """Run a share of the storm in a process of its own and report each robot's time (None: dropped)."""
+def client_worker(
+    url: str, tokens: list[tuple[str, str]], start_at: float, hold_s: float, queue: mp.Queue, release: Any = None
+) -> None:
+    """Run a share of the storm in a process of its own and report each robot's time (None: dropped).
+
+    The robots stay connected for ``hold_s`` seconds, or until ``release`` (an mp.Event) is set.
+    """
 
     async def run() -> list[float | None]:
         hold = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.call_later(max(0.0, start_at - time.time()) + hold_s, hold.set)
+        if release is not None:
+            waiting = loop.run_in_executor(None, release.wait, max(0.0, start_at - time.time()) + hold_s)
+            waiting.add_done_callback(lambda _: hold.set())
         return list(await asyncio.gather(*(one_robot(url, rid, tok, start_at, hold) for rid, tok in tokens)))
 
     queue.put(asyncio.run(run()))
@@ -110,6 +119,47 @@ def connected_count() -> int:
         return Robot.objects.filter(id__startswith=ROBOT_PREFIX, connected=True).count()
     finally:
         connection.close()
+
+
+def storm(
+    url: str, tokens: list[tuple[str, str]], *, procs: int = 2, hold_s: float = 20.0, linger_s: float | None = None
+) -> dict:
+    """Connect every robot to a robot door URL at the same moment, hold them, and return the storm's figures.
+
+    The robots stay ``hold_s`` seconds, or only ``linger_s`` more once all are connected (if given).
+    Django must be set up on the storm's database (connected rows are counted there).
+    """
+    start_at = time.time() + 2.0
+    queue: mp.Queue = mp.Queue()
+    release = mp.Event()
+    shares = [tokens[i::procs] for i in range(procs)]
+    workers = [
+        mp.Process(target=client_worker, args=(url, share, start_at, hold_s, queue, release)) for share in shares
+    ]
+    for worker in workers:
+        worker.start()
+    all_connected_s = None
+    ends_at = start_at + hold_s
+    while time.time() < ends_at:
+        if all_connected_s is None and connected_count() == len(tokens):
+            all_connected_s = time.time() - start_at
+            if linger_s is not None:
+                ends_at = min(ends_at, time.time() + linger_s)
+        time.sleep(0.05)
+    release.set()
+    times = [took for _ in workers for took in queue.get(timeout=120)]
+    for worker in workers:
+        worker.join(timeout=30)
+    authenticated = sorted(took for took in times if took is not None)
+    slowest = authenticated[-1] if authenticated else None
+    return {
+        "robots": len(tokens),
+        # Until every robot was authenticated and its row said connected (None: some never were).
+        "connected_s": round(max(slowest, all_connected_s), 2) if slowest and all_connected_s else None,
+        "authenticated_p50_s": round(authenticated[len(authenticated) // 2], 3) if authenticated else None,
+        "authenticated_max_s": round(slowest, 3) if slowest else None,
+        "dropped": len(times) - len(authenticated),
+    }
 
 
 def main() -> None:
@@ -138,41 +188,15 @@ def main() -> None:
     try:
         daphne.wait()
         log(f"daphne pid {daphne.pid} on port {daphne.port}")
-        url = daphne.ws_url + "/ws/robot/"
-        start_at = time.time() + 2.0
-        queue: mp.Queue = mp.Queue()
-        shares = [tokens[i :: args.procs] for i in range(args.procs)]
         cpu_before = daphne.cpu_seconds()
-        workers = [mp.Process(target=client_worker, args=(url, share, start_at, args.hold, queue)) for share in shares]
-        for worker in workers:
-            worker.start()
-        all_connected_s = None
-        while time.time() < start_at + args.hold:
-            if all_connected_s is None and connected_count() == args.robots:
-                all_connected_s = time.time() - start_at
-            time.sleep(0.05)
-        times = [took for _ in workers for took in queue.get(timeout=120)]
-        for worker in workers:
-            worker.join(timeout=30)
-        cpu = daphne.cpu_seconds() - cpu_before
+        result = storm(daphne.ws_url + "/ws/robot/", tokens, procs=args.procs, hold_s=args.hold)
+        result["daphne_cpu_s"] = round(daphne.cpu_seconds() - cpu_before, 2)
     except BaseException:
         log(f"daphne log tail:\n{daphne.log_tail()}")
         raise
     finally:
         daphne.stop()
-    authenticated = sorted(took for took in times if took is not None)
-    dropped = len(times) - len(authenticated)
-    slowest = authenticated[-1] if authenticated else None
-    result = {
-        "robots": args.robots,
-        # Until every robot was authenticated and its row said connected (None: some never were).
-        "connected_s": round(max(slowest, all_connected_s), 2) if slowest and all_connected_s else None,
-        "authenticated_p50_s": round(authenticated[len(authenticated) // 2], 3) if authenticated else None,
-        "authenticated_max_s": round(slowest, 3) if slowest else None,
-        "dropped": dropped,
-        "daphne_cpu_s": round(cpu, 2),
-    }
-    log(f"{args.robots} robots: all connected in {result['connected_s']} s, {dropped} dropped")
+    log(f"{args.robots} robots: all connected in {result['connected_s']} s, {result['dropped']} dropped")
     print(json.dumps(result), flush=True)
 
 

@@ -9,6 +9,8 @@ from typing import Generic, TypeVar
 
 from channels.db import database_sync_to_async
 
+CLOSE_WAIT_S = 10.0
+
 Request = TypeVar("Request")
 Outcome = TypeVar("Outcome")
 
@@ -73,7 +75,11 @@ class Batcher(Generic[Request, Outcome]):
                         future.set_result(outcome)
 
     async def close(self) -> None:
-        """Stop taking batches; waiting callers are cancelled."""
+        """Stop taking batches; waiting callers are cancelled, the batch being applied finishes."""
         self.closed = True
         while self.pending:
             self.pending.popleft()[1].cancel()
+        if self._drainer is not None and not self._drainer.done():
+            # On this loop, which it still needs: its commit broadcasts through it, and a database
+            # thread left waiting for a stopped loop would keep the process from exiting.
+            await asyncio.wait([self._drainer], timeout=CLOSE_WAIT_S)

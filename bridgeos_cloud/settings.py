@@ -252,6 +252,12 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": env_float("BRIDGEOS_CLOUD_RECONCILE_S", 5.0),
         "options": {"expires": env_float("BRIDGEOS_CLOUD_RECONCILE_S", 5.0)},
     },
+    # Robots of a dead server process go offline even when no live server process is left to sweep.
+    "sweep-dead-processes": {
+        "task": "robots.tasks.sweep_dead_processes",
+        "schedule": env_float("BRIDGEOS_PROCESS_HEARTBEAT_S", 2.0),
+        "options": {"expires": env_float("BRIDGEOS_PROCESS_HEARTBEAT_S", 2.0)},
+    },
 }
 
 REST_FRAMEWORK = {

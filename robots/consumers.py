@@ -41,6 +41,8 @@ MAX_OPEN_REQUESTS = 1000
 CLOSE_REPLACED = 4009
 CLOSE_REVOKED = 4004
 
+saving_failures = LogOnce(log, "saving applied frame ids in Redis before acking", traceback=True)
+
 
 def connect_batch(logins: list[services.Login]) -> list[tuple[services.Connected, list[tuple[Event, dict[str, Any]]]]]:
     """Authenticate and connect robots together, each with the reports about its cloud copies."""
@@ -54,6 +56,15 @@ def login_queue() -> Batcher[services.Login, tuple[services.Connected, list[tupl
     return loop_object(
         "robot logins",
         lambda: Batcher(connect_batch, key=lambda login: login.robot_id),
+        usable=lambda batcher: not batcher.closed,
+    )
+
+
+def goodbye_queue() -> Batcher[services.Departure, bool]:
+    """Return this event loop's queue of closed robot connections, recorded in batches like logins."""
+    return loop_object(
+        "robot goodbyes",
+        lambda: Batcher(services.disconnect_robots, key=lambda departure: departure.robot_id),
         usable=lambda batcher: not batcher.closed,
     )
 
@@ -141,7 +152,18 @@ class RobotConsumer(ProtocolConsumer):
             return
         if needs_ack and ack_now:
             applied_ids().add(self.robot_id, envelope.id)
-            await self.ack(envelope)
+            await self.ack_applied(envelope)
+
+    async def ack_applied(self, envelope: Envelope) -> None:
+        """Ack an applied frame once its id is saved where any server process finds it."""
+        try:
+            await applied_ids().flush()
+        except Exception as exc:
+            # Redis is down (so is the channel layer): ack anyway, the robot's link stays usable.
+            saving_failures.failed(exc)
+        else:
+            saving_failures.worked()
+        await self.ack(envelope)
 
     # ---------------------------------------------------------------- authentication
 
@@ -278,7 +300,7 @@ class RobotConsumer(ProtocolConsumer):
         if self.robot_id is not None:
             reason = getattr(self, "close_reason", None) or f"connection closed (code {code})"
             await applied_ids().flush()
-            await database_sync_to_async(services.mark_disconnected)(self.robot_id, self.channel_name, reason)
+            await goodbye_queue().submit(services.Departure(self.robot_id, self.channel_name, reason))
 
 
 def handles(*events: Event) -> Callable:
@@ -328,7 +350,7 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
                 consumer.fail("metrics not stored, send again later", reply_to=envelope.id, code="unavailable")
             )
         else:
-            consumer.spawn(consumer.ack(envelope))
+            consumer.spawn(consumer.ack_applied(envelope))
 
     written.add_done_callback(acknowledge)
     return False
@@ -450,7 +472,7 @@ async def on_volume_changes(consumer: RobotConsumer, envelope: Envelope, p: Any)
             await consumer.fail(message, reply_to=envelope.id, code="unavailable")
         else:
             applied_ids().add(consumer.robot_id, envelope.id)
-            await consumer.ack(envelope)
+            await consumer.ack_applied(envelope)
 
     consumer.spawn(apply())
     return False

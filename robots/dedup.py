@@ -38,6 +38,9 @@ class AppliedIds:
         # Frames accepted but not yet applied (metrics wait for their commit), by robot and id:
         # a copy resent over a new connection meanwhile must wait for the first, not be applied twice.
         self._in_flight: dict[tuple[str, str], asyncio.Future] = {}
+        # The latest write of ids to Redis; each write ends after the one before it, so awaiting
+        # the latest means every id handed to a write so far is saved.
+        self._saving: asyncio.Future | None = None
 
     def hold(self, robot_id: str, frame_id: str, applied: asyncio.Future) -> None:
         """Note a frame being applied until ``applied`` completes; then it counts as applied if it was."""
@@ -87,23 +90,38 @@ class AppliedIds:
             self._redis = None
 
     async def flush(self) -> None:
-        """Save every unsaved id now."""
+        """Save every unsaved id now; return once they, and every id being saved already, are saved.
+
+        Frames are acked only after this: a robot that reconnects to another server process and
+        resends a frame whose ack it missed finds the frame's id there, so it is not applied twice.
+        Frames acked together share one write (their commit is one, too).
+        """
         unsaved, self._unsaved = self._unsaved, defaultdict(list)
-        if not unsaved:
-            return
-        if self._redis is None:
-            for robot_id, ids in unsaved.items():
-                kept = self._local[robot_id]
-                kept.extend(ids)
-                del kept[:-WINDOW]
-            return
-        async with self._redis.pipeline(transaction=False) as pipe:
-            for robot_id, ids in unsaved.items():
-                key = KEY.format(robot_id)
-                pipe.lpush(key, *ids)
-                pipe.ltrim(key, 0, WINDOW - 1)
-                pipe.expire(key, KEEP_SECONDS)
-            await pipe.execute()
+        if unsaved:
+            if self._redis is None:
+                for robot_id, ids in unsaved.items():
+                    kept = self._local[robot_id]
+                    kept.extend(ids)
+                    del kept[:-WINDOW]
+            else:
+                self._saving = asyncio.ensure_future(self._save(unsaved, self._saving))
+        if self._saving is not None:
+            await asyncio.shield(self._saving)
+
+    async def _save(self, unsaved: dict[str, list[str]], previous: asyncio.Future | None) -> None:
+        assert self._redis is not None
+        try:
+            async with self._redis.pipeline(transaction=False) as pipe:
+                for robot_id, ids in unsaved.items():
+                    key = KEY.format(robot_id)
+                    pipe.lpush(key, *ids)
+                    pipe.ltrim(key, 0, WINDOW - 1)
+                    pipe.expire(key, KEEP_SECONDS)
+                await pipe.execute()
+        finally:
+            if previous is not None:
+                # Its failure was its own waiters' to hear; this write only has to end after it.
+                await asyncio.wait([previous])
 
 
 def applied_ids() -> AppliedIds:

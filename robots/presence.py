@@ -97,7 +97,7 @@ class Presence:
         pipe = self._redis.pipeline(transaction=False)
         for member in others:
             pipe.exists(PROCESS_KEY.format(member))
-        dead = [member for member, alive in zip(others, await pipe.execute(), strict=True) if not alive]
+        dead = dead_processes(others, await pipe.execute())
         if not dead:
             return []
         dropped = await database_sync_to_async(services.expire_connections)(dead, DEAD_PROCESS_REASON)
@@ -129,6 +129,42 @@ class Presence:
             self._loop_task.cancel()
         await self._redis.delete(PROCESS_KEY.format(self.process))
         await self._redis.aclose()
+
+
+def dead_processes(listed: list[str], alive: list[int]) -> list[str]:
+    """Return the listed processes whose liveness key no longer exists."""
+    return [process for process, exists in zip(listed, alive, strict=True) if not exists]
+
+
+def sweep_dead_processes() -> list[str]:
+    """Mark offline the robots of dead processes from outside any server process; return their ids.
+
+    Celery beat runs this, so robots are swept even when no server process is left alive to do it
+    (a single daphne that died and did not come back).
+    """
+    if not settings.REDIS_URL:
+        return []
+    import redis
+
+    client = redis.Redis.from_url(settings.REDIS_URL, socket_timeout=5)
+    try:
+        processes_key = PROCESSES_KEY.format(cloud_namespace())
+        listed = [member.decode() for member in client.smembers(processes_key)]
+        if not listed:
+            return []
+        pipe = client.pipeline(transaction=False)
+        for member in listed:
+            pipe.exists(PROCESS_KEY.format(member))
+        dead = dead_processes(listed, pipe.execute())
+        if not dead:
+            return []
+        dropped = services.expire_connections(dead, DEAD_PROCESS_REASON)
+        client.srem(processes_key, *dead)
+    finally:
+        client.close()
+    if dropped:
+        log.warning("robots %s were held by a dead cloud process: marked disconnected", ", ".join(dropped))
+    return dropped
 
 
 def get_presence(channel: str) -> Presence | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import subprocess
@@ -94,6 +95,34 @@ def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Itera
             process.kill()
         with django_db_blocker.unblock():
             close_other_sessions()
+
+
+@contextlib.contextmanager
+def another_daphne(log: Path, **env: str) -> Iterator[tuple[Server, subprocess.Popen]]:
+    """Start one more daphne sharing the test database and Redis (a second server process of the cloud)."""
+    from django.conf import settings
+
+    port = free_port()
+    full_env = service_env(settings.DATABASES["default"]["NAME"]) | {"VIRTUAL_ENV": str(BIN.parent), **env}
+    with log.open("wb") as out:
+        process = subprocess.Popen(
+            [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(port)],
+            cwd=ROOT,
+            env=full_env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+    try:
+        wait_for_port(port, process)
+        yield Server("127.0.0.1", port, log), process
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        process.wait(timeout=10)
 
 
 def close_other_sessions() -> None:

@@ -4,19 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import signal
-import subprocess
 import time
 
 import httpx
 import pytest
 from asgiref.sync import sync_to_async
-from django.conf import settings
 
 from monitoring.models import Event as LogEvent
 from robots.models import Robot
 from robots.presence import DEAD_PROCESS_REASON
 
-from ..conftest import BIN, ROOT, Server, free_port, service_env, wait_for_port
+from ..conftest import another_daphne
 from .wsutil import make_owner, make_robot, robot_link
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.asyncio]
@@ -29,24 +27,8 @@ OFFLINE_WITHIN_S = 15.0
 @pytest.fixture
 def doomed_daphne(daphne_server, tmp_path):
     """Start a second daphne on the same database and Redis, to be killed by the test."""
-    port = free_port()
-    env = service_env(settings.DATABASES["default"]["NAME"])
-    env |= {"VIRTUAL_ENV": str(BIN.parent), "BRIDGEOS_PROCESS_TTL_S": str(DOOMED_TTL_S)}
-    with (tmp_path / "doomed.log").open("wb") as out:
-        process = subprocess.Popen(
-            [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(port)],
-            cwd=ROOT,
-            env=env,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-        )
-    try:
-        wait_for_port(port, process)
-        yield Server("127.0.0.1", port, tmp_path / "doomed.log"), process
-    finally:
-        if process.poll() is None:
-            process.kill()
-        process.wait(timeout=10)
+    with another_daphne(tmp_path / "doomed.log", BRIDGEOS_PROCESS_TTL_S=str(DOOMED_TTL_S)) as started:
+        yield started
 
 
 @sync_to_async
