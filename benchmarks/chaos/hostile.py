@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import enum
 import json
+import logging
 import random
 import re
 import threading
@@ -998,6 +999,7 @@ def cross_tenant_outcome(world: World) -> Outcome:
 
 def run(quick: bool) -> list[Outcome]:
     """Play the three parts against one daphne of the scenario's own."""
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # a line per request would drown the table
     env = cloud_env()
     daphne = start_daphne(env, NAME, LIMITS_OFF)
     try:
