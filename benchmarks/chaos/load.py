@@ -116,13 +116,15 @@ async def one_robot(
     loop = asyncio.get_running_loop()
     next_at = loop.time() + random.uniform(0, FRAME_PERIOD_S)
     seq = 0
+    run_tag = f"{random.getrandbits(48):012x}"
     try:
         while time.time() < stop_at[0] and not reader.done():
             await asyncio.sleep(max(0.0, next_at - loop.time()))
             next_at += FRAME_PERIOD_S
             seq += 1
             now = time.time()
-            frame_id = f"m{seq}"
+            # Unique across runs, as an agent's ids are: the cloud remembers applied ids per robot id.
+            frame_id = f"{run_tag}-{seq}"
             # Each point is unique by (robot, name, ts): the database tells lost from duplicated.
             points = ",".join(f'{{"name":"load.p{k}","value":{seq}.{k},"ts":{now!r}}}' for k in range(POINTS_PER_FRAME))
             pending[frame_id] = now
