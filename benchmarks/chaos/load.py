@@ -66,6 +66,7 @@ async def one_robot(
     gate: asyncio.Semaphore,
     go: asyncio.Event,
     stop_at: list[float],
+    leave: asyncio.Event,
     report: FleetReport,
 ) -> None:
     """Connect one robot, stream metrics until ``stop_at[0]``, ack every command once, wait for its acks."""
@@ -139,25 +140,32 @@ async def one_robot(
     if reader.done() and reader.exception() is not None:
         report.failed.append(f"{robot_id}: connection lost: {reader.exception()!r}")
     report.unacked += len(pending)
+    # Connected, still answering commands, until the operator's last call came back.
+    if not reader.done():
+        await leave.wait()
     reader.cancel()
     await ws.close()
 
 
-def fleet_worker(url: str, robots: list[tuple[str, str]], ready: Any, start: Any, seconds: float, queue: Any) -> None:
-    """Run a share of the robots in a process of its own; stream ``seconds`` once ``start`` is set."""
+def fleet_worker(
+    url: str, robots: list[tuple[str, str]], ready: Any, start: Any, finish: Any, seconds: float, queue: Any
+) -> None:
+    """Run a share of the robots in a process of its own: stream ``seconds`` from ``start``, leave on ``finish``."""
 
     async def main() -> FleetReport:
         report = FleetReport()
         gate = asyncio.Semaphore(50)  # connect in waves, as a fleet coming online would
-        go = asyncio.Event()
+        go, leave = asyncio.Event(), asyncio.Event()
         stop_at = [float("inf")]
-        tasks = [asyncio.create_task(one_robot(url, rid, tok, gate, go, stop_at, report)) for rid, tok in robots]
+        tasks = [asyncio.create_task(one_robot(url, rid, tok, gate, go, stop_at, leave, report)) for rid, tok in robots]
         while report.connected + len(report.failed) < len(robots):  # noqa: ASYNC110
             await asyncio.sleep(0.05)
         ready.set()
         await asyncio.to_thread(start.wait)
         stop_at[0] = time.time() + seconds
         go.set()
+        await asyncio.to_thread(finish.wait)
+        leave.set()
         await asyncio.gather(*tasks)
         return report
 
@@ -266,7 +274,7 @@ def play(robots: int, seconds: float, command_rate: float) -> Outcome:
     queue: mp.Queue = ctx.Queue()
     procs = min(PROCS, robots)
     readies = [ctx.Event() for _ in range(procs)]
-    start = ctx.Event()
+    start, finish = ctx.Event(), ctx.Event()
     started = time.monotonic()
     workers = []
     try:
@@ -274,7 +282,7 @@ def play(robots: int, seconds: float, command_rate: float) -> Outcome:
         shares = [tokens[i::procs] for i in range(procs)]
         # Every worker streams for ``seconds`` from the moment ``start`` is set.
         workers = [
-            ctx.Process(target=fleet_worker, args=(url, share, ready, start, seconds, queue))
+            ctx.Process(target=fleet_worker, args=(url, share, ready, start, finish, seconds, queue))
             for share, ready in zip(shares, readies, strict=True)
         ]
         for worker in workers:
@@ -287,7 +295,8 @@ def play(robots: int, seconds: float, command_rate: float) -> Outcome:
         start.set()
         until = time.time() + seconds
         operator = Operator(f"http://127.0.0.1:{daphne.port}", api_token, [rid for rid, _ in tokens], command_rate)
-        operator.run(until)
+        operator.run(until)  # returns once every call it made came back
+        finish.set()
         reports: list[FleetReport] = [queue.get(timeout=seconds + ACK_GRACE_S + 120) for _ in workers]
         for worker in workers:
             worker.join(timeout=30)
@@ -329,6 +338,10 @@ def play(robots: int, seconds: float, command_rate: float) -> Outcome:
         + (f"; failures: {operator.failures[:3]}" if operator.failures else "")
         + (f"; robots failed: {failed[:3]} ({len(failed)})" if failed else "")
     )
+    log(f"  {detail}")
+    if not passed:
+        notes = [line for line in daphne.log_tail(10**9).splitlines() if "WARNING" in line or "ERROR" in line]
+        log("  daphne's warnings and errors:\n" + "\n".join(notes[:30]))
     return Outcome(
         scenario=NAME,
         injected=f"{robots} robots x 10 points/s for {seconds:g} s, {command_rate:g} REST commands/s",
