@@ -744,6 +744,16 @@ def fill_route(route: str, world: World, robot: str, copy_token: str) -> str:
     return "/" + re.sub(r"<(?:\w+:)?(\w+)>", lambda m: values[m.group(1)], route)
 
 
+def destructive_rank(call: tuple[str, str]) -> int:
+    """Order robot calls so what would remove a skill, cut alice-bot's link or delete it comes last, in that order."""
+    route, method = call
+    if method == "DELETE":
+        return 3
+    if route.endswith(("/token", "/shutdown")):
+        return 2
+    return 1 if route.endswith("/remove") else 0
+
+
 def cross_tenant(world: World, alice_robot: RecordingRobot, intruder: str = "bob") -> tuple[Tenancy, list[str]]:
     """Try every door as Bob (and as bob-bot) on alice-bot; return the tally and the routes left unclassified.
 
@@ -791,7 +801,7 @@ def cross_tenant(world: World, alice_robot: RecordingRobot, intruder: str = "bob
             for method in methods_of(callback)
         ]
         # What would destroy alice-bot or cut its link, were it let through, goes last: it would spoil the rest.
-        robot_calls.sort(key=lambda call: call[1] == "DELETE" or call[0].endswith(("/token", "/shutdown")))
+        robot_calls.sort(key=destructive_rank)
         for route, method in robot_calls:
             tally.routes.add("/" + re.sub(r"<(?:\w+:)?(\w+)>", r"{\1}", route))
             url = fill_route(route, world, "alice-bot", "")
