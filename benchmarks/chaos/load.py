@@ -1,9 +1,10 @@
 """Scenario 8, load: many robots stream metrics at 10 points/s while an operator issues commands through REST.
 
 Simulated robots speak the real robot protocol on /ws/robot/ from a few worker processes (like
-benchmarks/connect_storm.py): they authenticate, ack what the cloud sends, send a metrics frame of
-5 points every 0.5 s and ack each command relayed to them. Meanwhile an operator calls
-`POST /api/robot/<id>/start` on random robots; each call must round-trip to the robot and back.
+benchmarks/connect_storm.py): they authenticate, ack what the cloud sends, send a metrics frame
+of 10 points every second (as the agent sends each second's samples) and ack each command relayed
+to them. Meanwhile an operator calls `POST /api/robot/<id>/start` on random robots; each call must
+round-trip to the robot and back.
 Figures: command p99 (the REST call's time), ingest p95 (a point's send to its ack, which the
 cloud sends once its row is committed), and points lost and duplicated, counted in PostgreSQL.
 """
@@ -28,8 +29,9 @@ from benchmarks.chaos._cloudenv import cloud_env, start_daphne
 NAME = "load"
 ROBOT_PREFIX = "load-"
 OPERATOR = "load-operator"
-POINTS_PER_FRAME = 5
-FRAME_PERIOD_S = 0.5  # 5 points every 0.5 s: 10 points/s per robot
+# One frame of 10 points a second, as the agent sends what it sampled each second (sample_interval 1 s).
+POINTS_PER_FRAME = 10
+FRAME_PERIOD_S = 1.0
 # (robots, seconds streaming, commands per second) of each form.
 FULL = (1000, 60.0, 10.0)
 QUICK = (200, 15.0, 10.0)
