@@ -60,7 +60,7 @@ def snapshot() -> dict[str, str]:
     closes; everything else is state a refused or malformed request must not touch.
     """
     from django.apps import apps
-    from django.db.models import Count, Max, Sum
+    from django.db.models import Count, Max, Min
 
     digests = {}
     for label in ("auth", "robots", "skills", "monitoring", "network"):
@@ -74,8 +74,9 @@ def snapshot() -> dict[str, str]:
             if model._meta.label == "auth.User":
                 columns = [c for c in columns if c != "last_login"]
             if model._meta.label == "monitoring.Metric":
-                # Too many rows to read whole each time: any insert, delete or change of value moves these.
-                values = [list(rows.aggregate(Count("pk"), Max("pk"), Sum("value")).values())]
+                # Too many rows to read whole each time: any insert or delete moves these. (A float sum
+                # would not do: PostgreSQL's parallel workers add in varying orders.)
+                values = [list(rows.aggregate(Count("pk"), Min("pk"), Max("pk")).values())]
             else:
                 values = list(rows.order_by("pk").values_list(*columns))
             text = json.dumps(values, default=str, sort_keys=True)

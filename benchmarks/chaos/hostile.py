@@ -357,7 +357,10 @@ class FrameFuzzer:
             if kind != "replayed_id":
                 try:
                     valid = protocol.decode(frame, direction=self.direction)
-                    if valid.event in protocol.REQUIRES_ACK or valid.event.startswith("authentication_"):
+                    # A valid state change may change state, and a robot's valid error report is logged.
+                    if valid.event in protocol.REQUIRES_ACK or valid.event in ("error_message", "authentication_robot"):
+                        continue
+                    if valid.event == "authentication_client":
                         continue
                 except protocol.ProtocolError:
                     pass

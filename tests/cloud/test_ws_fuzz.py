@@ -112,3 +112,20 @@ def test_any_fuzzed_first_frame_is_refused(daphne_server, frame):
         answer = protocol.decode(ws.recv(timeout=10))
         assert answer.event == Event.AUTHENTICATION_FAILURE
     assert (LogEvent.objects.count(), Robot.objects.filter(connected=True).count()) == before
+
+
+def test_a_nul_byte_in_a_robots_error_report_is_logged_not_an_internal_error(robot_socket):
+    # Found by the fault suite's fuzzer (benchmarks/chaos/hostile.py): PostgreSQL refuses NUL in text.
+    report = {"message": "disk\x00full", "field": "data.x\x00", "code": "no_space"}
+    robot_socket.send(json.dumps({"event": "error_message", "id": "nul-report", "data": report}))
+    robot_socket.send(json.dumps({"event": "robot_config_get", "id": "after-nul", "data": {}}))
+    while True:
+        answer = json.loads(robot_socket.recv(timeout=10))
+        assert answer["event"] != "error_message", answer
+        if answer["event"] in protocol.REQUIRES_ACK:
+            robot_socket.send(protocol.encode(protocol.ack_frame(answer["id"], now=0)))
+        if answer.get("reply_to") == "after-nul":
+            break
+    logged = LogEvent.objects.get(robot_id="fuzz-bot", kind="error_message")
+    assert logged.message == "Robot reported: disk\ufffdfull"
+    assert logged.data["field"] == "data.x\ufffd"
