@@ -129,3 +129,22 @@ def test_a_nul_byte_in_a_robots_error_report_is_logged_not_an_internal_error(rob
     logged = LogEvent.objects.get(robot_id="fuzz-bot", kind="error_message")
     assert logged.message == "Robot reported: disk\ufffdfull"
     assert logged.data["field"] == "data.x\ufffd"
+
+
+def test_a_nul_byte_in_a_reported_container_is_stored_not_an_internal_error(robot_socket):
+    from bridgeos_agent.skillconfig import load_sample_skill_config
+    from skills.services import add_skill
+
+    add_skill(Robot.objects.get(id="fuzz-bot"), load_sample_skill_config().model_dump(mode="json"))
+    container = {"id": "abc\x00", "runtime": "process"}
+    data = {"skill": "people-detection", "component": "sampler", "location": "robot", "container": container}
+    robot_socket.send(json.dumps({"event": "component_information", "id": "nul-container", "data": data}))
+    while True:
+        answer = json.loads(robot_socket.recv(timeout=10))
+        if answer["event"] in protocol.REQUIRES_ACK:
+            robot_socket.send(protocol.encode(protocol.ack_frame(answer["id"], now=0)))
+        if answer.get("reply_to") == "nul-container":
+            break
+    assert answer["event"] == "ack", answer
+    stored = Component.objects.get(skill__robot_id="fuzz-bot", component_id="sampler").container
+    assert stored["robot"]["id"] == "abc\ufffd"
