@@ -138,12 +138,14 @@ def test_a_nul_byte_in_a_reported_container_is_stored_not_an_internal_error(robo
     add_skill(Robot.objects.get(id="fuzz-bot"), load_sample_skill_config().model_dump(mode="json"))
     container = {"id": "abc\x00", "runtime": "process"}
     data = {"skill": "people-detection", "component": "sampler", "location": "robot", "container": container}
-    robot_socket.send(json.dumps({"event": "component_information", "id": "nul-container", "data": data}))
+    # A fresh id: the cloud remembers a robot's applied ids across connections, in Redis.
+    frame_id = protocol.new_id()
+    robot_socket.send(json.dumps({"event": "component_information", "id": frame_id, "data": data}))
     while True:
         answer = json.loads(robot_socket.recv(timeout=10))
         if answer["event"] in protocol.REQUIRES_ACK:
             robot_socket.send(protocol.encode(protocol.ack_frame(answer["id"], now=0)))
-        if answer.get("reply_to") == "nul-container":
+        if answer.get("reply_to") == frame_id:
             break
     assert answer["event"] == "ack", answer
     stored = Component.objects.get(skill__robot_id="fuzz-bot", component_id="sampler").container
