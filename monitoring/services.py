@@ -16,6 +16,17 @@ from .live import log_event_frame, publish_all_on_commit, publish_log_event_on_c
 from .models import Event, IngestedFrame, Metric
 
 
+def storable(value: Any) -> Any:
+    """Return text (or JSON) PostgreSQL can store: a NUL, which it refuses in text and jsonb, becomes U+FFFD."""
+    if isinstance(value, str):
+        return value.replace("\x00", "\ufffd")
+    if isinstance(value, dict):
+        return {storable(key): storable(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [storable(item) for item in value]
+    return value
+
+
 def record_event(
     message: str,
     *,
@@ -30,16 +41,17 @@ def record_event(
     owner_id: int | None = None,
 ) -> Event:
     """Append one entry to the event log (at ``ts``, by default now) and push it to dashboards on commit."""
+    # Robots report these texts: one with a NUL byte must be logged, not fail the frame that carried it.
     event = Event.objects.create(
         ts=ts or timezone.now(),
         robot_id=robot_id,
         level=level,
         source=source,
-        kind=kind,
-        skill=skill,
-        component=component,
-        message=message,
-        data=data or {},
+        kind=storable(kind),
+        skill=storable(skill),
+        component=storable(component),
+        message=storable(message),
+        data=storable(data or {}),
     )
     publish_log_event_on_commit(event, owner_id=owner_id)
     return event
@@ -49,7 +61,10 @@ def record_events(entries: list[dict[str, Any]]) -> list[Event]:
     """Append many entries (``record_event``'s keywords, no owner) in one INSERT; push them on commit."""
     now = timezone.now()
     events = Event.objects.bulk_create(
-        [Event(**{"ts": now, "level": Level.INFO, "source": Source.CLOUD, "data": {}, **entry}) for entry in entries]
+        [
+            Event(**{"ts": now, "level": Level.INFO, "source": Source.CLOUD, "data": {}, **storable(entry)})
+            for entry in entries
+        ]
     )
     publish_all_on_commit([log_event_frame(event) for event in events])
     return events

@@ -16,7 +16,7 @@ from bridgeos_cloud.validation import validated_config
 from monitoring import prometheus
 from monitoring.choices import Level, Source
 from monitoring.live import publish_on_commit
-from monitoring.services import record_event
+from monitoring.services import record_event, storable
 from robots.models import Robot
 from robots.services import client_frame
 
@@ -147,6 +147,7 @@ def report_component_information(
     robot_id: str, skill_id: str, component_id: str, location: str, container: dict[str, Any]
 ) -> None:
     """Record what a robot reports about a component's container."""
+    container = storable(container)  # the robot's own text: a NUL in it must not fail the frame
     with transaction.atomic():
         component = _component(robot_id, skill_id, component_id)
         component.container = {**component.container, location: container}

@@ -112,3 +112,41 @@ def test_any_fuzzed_first_frame_is_refused(daphne_server, frame):
         answer = protocol.decode(ws.recv(timeout=10))
         assert answer.event == Event.AUTHENTICATION_FAILURE
     assert (LogEvent.objects.count(), Robot.objects.filter(connected=True).count()) == before
+
+
+def test_a_nul_byte_in_a_robots_error_report_is_logged_not_an_internal_error(robot_socket):
+    # Found by the fault suite's fuzzer (benchmarks/chaos/hostile.py): PostgreSQL refuses NUL in text.
+    report = {"message": "disk\x00full", "field": "data.x\x00", "code": "no_space"}
+    robot_socket.send(json.dumps({"event": "error_message", "id": "nul-report", "data": report}))
+    robot_socket.send(json.dumps({"event": "robot_config_get", "id": "after-nul", "data": {}}))
+    while True:
+        answer = json.loads(robot_socket.recv(timeout=10))
+        assert answer["event"] != "error_message", answer
+        if answer["event"] in protocol.REQUIRES_ACK:
+            robot_socket.send(protocol.encode(protocol.ack_frame(answer["id"], now=0)))
+        if answer.get("reply_to") == "after-nul":
+            break
+    logged = LogEvent.objects.get(robot_id="fuzz-bot", kind="error_message")
+    assert logged.message == "Robot reported: disk\ufffdfull"
+    assert logged.data["field"] == "data.x\ufffd"
+
+
+def test_a_nul_byte_in_a_reported_container_is_stored_not_an_internal_error(robot_socket):
+    from bridgeos_agent.skillconfig import load_sample_skill_config
+    from skills.services import add_skill
+
+    add_skill(Robot.objects.get(id="fuzz-bot"), load_sample_skill_config().model_dump(mode="json"))
+    container = {"id": "abc\x00", "runtime": "process"}
+    data = {"skill": "people-detection", "component": "sampler", "location": "robot", "container": container}
+    # A fresh id: the cloud remembers a robot's applied ids across connections, in Redis.
+    frame_id = protocol.new_id()
+    robot_socket.send(json.dumps({"event": "component_information", "id": frame_id, "data": data}))
+    while True:
+        answer = json.loads(robot_socket.recv(timeout=10))
+        if answer["event"] in protocol.REQUIRES_ACK:
+            robot_socket.send(protocol.encode(protocol.ack_frame(answer["id"], now=0)))
+        if answer.get("reply_to") == frame_id:
+            break
+    assert answer["event"] == "ack", answer
+    stored = Component.objects.get(skill__robot_id="fuzz-bot", component_id="sampler").container
+    assert stored["robot"]["id"] == "abc\ufffd"
