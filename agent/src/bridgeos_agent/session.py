@@ -95,6 +95,7 @@ class Session:
         self.connected = asyncio.Event()
         self.cloud_bytes = [0, 0]  # received, sent on the cloud link
         self.metric_points_sent = 0
+        self.metric_points_dropped = 0  # not kept (full disk) and not sent (no connection)
         self.reliable = self._new_reliable()
         self._replaying = False
         self._holding = False  # moving to another path: new frames wait in the outbox
@@ -169,6 +170,7 @@ class Session:
             open_timeout=10,
             compression=None,
             process_exception=self._connect_failed,
+            create_connection=_Connection,
             **target.connect_options(),
         ):
             try:
@@ -218,6 +220,8 @@ class Session:
             reason = getattr(protocol.parse_payload(answer), "reason", answer.event)
             raise AuthenticationRefused(reason)
         self._on_authenticated(getattr(protocol.parse_payload(answer), "ros_master", None))
+        if isinstance(ws, _Connection):
+            ws.on_pong = self._on_contact
         self.ws = ws
         self.network.path = path
         self.connected.set()
@@ -295,6 +299,13 @@ class Session:
             self.metric_points_sent += len(data["metrics"])
         if event in protocol.REQUIRES_ACK:
             text = self.outbox.put(envelope)
+            if self.outbox.disk_full and not self.outbox.held(envelope.id):
+                # Metrics the full disk could not keep: sent once if the cloud is there, else dropped (counted).
+                if self.ws is None or self._replaying or self._holding:
+                    self.metric_points_dropped += len(data["metrics"])
+                    return envelope
+                await self.send_text(text)
+                return envelope
             if self.ws is not None and not self._replaying and not self._holding:
                 self.reliable.send(envelope, time.monotonic())
                 await self.send_text(text)
@@ -415,6 +426,17 @@ class Session:
             else:
                 self._remembering.worked()
         await self.send_text(text)
+
+
+class _Connection(websockets.asyncio.client.ClientConnection):
+    """A client connection that tells when the cloud answers a keepalive ping: a sign of life."""
+
+    on_pong: Callable[[], None] | None = None
+
+    def acknowledge_pings(self, data: bytes) -> None:
+        super().acknowledge_pings(data)
+        if self.on_pong is not None:
+            self.on_pong()
 
 
 def _owed(frame_id: str) -> Envelope:
