@@ -25,7 +25,8 @@ from __future__ import annotations
 import heapq
 import logging
 import sqlite3
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -101,6 +102,8 @@ class Outbox:
         # id -> ((seq of the last stored frame, n), text): state events the full disk could not take.
         self._spilled: dict[str, tuple[tuple[int, int], str]] = {}
         self._spill_count = 0
+        self._reclaimed_at = -1e9
+        self._acked: set[str] = set()  # acked while the disk was full: still on disk, no longer owed
         self.applied = AppliedFrames(self._db)
 
     def put(self, envelope: Envelope) -> str:
@@ -115,14 +118,17 @@ class Outbox:
             if not disk_full(exc):
                 raise
             self._full(exc)
+            if self._reclaim():
+                return self.put(envelope)
             if metrics:
                 self.unstored_points += len(envelope.data.get("metrics", ()))
-            elif envelope.id not in self._spilled:
-                self._spill_count += 1
-                self._spilled[envelope.id] = ((self._last_seq(), self._spill_count), text)
+            else:
+                self.keep(envelope.id, text)
             return text
         if self.disk_full:
             self._room_again()
+        if self._acked:
+            self._forget_acked()
         if cursor.rowcount:
             self._bytes += len(text)
             if self._bytes > self.max_bytes:
@@ -134,6 +140,12 @@ class Outbox:
                     self._full(exc)
         return text
 
+    def keep(self, frame_id: str, text: str) -> None:
+        """Hold in memory, until acked, a frame the full disk could not take (sent again on reconnect)."""
+        if frame_id not in self._spilled:
+            self._spill_count += 1
+            self._spilled[frame_id] = ((self._last_seq(), self._spill_count), text)
+
     def held(self, frame_id: str) -> bool:
         """Tell whether a frame is kept until acked (on disk or, for a state event on a full disk, in memory)."""
         return frame_id in self
@@ -142,17 +154,41 @@ class Outbox:
         """Forget an acknowledged frame; return whether it was held."""
         if self._spilled.pop(frame_id, None) is not None:
             return True
+        if frame_id in self._acked:
+            return True
         try:
-            row = self._db.execute("DELETE FROM outbox WHERE id = ? RETURNING length(frame)", (frame_id,)).fetchone()
+            row = self._delete(frame_id)
         except sqlite3.Error as exc:
             if not disk_full(exc):
                 raise
-            # Not forgotten on disk: sent again after a restart, and the cloud drops the duplicate by id.
             self._full(exc)
-            return True
+            if not (self._reclaim() and self._forget_acked()):
+                # Forgotten on disk once it has room (a restart meanwhile resends it: the cloud drops it by id).
+                if frame_id in self:
+                    self._acked.add(frame_id)
+                    return True
+                return False
+            row = self._delete(frame_id)
         if row is None:
             return False
         self._bytes -= row[0]
+        return True
+
+    def _delete(self, frame_id: str) -> tuple[int] | None:
+        return self._db.execute("DELETE FROM outbox WHERE id = ? RETURNING length(frame)", (frame_id,)).fetchone()
+
+    def _forget_acked(self) -> bool:
+        """Delete the frames acked while the disk was full; say whether it could."""
+        try:
+            for frame_id in list(self._acked):
+                row = self._delete(frame_id)
+                if row is not None:
+                    self._bytes -= row[0]
+                self._acked.discard(frame_id)
+        except sqlite3.Error as exc:
+            if not disk_full(exc):
+                raise
+            return False
         return True
 
     def backlog(self, *, after: int = 0, batch: int = 500) -> Iterator[tuple[int, str, str]]:
@@ -171,7 +207,7 @@ class Outbox:
             rows = self._db.execute(
                 "SELECT seq, id, frame FROM outbox WHERE seq > ? ORDER BY seq LIMIT ?", (after, batch)
             ).fetchall()
-            yield from rows
+            yield from (row for row in rows if row[1] not in self._acked)
             if len(rows) < batch:
                 return
             after = rows[-1][0]
@@ -181,28 +217,53 @@ class Outbox:
         spilled = self._spilled.get(frame_id)
         if spilled is not None:
             return spilled[1]
+        if frame_id in self._acked:
+            return None
         row = self._db.execute("SELECT frame FROM outbox WHERE id = ?", (frame_id,)).fetchone()
         return row[0] if row else None
 
     def __contains__(self, frame_id: object) -> bool:
         if frame_id in self._spilled:
             return True
+        if frame_id in self._acked:
+            return False
         return self._db.execute("SELECT 1 FROM outbox WHERE id = ?", (frame_id,)).fetchone() is not None
 
     def __len__(self) -> int:
-        return self._db.execute("SELECT count(*) FROM outbox").fetchone()[0] + len(self._spilled)
+        return self._db.execute("SELECT count(*) FROM outbox").fetchone()[0] + len(self._spilled) - len(self._acked)
 
     def stats(self) -> OutboxStats:
         """Return the outbox's size."""
         frames, metric_frames = self._db.execute("SELECT count(*), coalesce(sum(metrics), 0) FROM outbox").fetchone()
         spilled = len(self._spilled)
         return OutboxStats(
-            frames + spilled, metric_frames, self._bytes, self.thinned_frames, spilled, self.unstored_points
+            frames + spilled - len(self._acked),
+            metric_frames,
+            self._bytes,
+            self.thinned_frames,
+            spilled,
+            self.unstored_points,
         )
 
     def _last_seq(self) -> int:
         row = self._db.execute("SELECT coalesce(max(seq), 0) FROM outbox").fetchone()
         return int(row[0])
+
+    def _reclaim(self, clock: Callable[[], float] = time.monotonic) -> bool:
+        """Give the write-ahead log's space back to the disk (at most once a second); say whether it worked.
+
+        The log is only checkpointed after a commit that succeeds, so on a full disk it would
+        keep every byte it holds and the outbox would stay full after the disk has room again.
+        """
+        now = clock()
+        if now - self._reclaimed_at < 1.0:
+            return False
+        self._reclaimed_at = now
+        try:
+            busy, _, _ = self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+        except sqlite3.Error:
+            return False
+        return busy == 0
 
     def _full(self, exc: sqlite3.Error) -> None:
         if not self.disk_full:

@@ -96,6 +96,7 @@ class Session:
         self.cloud_bytes = [0, 0]  # received, sent on the cloud link
         self.metric_points_sent = 0
         self.metric_points_dropped = 0  # not kept (full disk) and not sent (no connection)
+        self._unstored: dict[str, str] = {}  # metric frames sent but not kept (full disk), until acked
         self.reliable = self._new_reliable()
         self._replaying = False
         self._holding = False  # moving to another path: new frames wait in the outbox
@@ -249,6 +250,9 @@ class Session:
         self.network.path = None
         self._holding = False
         self.connected.clear()
+        for frame_id, text in self._unstored.items():
+            self.outbox.keep(frame_id, text)  # in flight when the link dropped: sent again on reconnect
+        self._unstored.clear()
         # Everything unacked is sent again, in order, from the outbox on the next connection.
         self.reliable = self._new_reliable()
 
@@ -304,6 +308,8 @@ class Session:
                 if self.ws is None or self._replaying or self._holding:
                     self.metric_points_dropped += len(data["metrics"])
                     return envelope
+                # Remembered until acked: if the link drops first, the outbox keeps it in memory.
+                self._unstored[envelope.id] = text
                 await self.send_text(text)
                 return envelope
             if self.ws is not None and not self._replaying and not self._holding:
@@ -356,6 +362,7 @@ class Session:
         event = envelope.event
         if event == Event.ACK:
             if envelope.reply_to:
+                self._unstored.pop(envelope.reply_to, None)
                 self.outbox.ack(envelope.reply_to)
                 self.reliable.on_ack(envelope.reply_to)
             return
@@ -375,6 +382,7 @@ class Session:
         """Drop a frame the cloud refused for good (a retryable refusal keeps it owed)."""
         payload = protocol.parse_payload(envelope)
         frame_id = envelope.reply_to or ""
+        self._unstored.pop(frame_id, None)
         if getattr(payload, "code", None) in RETRY_CODES:
             return  # kept: retransmitted later
         text = self.outbox.frame(frame_id)
