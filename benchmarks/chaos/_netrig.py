@@ -123,8 +123,8 @@ owner, _ = get_user_model().objects.get_or_create(username="chaos-" + spec["robo
 robot, token = create_robot(spec["robot"], owner)
 if spec.get("config"):
     update_robot_config(robot.id, spec["config"])
-if spec.get("skill"):
-    add_skill(robot, parse_skill_config(spec["skill"]).model_dump(mode="json"))
+for skill in spec["skills"]:
+    add_skill(robot, parse_skill_config(skill).model_dump(mode="json"))
 print(json.dumps({"token": token, "api": issue_api_token(owner)[0]}))
 """
 
@@ -138,7 +138,9 @@ class Cloud:
         if host != "127.0.0.1":
             self.env["ALLOWED_HOSTS"] = f"{host},127.0.0.1,localhost"
         ensure_postgres_database(self.env["DATABASE_URL"])
+        started = time.monotonic()
         migrate(self.env)
+        log(f"{name}: database migrated in {time.monotonic() - started:.1f} s")
         self.server = CloudServer(self.env, self.dir / "daphne.log", host)
         self.celery: CeleryWorker | None = None
         self._want_celery = celery
@@ -169,9 +171,9 @@ class Cloud:
             self.celery.stop()
         self.server.kill()
 
-    def add_robot(self, robot: str, *, config: dict | None = None, skill: dict | None = None) -> tuple[str, str]:
-        """Create a robot (and its owner, config and Skill); return (robot token, API token)."""
-        spec = json.dumps({"robot": robot, "config": config, "skill": skill})
+    def add_robot(self, robot: str, *, config: dict | None = None, skills: list[dict] = ()) -> tuple[str, str]:
+        """Create a robot (and its owner, config and Skills); return (robot token, API token)."""
+        spec = json.dumps({"robot": robot, "config": config, "skills": list(skills)})
         done = subprocess.run(
             [sys.executable, str(ROOT / "manage.py"), "shell", "-c", SETUP],
             cwd=ROOT,

@@ -91,7 +91,7 @@ def run(quick: bool) -> list[Outcome]:
     kill_instances(ROBOT, SKILL)
     try:
         cloud.start()
-        token, api_token = cloud.add_robot(ROBOT, config={"offloading": "robot"}, skill=skill())
+        token, api_token = cloud.add_robot(ROBOT, config={"offloading": "robot"}, skills=[skill()])
         agent = Agent(ROBOT, token, cloud.server.ws_url, disk / "agent", cloud.dir / "agent.log", sample_interval=0.2)
         wait_until(lambda: (agent.try_scrape() or {}).get("bridgeos_agent_link_up") == 1, "the agent connected", 60)
         response = cloud.api(api_token, "POST", f"/api/robot/{ROBOT}/skill/{SKILL}/start", params={"wait": 20})

@@ -61,7 +61,7 @@ def run(quick: bool) -> list[Outcome]:
     try:
         cloud.start()
         config = {"offloading": "cloud", "heartbeat_interval": heartbeat, "connection_lost_after": lost_after}
-        token, api_token = cloud.add_robot(ROBOT, config=config, skill=skill())
+        token, api_token = cloud.add_robot(ROBOT, config=config, skills=[skill()])
         cloud.wait_celery()
         agent = Agent(
             ROBOT,
