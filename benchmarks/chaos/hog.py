@@ -162,7 +162,16 @@ def run(quick: bool) -> list[Outcome]:
         reported = wait_until(lambda: oom_events(cloud), "the OOM kill reported to the cloud", 20)
         stored_before = cloud.metric_rows(ROBOT)[0]
         time.sleep(1.5)
-        stored_after = cloud.metric_rows(ROBOT)[0]
+        # Everything the agent sent while the hog ran is stored: wait for its outbox to empty, then count.
+        settled = wait_until(
+            lambda: (lambda s: s if s.get("bridgeos_agent_outbox_frames") == 0 else None)(agent.scrape()),
+            "the agent's outbox emptied",
+            30,
+        )
+        stored_after, duplicated = cloud.metric_rows(ROBOT)
+        sent = int(settled.get("bridgeos_agent_metric_points_sent_total", 0))
+        lost = max(0, sent - (stored_after - duplicated))
+        outcome.sent, outcome.stored, outcome.lost, outcome.duplicated = sent, stored_after, lost, duplicated
         kept_rate = hog_rate / base_rate if base_rate else 0.0
         base_p99, hog_p99 = percentile(base_latency, 99) or 0.0, percentile(hog_latency, 99) or 0.0
         outcome.recover_s = None
@@ -184,6 +193,7 @@ def run(quick: bool) -> list[Outcome]:
             f"the ticker kept only {kept_rate:.0%} of its rate": kept_rate >= 0.6,
             f"the agent's loop p99 {hog_p99:.0f} ms (before {base_p99:.0f} ms)": hog_p99 <= max(250.0, 3 * base_p99),
             "the agent stopped storing metrics": stored_after > stored_before,
+            f"{lost} metric point(s) lost, {duplicated} duplicated": lost == 0 and duplicated == 0,
             "the agent died": agent.alive(),
         }
         failed = [what for what, ok in checks.items() if not ok]

@@ -100,6 +100,12 @@ def run(quick: bool) -> list[Outcome]:
         link.restore()
         restored_at = time.monotonic()
 
+        def reconnected() -> bool:
+            return (agent.try_scrape() or {}).get("bridgeos_agent_link_up") == 1
+
+        wait_until(reconnected, "the agent reconnected", 60, interval=0.05)
+        reconnect_s = time.monotonic() - restored_at
+
         def reverted() -> bool:
             running = instances(ROBOT, SKILL)
             stats = agent.try_scrape() or {}
@@ -131,6 +137,7 @@ def run(quick: bool) -> list[Outcome]:
             "takeover_s": round(takeover_s, 2),
             "connection_lost_after_s": lost_after,
             "cut_s": cut_s,
+            "reconnect_after_restore_s": round(reconnect_s, 2),
             "backlog_points": backlog_points,
             "backlog_frames": int(during.get("bridgeos_agent_outbox_frames", 0)),
             "duplicate_components": duplicates,
