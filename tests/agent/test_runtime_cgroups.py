@@ -222,3 +222,33 @@ def test_stopping_a_component_removes_its_group(tmp_path: Path) -> None:
 
     directories = asyncio.run(scenario())
     assert not any(d.exists() for d in directories)
+
+
+@needs_cgroups
+def test_a_component_that_ends_for_good_leaves_no_group_and_a_new_runtime_sweeps_empty_ones(tmp_path: Path) -> None:
+    async def scenario() -> None:
+        runtime = ProcessRuntime(ROBOT, data_dir=tmp_path, cgroups=Cgroups(ROBOT))
+        try:
+            await runtime.start(spec("done", "print('bye')", cpu=0.2))
+            group = runtime._records[("limits", "done")].group
+            assert group is not None
+            deadline = time.monotonic() + 10
+            while (await runtime.status("limits", "done")).status is not Status.EXITED:
+                assert time.monotonic() < deadline
+                await asyncio.sleep(0.02)
+            await asyncio.sleep(0.2)
+            assert not any(d.exists() for d in group.directories.values())
+            # A group left behind (its component killed while no agent watched) next to a running one.
+            await runtime.start(spec("runner", "import time; time.sleep(60)", cpu=0.2))
+            running = runtime._records[("limits", "runner")].group
+            assert running is not None
+            left = Cgroups(ROBOT).group(spec("gone", "", cpu=0.2))
+            assert left is not None
+            left.create()
+            assert Cgroups(ROBOT).sweep() == len(left.directories)
+            assert not any(d.exists() for d in left.directories.values())
+            assert all(d.exists() for d in running.directories.values())
+        finally:
+            await runtime.close(stop_components=True)
+
+    asyncio.run(scenario())

@@ -316,6 +316,27 @@ class Cgroups:
             return None
         return group
 
+    def sweep(self) -> int:
+        """Delete this robot's empty component groups (a populated group cannot be deleted); return how many."""
+        if self.hierarchy is None:
+            return 0
+        removed = 0
+        for base in self.hierarchy.bases.values():
+            robot_dir = base / "bridgeos" / self.robot
+            try:
+                leaves = [p for p in robot_dir.iterdir() if p.is_dir()]
+            except OSError:
+                continue
+            for leaf in leaves:
+                try:
+                    leaf.rmdir()
+                except OSError:
+                    continue  # still running: an adopted component's group
+                removed += 1
+            with contextlib.suppress(OSError):
+                robot_dir.rmdir()
+        return removed
+
     def _enable_v2(self, robot_dir: Path) -> None:
         """Hand the cpu and memory controllers down from the root to the robot's group."""
         assert self.hierarchy is not None

@@ -116,6 +116,9 @@ class SupervisedRuntime(Runtime, Generic[R]):
         """Say why a launch ended when the runtime knows more than its exit code (e.g. out of memory)."""
         return None
 
+    async def _finished(self, rec: R) -> None:
+        """Release what a component held once it ended for good (exited, or given up on)."""
+
     def _background(self) -> list[asyncio.Task[None]]:
         """Return the runtime's own tasks that close() cancels with the supervisors."""
         return []
@@ -246,6 +249,7 @@ class SupervisedRuntime(Runtime, Generic[R]):
             if code == 0:
                 state.status = Status.EXITED
                 self._notify(state)
+                await self._finished(rec)
                 return
             who = f"component {state.skill}/{state.component}"
             message = unrunnable(code, who, self._command(rec))
@@ -256,6 +260,7 @@ class SupervisedRuntime(Runtime, Generic[R]):
                 state.status = Status.FAILED
                 state.message = message
                 self._notify(state)
+                await self._finished(rec)
                 return
             state.status = Status.RESTARTING
             self._notify(state)

@@ -133,6 +133,7 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
     ) -> None:
         super().__init__(robot, data_dir=data_dir, on_status=on_status, rng=rng or random.Random())
         self.cgroups = cgroups or Cgroups(robot)
+        self.cgroups.sweep()  # empty groups of components killed while no agent watched
         logger.info("process runtime: component cpu/ram limits %s", self.cgroups.describe())
         self.log_max_bytes = log_max_bytes
         self.log_check_interval = log_check_interval
@@ -297,6 +298,11 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         if rec.proc is not None:
             rec.state.exit_code = await self._terminate(rec.proc, timeout)
             rec.proc = None
+        if rec.group is not None:
+            await rec.group.remove()
+
+    async def _finished(self, rec: _Component) -> None:
+        """Delete the control group of a component that will not be relaunched."""
         if rec.group is not None:
             await rec.group.remove()
 
