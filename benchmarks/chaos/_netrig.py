@@ -300,6 +300,36 @@ class Agent:
                 self.process.wait(10)
 
 
+def settled_points(agent: Agent, cloud: Cloud, robot: str, timeout: float = 60.0) -> tuple[dict[str, float], int, int]:
+    """Return (the agent's figures, rows stored, duplicate rows) at a moment nothing was in flight.
+
+    Nothing is owed (outbox empty, no unstored frame unacked, disk writable) at one scrape, the
+    rows are counted, and a second scrape shows no point was sent in between: then every point the
+    agent counts as sent was either stored or counted as dropped, and no later one was counted.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        first = agent.try_scrape() or {}
+        if _idle(first):
+            stored, duplicated = cloud.metric_rows(robot)
+            second = agent.try_scrape() or {}
+            sent = "bridgeos_agent_metric_points_sent_total"
+            if _idle(second) and second.get(sent) == first.get(sent):
+                return first, stored, duplicated
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the agent never settled (nothing owed, nothing sent between two reads): {first}")
+        time.sleep(0.05)
+
+
+def _idle(stats: dict[str, float]) -> bool:
+    return (
+        stats.get("bridgeos_agent_link_up") == 1
+        and stats.get("bridgeos_agent_outbox_frames") == 0
+        and stats.get("bridgeos_agent_unstored_frames_in_flight", 0) == 0
+        and stats.get("bridgeos_agent_outbox_disk_full", 0) == 0
+    )
+
+
 def _component_processes(robot: str, skill: str) -> list[tuple[psutil.Process, str, str]]:
     found = []
     for proc in psutil.process_iter(["pid"]):
@@ -370,4 +400,15 @@ def tail(path: Path, chars: int = 1500) -> str:
     return ""
 
 
-__all__ = ["Agent", "Cloud", "CloudServer", "RobotLink", "instances", "kill_instances", "log", "tail", "wait_until"]
+__all__ = [
+    "Agent",
+    "Cloud",
+    "CloudServer",
+    "RobotLink",
+    "instances",
+    "kill_instances",
+    "log",
+    "settled_points",
+    "tail",
+    "wait_until",
+]

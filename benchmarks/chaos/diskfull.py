@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._netrig import Agent, Cloud, kill_instances, log, tail, wait_until
+from benchmarks.chaos._netrig import Agent, Cloud, kill_instances, log, settled_points, tail, wait_until
 
 NAME = "diskfull"
 INJECTS = "the agent's data disk (a small tmpfs) filled to the last byte, then the cloud killed meanwhile"
@@ -110,19 +110,14 @@ def run(quick: bool) -> list[Outcome]:
         freed_at = time.monotonic()
         log("diskfull: disk freed")
 
-        def settled() -> dict[str, float] | None:
-            stats = agent.try_scrape() or {}
-            done = stats.get("bridgeos_agent_outbox_frames") == 0 and stats.get("bridgeos_agent_link_up") == 1
-            return stats if done else None
-
-        after = wait_until(settled, "the outbox emptied", 90, interval=0.2)
+        # Settled: nothing owed, nothing unstored in flight, the disk writable again.
+        after, stored, duplicated = settled_points(agent, cloud, ROBOT, timeout=90)
         recover_s = time.monotonic() - freed_at
         alive = agent.alive()
         said = "disk full under the outbox" in agent.log_text()
         sent = int(after.get("bridgeos_agent_metric_points_sent_total", 0))
         dropped = int(after.get("bridgeos_agent_metric_points_dropped_total", 0))
         unstored = int(after.get("bridgeos_agent_outbox_unstored_points_total", 0))
-        stored, duplicated = cloud.metric_rows(ROBOT)
         lost = max(0, sent - (stored - duplicated))
         restarts = int(after.get("bridgeos_agent_component_restarts_total", 0))
         crashes, gave_up, disorder = crash_events(cloud)

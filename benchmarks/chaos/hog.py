@@ -20,7 +20,7 @@ import psutil
 
 from benchmarks._common import percentile
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._netrig import Agent, Cloud, kill_instances, log, tail, wait_until
+from benchmarks.chaos._netrig import Agent, Cloud, kill_instances, log, settled_points, tail, wait_until
 
 NAME = "hog"
 INJECTS = "a component eating every core and memory past its limits (0.5 CPU, 100 MiB)"
@@ -162,13 +162,8 @@ def run(quick: bool) -> list[Outcome]:
         reported = wait_until(lambda: oom_events(cloud), "the OOM kill reported to the cloud", 20)
         stored_before = cloud.metric_rows(ROBOT)[0]
         time.sleep(1.5)
-        # Everything the agent sent while the hog ran is stored: wait for its outbox to empty, then count.
-        settled = wait_until(
-            lambda: (lambda s: s if s.get("bridgeos_agent_outbox_frames") == 0 else None)(agent.scrape()),
-            "the agent's outbox emptied",
-            30,
-        )
-        stored_after, duplicated = cloud.metric_rows(ROBOT)
+        # Everything the agent sent while the hog ran is stored: read when nothing is owed.
+        settled, stored_after, duplicated = settled_points(agent, cloud, ROBOT, timeout=30)
         sent = int(settled.get("bridgeos_agent_metric_points_sent_total", 0))
         lost = max(0, sent - (stored_after - duplicated))
         outcome.sent, outcome.stored, outcome.lost, outcome.duplicated = sent, stored_after, lost, duplicated

@@ -17,7 +17,17 @@ from __future__ import annotations
 import time
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._netrig import Agent, Cloud, RobotLink, instances, kill_instances, log, tail, wait_until
+from benchmarks.chaos._netrig import (
+    Agent,
+    Cloud,
+    RobotLink,
+    instances,
+    kill_instances,
+    log,
+    settled_points,
+    tail,
+    wait_until,
+)
 
 NAME = "link"
 INJECTS = "robot link cut (veth down in its namespace), then restored"
@@ -121,10 +131,9 @@ def run(quick: bool) -> list[Outcome]:
         running = instances(ROBOT, SKILL)
         duplicates = sum(max(0, running[(c, "robot")] + running[(c, "cloud")] - 1) for c in COMPONENTS)
         missing = [c for c in COMPONENTS if running[(c, "robot")] + running[(c, "cloud")] == 0]
-        after = agent.scrape()
-        stored, duplicated = cloud.metric_rows(ROBOT)
+        after, stored, duplicated = settled_points(agent, cloud, ROBOT)
         sent = int(after.get("bridgeos_agent_metric_points_sent_total", 0))
-        # Every point sent by `after` is stored: the outbox was empty, so each was acked after its COPY.
+        # Every point sent by `after` is stored: nothing was owed, so each was acked after its COPY.
         lost = max(0, sent - (stored - duplicated))
         backlog_points = int(
             during.get("bridgeos_agent_metric_points_sent_total", 0)

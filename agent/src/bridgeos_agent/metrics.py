@@ -83,9 +83,9 @@ class AgentCollector(Collector):
         outbox: Outbox,
         link: asyncio.Event,
         routers: Callable[[], Iterable[tuple[str, Any]]],
-        points: Callable[[], tuple[int, int]] | None = None,
+        points: Callable[[], tuple[int, int, int]] | None = None,
     ) -> None:
-        self.points = points  # (metric points sent, dropped) by the session
+        self.points = points  # (metric points sent, dropped, unstored frames in flight) by the session
         self.counts = counts
         self.outbox = outbox
         self.link = link
@@ -153,7 +153,7 @@ class AgentCollector(Collector):
             family.add_metric([robot], value)
             yield family
         if self.points is not None:
-            sent, dropped = self.points()
+            sent, dropped, in_flight = self.points()
             for name, doc, value in (
                 ("metric_points_sent", "Metric points the agent produced for the cloud.", sent),
                 ("metric_points_dropped", "Metric points neither kept (full disk) nor sent (no link).", dropped),
@@ -161,6 +161,13 @@ class AgentCollector(Collector):
                 counter = CounterMetricFamily(f"{PREFIX}_{name}", doc, labels=["robot"])
                 counter.add_metric([robot], value)
                 yield counter
+            flying = GaugeMetricFamily(
+                f"{PREFIX}_unstored_frames_in_flight",
+                "Metric frames sent but not kept (full disk), not acked yet.",
+                labels=["robot"],
+            )
+            flying.add_metric([robot], in_flight)
+            yield flying
 
     def _routers(self, robot: str) -> Iterator[Metric]:
         labels = ["robot", "skill", "topic"]
@@ -196,8 +203,9 @@ def controller_collector(controller: RobotController) -> AgentCollector:
             if router is not None:
                 yield skill_id, router
 
-    def points() -> tuple[int, int]:
-        return controller.session.metric_points_sent, controller.session.metric_points_dropped
+    def points() -> tuple[int, int, int]:
+        session = controller.session
+        return session.metric_points_sent, session.metric_points_dropped, session.unstored_in_flight
 
     return AgentCollector(controller.metrics, controller.outbox, controller.connected, routers, points)
 

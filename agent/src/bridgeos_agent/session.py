@@ -111,6 +111,11 @@ class Session:
         self._replies: dict[str, asyncio.Future[Envelope | None]] = {}
         self._tls_failure: str | None = None
 
+    @property
+    def unstored_in_flight(self) -> int:
+        """Return how many metric frames the full disk could not keep are sent and not yet acked."""
+        return len(self._unstored)
+
     @staticmethod
     def _new_reliable() -> protocol.Reliable:
         return protocol.Reliable(initial=RESEND_INITIAL, cap=RESEND_CAP)
@@ -382,8 +387,12 @@ class Session:
         """Drop a frame the cloud refused for good (a retryable refusal keeps it owed)."""
         payload = protocol.parse_payload(envelope)
         frame_id = envelope.reply_to or ""
-        self._unstored.pop(frame_id, None)
+        unstored = self._unstored.pop(frame_id, None)
         if getattr(payload, "code", None) in RETRY_CODES:
+            if unstored is not None:
+                # Not on disk: held in memory and retransmitted like the frames that are.
+                self.outbox.keep(frame_id, unstored)
+                self.reliable.send(_owed(frame_id), time.monotonic())
             return  # kept: retransmitted later
         text = self.outbox.frame(frame_id)
         self.outbox.ack(frame_id)
