@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -245,6 +246,9 @@ def test_a_component_that_ends_for_good_leaves_no_group_and_a_new_runtime_sweeps
             left = Cgroups(ROBOT).group(spec("gone", "", cpu=0.2))
             assert left is not None
             left.create()
+            assert Cgroups(ROBOT).sweep() == 0, "a group younger than a minute may be a launch in progress"
+            for directory in left.directories.values():
+                os.utime(directory, (time.time() - 120, time.time() - 120))
             assert Cgroups(ROBOT).sweep() == len(left.directories)
             assert not any(d.exists() for d in left.directories.values())
             assert all(d.exists() for d in running.directories.values())

@@ -19,6 +19,7 @@ import errno
 import logging
 import os
 import re
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +46,7 @@ MIB = 1024 * 1024
 CPU_PERIOD_US = 100_000
 MIN_QUOTA_US = 1_000  # the kernel refuses quotas under 1 ms
 MIN_MEMORY = 6 * MIB  # as the Docker runtime: smaller limits kill a process before it starts
+SWEEP_MIN_AGE_S = 60.0
 CONTROLLERS = ("cpu", "memory")
 
 Version = Literal["v1", "v2"]
@@ -300,9 +302,16 @@ class Cgroups:
         if group is None:
             return None
         try:
-            if self.hierarchy is not None and self.hierarchy.version == "v2":
-                self._enable_v2(next(iter(group.directories.values())).parent)
-            group.create()
+            for attempt in (1, 2):
+                try:
+                    if self.hierarchy is not None and self.hierarchy.version == "v2":
+                        self._enable_v2(next(iter(group.directories.values())).parent)
+                    group.create()
+                    break
+                except FileNotFoundError:
+                    # A parent went meanwhile (another process of this robot stopped its last component).
+                    if attempt == 2:
+                        raise
         except OSError as exc:
             reason = f"{type(exc).__name__}: {exc}"
             if reason not in self._failures_said:
@@ -317,7 +326,7 @@ class Cgroups:
         return group
 
     def sweep(self) -> int:
-        """Delete this robot's empty component groups (a populated group cannot be deleted); return how many."""
+        """Delete this robot's empty, older component groups (a populated one cannot be); return how many."""
         if self.hierarchy is None:
             return 0
         removed = 0
@@ -329,6 +338,10 @@ class Cgroups:
                 continue
             for leaf in leaves:
                 try:
+                    # A group made in the last minute may belong to a launch in progress in another
+                    # process of this robot (the cloud's worker pool): left for a later sweep.
+                    if time.time() - leaf.stat().st_mtime < SWEEP_MIN_AGE_S:
+                        continue
                     leaf.rmdir()
                 except OSError:
                     continue  # still running: an adopted component's group

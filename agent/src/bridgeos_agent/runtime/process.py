@@ -340,17 +340,7 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         comp.group = self.cgroups.prepare(spec)
         fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
         try:
-            popen = subprocess.Popen(
-                command,
-                stdin=subprocess.DEVNULL,
-                stdout=fd,
-                stderr=fd,
-                cwd=cwd,
-                env=self._env(spec),
-                start_new_session=True,
-                # Joined before exec, so nothing the command forks starts outside its limits.
-                preexec_fn=comp.group.joiner() if comp.group is not None else None,
-            )
+            popen = self._spawn(comp, command, fd, cwd)
         except FileNotFoundError:
             message = (
                 f"{who}: command {command[0]!r} not found (looked in PATH={self._base_env.get('PATH', '')!r}): "
@@ -391,6 +381,29 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         state.message = None
         state.started_at = time.time()
         return proc
+
+    def _spawn(self, comp: _Component, command: list[str], fd: int, cwd: Path) -> subprocess.Popen[bytes]:
+        """Start the command in a session of its own, inside the component's group when it has one."""
+        for attempt in (1, 2):
+            try:
+                return subprocess.Popen(
+                    command,
+                    stdin=subprocess.DEVNULL,
+                    stdout=fd,
+                    stderr=fd,
+                    cwd=cwd,
+                    env=self._env(comp.spec),
+                    start_new_session=True,
+                    # Joined before exec, so nothing the command forks starts outside its limits.
+                    preexec_fn=comp.group.joiner() if comp.group is not None else None,
+                )
+            except subprocess.SubprocessError:
+                # The group went between its making and the join (another process of this robot
+                # deleted it as it stopped its last component): made again, joined once more.
+                if attempt == 2 or comp.group is None:
+                    raise
+                comp.group = self.cgroups.prepare(comp.spec)
+        raise AssertionError("unreachable")
 
     async def _terminate(self, proc: GroupLeader, timeout: float) -> int | None:
         """Signal a process group to stop, then kill whatever is left after ``timeout``."""
