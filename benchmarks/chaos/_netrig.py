@@ -30,6 +30,7 @@ import httpx
 import psutil
 
 from benchmarks._common import ROOT, CeleryWorker, ensure_postgres_database, free_port, log, migrate
+from bridgeos_agent.runtime.cgroups import Cgroups
 from tests.net.netns import Network, _in_namespace, run
 
 VENV_BIN = Path(sys.executable).parent
@@ -355,6 +356,9 @@ def kill_instances(robot: str, skill: str) -> int:
     for proc, _, _ in found:
         with contextlib.suppress(psutil.Error):
             proc.kill()
+    psutil.wait_procs([proc for proc, _, _ in found], timeout=5)
+    # Their control groups too: no runtime saw them end.
+    Cgroups(robot).sweep(min_age_s=0)
     return len(found)
 
 

@@ -325,7 +325,7 @@ class Cgroups:
             return None
         return group
 
-    def sweep(self) -> int:
+    def sweep(self, min_age_s: float = SWEEP_MIN_AGE_S) -> int:
         """Delete this robot's empty, older component groups (a populated one cannot be); return how many."""
         if self.hierarchy is None:
             return 0
@@ -340,7 +340,7 @@ class Cgroups:
                 try:
                     # A group made in the last minute may belong to a launch in progress in another
                     # process of this robot (the cloud's worker pool): left for a later sweep.
-                    if time.time() - leaf.stat().st_mtime < SWEEP_MIN_AGE_S:
+                    if time.time() - leaf.stat().st_mtime < min_age_s:
                         continue
                     leaf.rmdir()
                 except OSError:
