@@ -330,6 +330,8 @@ BRIDGEOS = {
     "CLOUD_ROS_NETWORK": env_str("BRIDGEOS_CLOUD_ROS_NETWORK", "host"),
     "CLOUD_START_TIMEOUT_S": env_float("BRIDGEOS_CLOUD_START_TIMEOUT_S", 60.0),
     "CLOUD_VOLUMES_DIR": env_str("BRIDGEOS_CLOUD_VOLUMES_DIR", str(DATA_DIR / "cloud" / "volumes")),
+    # What one robot's Skill volumes may hold in the cloud, all together; volume sync past it is refused.
+    "VOLUME_QUOTA_BYTES": env_int("BRIDGEOS_VOLUME_QUOTA_MB", 1024) * 1024 * 1024,
     # A crashed cloud component is restarted after 1, 2, 4 ... s (at most this), and given up on
     # after CLOUD_MAX_RESTARTS crashes within CLOUD_RESTART_WINDOW_S.
     "CLOUD_RESTART_BACKOFF_MAX_S": env_float("BRIDGEOS_CLOUD_RESTART_BACKOFF_MAX_S", 60.0),

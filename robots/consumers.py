@@ -26,7 +26,7 @@ from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
 from skills.cloud.reporting import cloud_reports_for
-from skills.cloud.volumes import CloudVolumes
+from skills.cloud.volumes import CloudVolumes, QuotaExceeded
 
 from . import dedup, services
 from .dedup import applied_ids
@@ -465,6 +465,9 @@ async def on_volume_changes(consumer: RobotConsumer, envelope: Envelope, p: Any)
         except NotFound as exc:
             consumer.dedup.forget(envelope.id)
             await consumer.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
+        except QuotaExceeded as exc:
+            consumer.dedup.forget(envelope.id)
+            await consumer.fail(exc.message, reply_to=envelope.id, field=exc.field, code="quota_exceeded")
         except Exception as exc:
             consumer.dedup.forget(envelope.id)
             log.warning("robot %s: volume %s/%s not synced: %s", consumer.robot_id, p.skill, p.volume, exc)

@@ -83,3 +83,11 @@ class SkillTemplateSerializer(serializers.ModelSerializer):
         model = SkillTemplate
         fields = ["id", "name", "description", "tags", "config", "created_at"]
         read_only_fields = ["id", "created_at"]
+
+
+class VolumeUsageSerializer(serializers.Serializer):
+    """What a robot's Skill volumes hold in the cloud, against its quota."""
+
+    quota_bytes = serializers.IntegerField(help_text="What all its volumes may hold (BRIDGEOS_VOLUME_QUOTA_MB).")
+    used_bytes = serializers.IntegerField()
+    volumes = serializers.DictField(child=serializers.IntegerField(), help_text='Bytes per "skill/volume".')

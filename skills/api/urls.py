@@ -11,6 +11,7 @@ COMPONENT = f"{SKILL}/component/<slug:component_id>"
 
 urlpatterns = [
     path("cloud/manager/<str:token>/<path:path>", componentsapi.components_api, name="cloud-components-api"),
+    path("robot/<slug:robot_id>/volumes", views.RobotVolumesView.as_view(), name="robot-volumes"),
     path("robot/<slug:robot_id>/skill/add", views.SkillAddView.as_view(), name="skill-add"),
     path("robot/<slug:robot_id>/skill/remove", views.SkillRemoveView.as_view(), name="skill-remove"),
     path(f"{SKILL}/info", views.SkillInfoView.as_view(), name="skill-info"),

@@ -19,6 +19,7 @@ from robots.api.views import COMMAND_RESPONSES, WAIT, django_errors, robot_of
 from robots.services import visible_robots
 
 from .. import services, state
+from ..cloud.volumes import volume_quota, volume_usage
 from ..models import Component, Skill, SkillTemplate
 from .serializers import (
     ComponentDetailSerializer,
@@ -29,6 +30,7 @@ from .serializers import (
     SkillDetailSerializer,
     SkillRemoveSerializer,
     SkillTemplateSerializer,
+    VolumeUsageSerializer,
 )
 
 
@@ -82,6 +84,16 @@ class SkillRemoveView(APIView):
                 status=status.HTTP_409_CONFLICT,
             )
         return Response(status=status.HTTP_204_NO_CONTENT)
+
+
+class RobotVolumesView(APIView):
+    """What a robot's Skill volumes hold in the cloud, and its volume quota."""
+
+    @extend_schema(responses={200: VolumeUsageSerializer, 404: OpenApiResponse()})
+    def get(self, request: Request, robot_id: str) -> Response:
+        robot = robot_of(request, robot_id)
+        usage = volume_usage(robot.id)
+        return Response({"quota_bytes": volume_quota(), "used_bytes": sum(usage.values()), "volumes": usage})
 
 
 class SkillInfoView(APIView):

@@ -59,6 +59,7 @@ def make_spec(
     restart: RestartPolicy = FAST,
     volumes: tuple[str, ...] = (),
     image: str | None = None,
+    resources: ComponentResources | None = None,
 ) -> ComponentSpec:
     """Build a component spec the way the controller would."""
     return ComponentSpec(
@@ -67,7 +68,7 @@ def make_spec(
         component=component,
         location="robot",
         launch=LaunchSpec(command=command, image=image, env=launch_env or {}),
-        resources=ComponentResources(cpu=0.1, ram=32),
+        resources=resources or ComponentResources(cpu=0.1, ram=32),
         env=env if env is not None else {"BRIDGEOS_SKILL": skill, "BRIDGEOS_COMPONENT": component},
         volumes=volumes,
         restart=restart,
@@ -370,8 +371,10 @@ async def test_ids_that_are_not_slugs_are_refused(runtime: ProcessRuntime) -> No
 async def test_stats_sum_cpu_and_memory_over_the_process_tree(runtime: ProcessRuntime) -> None:
     hog = python("x = bytearray(64 * 2**20)\nimport time\ntime.sleep(3600)")
     busy = python("while True: pass")
-    await runtime.start(make_spec("memory", ["sh", "-c", f"{shlex.join(hog)} & wait"]))
-    await runtime.start(make_spec("busy", busy))
+    # Declared above what they use: the runtime enforces declared resources (runtime/cgroups.py).
+    roomy = ComponentResources(cpu=1.0, ram=128)
+    await runtime.start(make_spec("memory", ["sh", "-c", f"{shlex.join(hog)} & wait"], resources=roomy))
+    await runtime.start(make_spec("busy", busy, resources=roomy))
     await runtime.start(make_spec("idle", SLEEP))
     await runtime.stats()
     # CPU is a rate over the time between two samples; on a loaded machine the busy loop may get

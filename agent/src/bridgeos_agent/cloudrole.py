@@ -54,9 +54,9 @@ class CloudRole:
         """Watch the link and take over once the cloud has been silent too long."""
         while True:
             await asyncio.sleep(WATCH_INTERVAL)
-            if self.controller.session.ws is not None:
-                self.contact()  # the socket's keepalive closes it when pongs stop
-                continue
+            # Silence counts, open socket or not: a cut link leaves the socket open until its
+            # keepalive gives up (connection_lost_after later, plus the close), which would
+            # double the takeover time. The session reports every frame and keepalive pong.
             if self.monitor is not None and self.monitor.tick(time.monotonic()) == "takeover":
                 await self.take_over()
 

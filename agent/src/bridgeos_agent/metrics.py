@@ -83,7 +83,9 @@ class AgentCollector(Collector):
         outbox: Outbox,
         link: asyncio.Event,
         routers: Callable[[], Iterable[tuple[str, Any]]],
+        points: Callable[[], tuple[int, int, int]] | None = None,
     ) -> None:
+        self.points = points  # (metric points sent, dropped, unstored frames in flight) by the session
         self.counts = counts
         self.outbox = outbox
         self.link = link
@@ -136,6 +138,36 @@ class AgentCollector(Collector):
         )
         thinned.add_metric([robot], stats.thinned_frames)
         yield thinned
+        unstored = CounterMetricFamily(
+            f"{PREFIX}_outbox_unstored_points",
+            "Metric points the outbox could not keep because the disk was full.",
+            labels=["robot"],
+        )
+        unstored.add_metric([robot], stats.unstored_points)
+        yield unstored
+        for name, doc, value in (
+            ("outbox_disk_full", "1 while the outbox's disk is full.", 1.0 if self.outbox.disk_full else 0.0),
+            ("outbox_spilled_frames", "State events kept in memory because the disk is full.", stats.spilled_frames),
+        ):
+            family = GaugeMetricFamily(f"{PREFIX}_{name}", doc, labels=["robot"])
+            family.add_metric([robot], value)
+            yield family
+        if self.points is not None:
+            sent, dropped, in_flight = self.points()
+            for name, doc, value in (
+                ("metric_points_sent", "Metric points the agent produced for the cloud.", sent),
+                ("metric_points_dropped", "Metric points neither kept (full disk) nor sent (no link).", dropped),
+            ):
+                counter = CounterMetricFamily(f"{PREFIX}_{name}", doc, labels=["robot"])
+                counter.add_metric([robot], value)
+                yield counter
+            flying = GaugeMetricFamily(
+                f"{PREFIX}_unstored_frames_in_flight",
+                "Metric frames sent but not kept (full disk), not acked yet.",
+                labels=["robot"],
+            )
+            flying.add_metric([robot], in_flight)
+            yield flying
 
     def _routers(self, robot: str) -> Iterator[Metric]:
         labels = ["robot", "skill", "topic"]
@@ -171,7 +203,11 @@ def controller_collector(controller: RobotController) -> AgentCollector:
             if router is not None:
                 yield skill_id, router
 
-    return AgentCollector(controller.metrics, controller.outbox, controller.connected, routers)
+    def points() -> tuple[int, int, int]:
+        session = controller.session
+        return session.metric_points_sent, session.metric_points_dropped, session.unstored_in_flight
+
+    return AgentCollector(controller.metrics, controller.outbox, controller.connected, routers, points)
 
 
 def registry_for(collector: Collector) -> CollectorRegistry:

@@ -9,6 +9,12 @@ metric frames is thinned to every other frame (halving the time resolution of ol
 again and again if needed) and, when only state events are left, nothing more is dropped:
 state events are never discarded, whatever their volume.
 
+Full disk: a frame SQLite cannot write ("database or disk is full") is not lost silently. A
+state event is kept in memory instead, in its place in the order, until it is acked; a metric
+frame is not kept: its points are counted in ``unstored_points`` (the session still sends it
+once when connected, and counts it dropped when not). The agent says once that the disk is
+full, and once that it has room again.
+
 The same file remembers the ids of the cloud's frames this robot applied (and the answer it
 gave), the newest ``APPLIED_KEPT``, so a command the cloud resends after the agent was killed
 and restarted is answered again, not applied twice.
@@ -16,15 +22,20 @@ and restarted is answered again, not applied twice.
 
 from __future__ import annotations
 
+import heapq
+import logging
 import sqlite3
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
 
-__all__ = ["AppliedFrames", "Outbox", "OutboxStats"]
+__all__ = ["AppliedFrames", "Outbox", "OutboxStats", "disk_full"]
+
+logger = logging.getLogger("bridgeos_agent")
 
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
 # As many applied ids as the session's in-memory dedup window; trimmed every APPLIED_TRIM_EVERY adds.
@@ -55,6 +66,17 @@ class OutboxStats:
     metric_frames: int
     bytes: int
     thinned_frames: int
+    # Frames kept in memory (state events written while the disk was full) and metric points not kept.
+    spilled_frames: int = 0
+    unstored_points: int = 0
+
+
+def disk_full(exc: sqlite3.Error) -> bool:
+    """Tell whether SQLite failed for want of disk space (SQLITE_FULL, or an I/O error on write)."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    if code is not None:
+        return code & 0xFF in (sqlite3.SQLITE_FULL, sqlite3.SQLITE_IOERR)
+    return "full" in str(exc)
 
 
 class Outbox:
@@ -75,55 +97,191 @@ class Outbox:
         self._db.executescript(SCHEMA)
         self._bytes = self._db.execute("SELECT coalesce(sum(length(frame)), 0) FROM outbox").fetchone()[0]
         self.thinned_frames = 0
+        self.unstored_points = 0
+        self.disk_full = False
+        # id -> ((seq of the last stored frame, n), text): state events the full disk could not take.
+        self._spilled: dict[str, tuple[tuple[int, int], str]] = {}
+        self._spill_count = 0
+        self._reclaimed_at = -1e9
+        self._acked: set[str] = set()  # acked while the disk was full: still on disk, no longer owed
         self.applied = AppliedFrames(self._db)
 
     def put(self, envelope: Envelope) -> str:
         """Store a frame before it is sent; return its encoded text. A stored id is kept as is."""
         text = protocol.encode(envelope)
-        cursor = self._db.execute(
-            "INSERT OR IGNORE INTO outbox (id, metrics, frame) VALUES (?, ?, ?)",
-            (envelope.id, envelope.event == Event.METRICS, text),
-        )
+        metrics = envelope.event == Event.METRICS
+        try:
+            cursor = self._db.execute(
+                "INSERT OR IGNORE INTO outbox (id, metrics, frame) VALUES (?, ?, ?)", (envelope.id, metrics, text)
+            )
+        except sqlite3.Error as exc:
+            if not disk_full(exc):
+                raise
+            self._full(exc)
+            if self._reclaim():
+                return self.put(envelope)
+            if metrics:
+                self.unstored_points += len(envelope.data.get("metrics", ()))
+            else:
+                self.keep(envelope.id, text)
+            return text
+        if self.disk_full:
+            self._room_again()
+        if self._acked:
+            self._forget_acked()
         if cursor.rowcount:
             self._bytes += len(text)
             if self._bytes > self.max_bytes:
-                self._thin()
+                try:
+                    self._thin()
+                except sqlite3.Error as exc:
+                    if not disk_full(exc):
+                        raise
+                    self._full(exc)
         return text
+
+    def keep(self, frame_id: str, text: str) -> None:
+        """Hold in memory, until acked, a frame the full disk could not take (sent again on reconnect)."""
+        if frame_id not in self._spilled:
+            self._spill_count += 1
+            self._spilled[frame_id] = ((self._last_seq(), self._spill_count), text)
+
+    def held(self, frame_id: str) -> bool:
+        """Tell whether a frame is kept until acked (on disk or, for a state event on a full disk, in memory)."""
+        return frame_id in self
 
     def ack(self, frame_id: str) -> bool:
         """Forget an acknowledged frame; return whether it was held."""
-        row = self._db.execute("DELETE FROM outbox WHERE id = ? RETURNING length(frame)", (frame_id,)).fetchone()
+        if self._spilled.pop(frame_id, None) is not None:
+            return True
+        if frame_id in self._acked:
+            return True
+        try:
+            row = self._delete(frame_id)
+        except sqlite3.Error as exc:
+            if not disk_full(exc):
+                raise
+            self._full(exc)
+            if not (self._reclaim() and self._forget_acked()):
+                # Forgotten on disk once it has room (a restart meanwhile resends it: the cloud drops it by id).
+                if frame_id in self:
+                    self._acked.add(frame_id)
+                    return True
+                return False
+            row = self._delete(frame_id)
         if row is None:
             return False
         self._bytes -= row[0]
         return True
 
+    def _delete(self, frame_id: str) -> tuple[int] | None:
+        return self._db.execute("DELETE FROM outbox WHERE id = ? RETURNING length(frame)", (frame_id,)).fetchone()
+
+    def _forget_acked(self) -> bool:
+        """Delete the frames acked while the disk was full; say whether it could."""
+        try:
+            for frame_id in list(self._acked):
+                row = self._delete(frame_id)
+                if row is not None:
+                    self._bytes -= row[0]
+                self._acked.discard(frame_id)
+        except sqlite3.Error as exc:
+            if not disk_full(exc):
+                raise
+            return False
+        return True
+
     def backlog(self, *, after: int = 0, batch: int = 500) -> Iterator[tuple[int, str, str]]:
         """Yield (seq, id, frame text) of every held frame in the order it was stored."""
+        spilled = sorted((key, frame_id, text) for frame_id, (key, text) in self._spilled.items())
+        if spilled:
+            # Kept-in-memory frames go in after the frame stored just before them.
+            stored = (((seq, 0), frame_id, text) for seq, frame_id, text in self._stored_backlog(after, batch))
+            for (seq, _), frame_id, text in heapq.merge(stored, spilled):
+                yield seq, frame_id, text
+            return
+        yield from self._stored_backlog(after, batch)
+
+    def _stored_backlog(self, after: int, batch: int) -> Iterator[tuple[int, str, str]]:
         while True:
             rows = self._db.execute(
                 "SELECT seq, id, frame FROM outbox WHERE seq > ? ORDER BY seq LIMIT ?", (after, batch)
             ).fetchall()
-            yield from rows
+            yield from (row for row in rows if row[1] not in self._acked)
             if len(rows) < batch:
                 return
             after = rows[-1][0]
 
     def frame(self, frame_id: str) -> str | None:
         """Return the text of a held frame, or None once it was acked."""
+        spilled = self._spilled.get(frame_id)
+        if spilled is not None:
+            return spilled[1]
+        if frame_id in self._acked:
+            return None
         row = self._db.execute("SELECT frame FROM outbox WHERE id = ?", (frame_id,)).fetchone()
         return row[0] if row else None
 
     def __contains__(self, frame_id: object) -> bool:
+        if frame_id in self._spilled:
+            return True
+        if frame_id in self._acked:
+            return False
         return self._db.execute("SELECT 1 FROM outbox WHERE id = ?", (frame_id,)).fetchone() is not None
 
     def __len__(self) -> int:
-        return self._db.execute("SELECT count(*) FROM outbox").fetchone()[0]
+        return self._db.execute("SELECT count(*) FROM outbox").fetchone()[0] + len(self._spilled) - len(self._acked)
 
     def stats(self) -> OutboxStats:
         """Return the outbox's size."""
         frames, metric_frames = self._db.execute("SELECT count(*), coalesce(sum(metrics), 0) FROM outbox").fetchone()
-        return OutboxStats(frames, metric_frames, self._bytes, self.thinned_frames)
+        spilled = len(self._spilled)
+        return OutboxStats(
+            frames + spilled - len(self._acked),
+            metric_frames,
+            self._bytes,
+            self.thinned_frames,
+            spilled,
+            self.unstored_points,
+        )
+
+    def _last_seq(self) -> int:
+        row = self._db.execute("SELECT coalesce(max(seq), 0) FROM outbox").fetchone()
+        return int(row[0])
+
+    def _reclaim(self, clock: Callable[[], float] = time.monotonic) -> bool:
+        """Give the write-ahead log's space back to the disk (at most once a second); say whether it worked.
+
+        The log is only checkpointed after a commit that succeeds, so on a full disk it would
+        keep every byte it holds and the outbox would stay full after the disk has room again.
+        """
+        now = clock()
+        if now - self._reclaimed_at < 1.0:
+            return False
+        self._reclaimed_at = now
+        try:
+            busy, _, _ = self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+        except sqlite3.Error:
+            return False
+        return busy == 0
+
+    def _full(self, exc: sqlite3.Error) -> None:
+        if not self.disk_full:
+            self.disk_full = True
+            logger.warning(
+                "disk full under the outbox %s (%s): the agent runs on; state events are kept in memory until "
+                "acked, metric points that cannot be kept are counted (unstored, and dropped when not sent)",
+                self.path,
+                exc,
+            )
+
+    def _room_again(self) -> None:
+        self.disk_full = False
+        logger.warning(
+            "the outbox %s can write again: %d metric point(s) could not be kept while the disk was full",
+            self.path,
+            self.unstored_points,
+        )
 
     def oldest_ts(self) -> float | None:
         """Return when the oldest held frame was made (its envelope's ts), or None when empty."""

@@ -400,6 +400,8 @@ class Placement:
         message = None
         if state.status == Status.RESTARTING:
             message = f"crashed (exit code {state.exit_code}); restart {state.restarts}"
+            if state.message:
+                message += f": {state.message}"  # what the runtime knows more, e.g. killed over its memory limit
         elif state.status == Status.FAILED:
             message = f"crashed too often (exit code {state.exit_code}); gave up"
         self.controller.spawn(self.set_status(record, state.component, mapped, "robot", message))

@@ -95,6 +95,8 @@ class Session:
         self.connected = asyncio.Event()
         self.cloud_bytes = [0, 0]  # received, sent on the cloud link
         self.metric_points_sent = 0
+        self.metric_points_dropped = 0  # not kept (full disk) and not sent (no connection)
+        self._unstored: dict[str, str] = {}  # metric frames sent but not kept (full disk), until acked
         self.reliable = self._new_reliable()
         self._replaying = False
         self._holding = False  # moving to another path: new frames wait in the outbox
@@ -108,6 +110,11 @@ class Session:
         self._requests = protocol.Correlator()
         self._replies: dict[str, asyncio.Future[Envelope | None]] = {}
         self._tls_failure: str | None = None
+
+    @property
+    def unstored_in_flight(self) -> int:
+        """Return how many metric frames the full disk could not keep are sent and not yet acked."""
+        return len(self._unstored)
 
     @staticmethod
     def _new_reliable() -> protocol.Reliable:
@@ -169,6 +176,7 @@ class Session:
             open_timeout=10,
             compression=None,
             process_exception=self._connect_failed,
+            create_connection=_Connection,
             **target.connect_options(),
         ):
             try:
@@ -218,6 +226,8 @@ class Session:
             reason = getattr(protocol.parse_payload(answer), "reason", answer.event)
             raise AuthenticationRefused(reason)
         self._on_authenticated(getattr(protocol.parse_payload(answer), "ros_master", None))
+        if isinstance(ws, _Connection):
+            ws.on_pong = self._on_contact
         self.ws = ws
         self.network.path = path
         self.connected.set()
@@ -245,6 +255,9 @@ class Session:
         self.network.path = None
         self._holding = False
         self.connected.clear()
+        for frame_id, text in self._unstored.items():
+            self.outbox.keep(frame_id, text)  # in flight when the link dropped: sent again on reconnect
+        self._unstored.clear()
         # Everything unacked is sent again, in order, from the outbox on the next connection.
         self.reliable = self._new_reliable()
 
@@ -295,6 +308,15 @@ class Session:
             self.metric_points_sent += len(data["metrics"])
         if event in protocol.REQUIRES_ACK:
             text = self.outbox.put(envelope)
+            if self.outbox.disk_full and not self.outbox.held(envelope.id):
+                # Metrics the full disk could not keep: sent once if the cloud is there, else dropped (counted).
+                if self.ws is None or self._replaying or self._holding:
+                    self.metric_points_dropped += len(data["metrics"])
+                    return envelope
+                # Remembered until acked: if the link drops first, the outbox keeps it in memory.
+                self._unstored[envelope.id] = text
+                await self.send_text(text)
+                return envelope
             if self.ws is not None and not self._replaying and not self._holding:
                 self.reliable.send(envelope, time.monotonic())
                 await self.send_text(text)
@@ -345,6 +367,7 @@ class Session:
         event = envelope.event
         if event == Event.ACK:
             if envelope.reply_to:
+                self._unstored.pop(envelope.reply_to, None)
                 self.outbox.ack(envelope.reply_to)
                 self.reliable.on_ack(envelope.reply_to)
             return
@@ -364,7 +387,12 @@ class Session:
         """Drop a frame the cloud refused for good (a retryable refusal keeps it owed)."""
         payload = protocol.parse_payload(envelope)
         frame_id = envelope.reply_to or ""
+        unstored = self._unstored.pop(frame_id, None)
         if getattr(payload, "code", None) in RETRY_CODES:
+            if unstored is not None:
+                # Not on disk: held in memory and retransmitted like the frames that are.
+                self.outbox.keep(frame_id, unstored)
+                self.reliable.send(_owed(frame_id), time.monotonic())
             return  # kept: retransmitted later
         text = self.outbox.frame(frame_id)
         self.outbox.ack(frame_id)
@@ -415,6 +443,17 @@ class Session:
             else:
                 self._remembering.worked()
         await self.send_text(text)
+
+
+class _Connection(websockets.asyncio.client.ClientConnection):
+    """A client connection that tells when the cloud answers a keepalive ping: a sign of life."""
+
+    on_pong: Callable[[], None] | None = None
+
+    def acknowledge_pings(self, data: bytes) -> None:
+        super().acknowledge_pings(data)
+        if self.on_pong is not None:
+            self.on_pong()
 
 
 def _owed(frame_id: str) -> Envelope:

@@ -5,18 +5,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
 from bridgeos_agent.robotconfig import RobotConfig, parse_robot_config
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 from bridgeos_agent.supervisor import SkillSupervisor
+
+logger = logging.getLogger("bridgeos_agent")
 
 __all__ = ["SavedState", "SkillRecord", "StateFile", "find_component", "find_skill", "previous_placement"]
 
@@ -78,6 +82,7 @@ class StateFile:
         self.path = path
         self._collect = collect
         self._pending = False
+        self._saving = LogOnce(logger, f"saving the agent's state to {path}")
 
     def load(self, say: Callable[[str], None]) -> SavedState | None:
         """Read what the last agent saved (None if there is no file or it is unreadable)."""
@@ -109,11 +114,19 @@ class StateFile:
             asyncio.get_running_loop().call_later(0.2, self.save_now)
 
     def save_now(self) -> None:
-        """Write the state now."""
+        """Write the state now; on a full disk keep the last saved state and say so."""
         self._pending = False
         tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self._collect()))
-        os.replace(tmp, self.path)
+        try:
+            tmp.write_text(json.dumps(self._collect()))
+            os.replace(tmp, self.path)
+        except OSError as exc:
+            # The agent runs on (its state is in memory); only a restart now would start from the last save.
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            self._saving.failed(exc)
+        else:
+            self._saving.worked()
 
 
 def previous_placement(data_dir: Path, skill_id: str) -> dict[str, str]:

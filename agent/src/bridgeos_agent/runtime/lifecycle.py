@@ -112,6 +112,13 @@ class SupervisedRuntime(Runtime, Generic[R]):
     def _reap(self, rec: R) -> None:
         """Clean up after a launch that ended, before the supervisor decides what follows."""
 
+    def _exit_reason(self, rec: R, code: int | None) -> str | None:
+        """Say why a launch ended when the runtime knows more than its exit code (e.g. out of memory)."""
+        return None
+
+    async def _finished(self, rec: R) -> None:
+        """Release what a component held once it ended for good (exited, or given up on)."""
+
     def _background(self) -> list[asyncio.Task[None]]:
         """Return the runtime's own tasks that close() cancels with the supervisors."""
         return []
@@ -234,9 +241,15 @@ class SupervisedRuntime(Runtime, Generic[R]):
         while True:
             self._reap(rec)
             state.exit_code = code
+            reason = self._exit_reason(rec, code)
+            if reason is not None:
+                # Reported, not only restarted: the cloud sees why in the status's message.
+                logger.warning("component %s/%s %s", state.skill, state.component, reason)
+                state.message = reason
             if code == 0:
                 state.status = Status.EXITED
                 self._notify(state)
+                await self._finished(rec)
                 return
             who = f"component {state.skill}/{state.component}"
             message = unrunnable(code, who, self._command(rec))
@@ -247,6 +260,7 @@ class SupervisedRuntime(Runtime, Generic[R]):
                 state.status = Status.FAILED
                 state.message = message
                 self._notify(state)
+                await self._finished(rec)
                 return
             state.status = Status.RESTARTING
             self._notify(state)

@@ -47,6 +47,7 @@ from bridgeos_agent.runtime.base import (
     Usage,
     check_ids,
 )
+from bridgeos_agent.runtime.cgroups import Cgroups, ComponentGroup
 from bridgeos_agent.runtime.groups import ExitWatcher, GroupLeader, adopt, group_alive, signal_group
 from bridgeos_agent.runtime.lifecycle import Supervised, SupervisedRuntime
 from bridgeos_agent.runtime.usage import MIB, CpuSeen, measure
@@ -107,6 +108,9 @@ class _Component(Supervised):
     # CPU seconds seen per (pid, create_time) at the last stats() call, and its time.
     cpu_seen: CpuSeen = field(default_factory=dict)
     cpu_since: float | None = None
+    # The control group holding it to its resources (None: limits not enforced, said in the log).
+    group: ComponentGroup | None = None
+    oom_kills_seen: int = 0
 
 
 class ProcessRuntime(SupervisedRuntime[_Component]):
@@ -125,8 +129,12 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         use_pidfd: bool | None = None,
         poll_interval: float = 0.5,
         rng: random.Random | None = None,
+        cgroups: Cgroups | None = None,
     ) -> None:
         super().__init__(robot, data_dir=data_dir, on_status=on_status, rng=rng or random.Random())
+        self.cgroups = cgroups or Cgroups(robot)
+        self.cgroups.sweep()  # empty groups of components killed while no agent watched
+        logger.info("process runtime: component cpu/ram limits %s", self.cgroups.describe())
         self.log_max_bytes = log_max_bytes
         self.log_check_interval = log_check_interval
         self._watcher = ExitWatcher(
@@ -216,7 +224,10 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
                 ),
                 budget=RestartBudget(spec.restart),
                 proc=proc,
+                group=self.cgroups.group(spec),
             )
+            if comp.group is not None:
+                comp.oom_kills_seen = comp.group.oom_kills()
             self._records[spec.key] = comp
             self._ensure_housekeeper()
             self._watcher.watch(proc)
@@ -283,10 +294,30 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         return rec.spec.launch.command
 
     async def _end(self, rec: _Component, timeout: float) -> None:
-        """Stop the component's whole process group."""
+        """Stop the component's whole process group, then delete its control group."""
         if rec.proc is not None:
             rec.state.exit_code = await self._terminate(rec.proc, timeout)
             rec.proc = None
+        if rec.group is not None:
+            await rec.group.remove()
+
+    async def _finished(self, rec: _Component) -> None:
+        """Delete the control group of a component that will not be relaunched."""
+        if rec.group is not None:
+            await rec.group.remove()
+
+    def _exit_reason(self, rec: _Component, code: int | None) -> str | None:
+        """Say when the kernel killed the component for going over its memory limit."""
+        if rec.group is None:
+            return None
+        kills = rec.group.oom_kills()
+        if kills <= rec.oom_kills_seen:
+            return None
+        rec.oom_kills_seen = kills
+        return (
+            f"killed by the kernel (exit {code}): it went over its memory limit of "
+            f"{rec.spec.resources.ram:g} MiB (out of memory)"
+        )
 
     def _launch(self, comp: _Component) -> GroupLeader:
         """Spawn the component's command in a new session, logging to its file."""
@@ -306,17 +337,10 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         for volume in spec.volumes:
             (self.volumes_dir(spec.skill) / volume).mkdir(parents=True, exist_ok=True)
         _rotate(log, self.log_max_bytes, copy=False)
+        comp.group = self.cgroups.prepare(spec)
         fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
         try:
-            popen = subprocess.Popen(
-                command,
-                stdin=subprocess.DEVNULL,
-                stdout=fd,
-                stderr=fd,
-                cwd=cwd,
-                env=self._env(spec),
-                start_new_session=True,
-            )
+            popen = self._spawn(comp, command, fd, cwd)
         except FileNotFoundError:
             message = (
                 f"{who}: command {command[0]!r} not found (looked in PATH={self._base_env.get('PATH', '')!r}): "
@@ -330,6 +354,10 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
             raise RuntimeFailure(message) from None
         except OSError as exc:
             message = f"{who}: cannot run {command[0]!r}: {exc}"
+            _log_failure(fd, message)
+            raise RuntimeFailure(message) from None
+        except subprocess.SubprocessError as exc:
+            message = f"{who}: cannot join its control group {comp.group and comp.group.directories}: {exc}"
             _log_failure(fd, message)
             raise RuntimeFailure(message) from None
         finally:
@@ -353,6 +381,29 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         state.message = None
         state.started_at = time.time()
         return proc
+
+    def _spawn(self, comp: _Component, command: list[str], fd: int, cwd: Path) -> subprocess.Popen[bytes]:
+        """Start the command in a session of its own, inside the component's group when it has one."""
+        for attempt in (1, 2):
+            try:
+                return subprocess.Popen(
+                    command,
+                    stdin=subprocess.DEVNULL,
+                    stdout=fd,
+                    stderr=fd,
+                    cwd=cwd,
+                    env=self._env(comp.spec),
+                    start_new_session=True,
+                    # Joined before exec, so nothing the command forks starts outside its limits.
+                    preexec_fn=comp.group.joiner() if comp.group is not None else None,
+                )
+            except subprocess.SubprocessError:
+                # The group went between its making and the join (another process of this robot
+                # deleted it as it stopped its last component): made again, joined once more.
+                if attempt == 2 or comp.group is None:
+                    raise
+                comp.group = self.cgroups.prepare(comp.spec)
+        raise AssertionError("unreachable")
 
     async def _terminate(self, proc: GroupLeader, timeout: float) -> int | None:
         """Signal a process group to stop, then kill whatever is left after ``timeout``."""
