@@ -48,6 +48,7 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
         simulate=args.simulate,
         simulated=simulated,
         sample_interval=args.sample_interval,
+        outbox_memory_bytes=int(args.outbox_memory * 1024 * 1024),
         stop_components_on_exit=args.stop_components_on_exit,
         ca_file=args.ca,
         allow_insecure=args.allow_insecure,

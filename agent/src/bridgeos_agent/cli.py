@@ -212,6 +212,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds between resource samples (default 1)",
     )
     run.add_argument(
+        "--outbox-memory",
+        type=_positive("--outbox-memory"),
+        default=os.environ.get("BRIDGEOS_OUTBOX_MEMORY", "8"),
+        metavar="MIB",
+        help="while the disk is full, keep up to this many MiB of metric frames in memory until the cloud has "
+        "them; past it the oldest are dropped and counted (env BRIDGEOS_OUTBOX_MEMORY; default 8)",
+    )
+    run.add_argument(
         "--stop-components-on-exit",
         action="store_true",
         help="stop the robot's components when the agent stops (default: keep them for the next agent)",

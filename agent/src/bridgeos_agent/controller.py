@@ -24,7 +24,7 @@ from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.metrics import AgentMetrics
 from bridgeos_agent.monitor import RESOURCES, Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
 from bridgeos_agent.network import CloudNetwork
-from bridgeos_agent.outbox import Outbox
+from bridgeos_agent.outbox import DEFAULT_MEMORY_BYTES, Outbox
 from bridgeos_agent.placement import Placement
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Envelope, Event
@@ -58,6 +58,7 @@ class AgentSettings:
     report_max_interval: float = 10.0
     startup_parallelism: int = 8
     outbox_max_bytes: int = 64 * 1024 * 1024
+    outbox_memory_bytes: int = DEFAULT_MEMORY_BYTES  # metric frames kept in memory while the disk is full
     reconnect_initial: float = 1.0
     # Retries back off to at most 3 s, so every robot is back within ~5 s of the cloud's return
     # (issue 20); a refused connect to a cloud that is down costs it nothing.
@@ -94,7 +95,11 @@ class RobotController:
         self.say: Callable[[str], None] = say or (lambda line: logger.info("%s", line))
         self.placement = Placement(self)
         self.cloud_role = CloudRole(self)
-        self.outbox = Outbox(self.data_dir / "outbox.sqlite3", max_bytes=settings.outbox_max_bytes)
+        self.outbox = Outbox(
+            self.data_dir / "outbox.sqlite3",
+            max_bytes=settings.outbox_max_bytes,
+            memory_bytes=settings.outbox_memory_bytes,
+        )
         self.metrics = AgentMetrics(settings.robot)  # what --metrics serves (bridgeos_agent.metrics)
         self.runtime: Runtime = runtime or create_runtime(
             settings.runtime,

@@ -140,14 +140,26 @@ class AgentCollector(Collector):
         yield thinned
         unstored = CounterMetricFamily(
             f"{PREFIX}_outbox_unstored_points",
-            "Metric points the outbox could not keep because the disk was full.",
+            "Metric points the outbox could not keep: the disk was full and the memory budget spent.",
             labels=["robot"],
         )
         unstored.add_metric([robot], stats.unstored_points)
         yield unstored
+        spilled = CounterMetricFamily(
+            f"{PREFIX}_outbox_spilled_points",
+            "Metric points kept in memory because the disk was full.",
+            labels=["robot"],
+        )
+        spilled.add_metric([robot], stats.spilled_points)
+        yield spilled
         for name, doc, value in (
             ("outbox_disk_full", "1 while the outbox's disk is full.", 1.0 if self.outbox.disk_full else 0.0),
-            ("outbox_spilled_frames", "State events kept in memory because the disk is full.", stats.spilled_frames),
+            ("outbox_spilled_frames", "Frames kept in memory because the disk is full.", stats.spilled_frames),
+            (
+                "outbox_spilled_bytes",
+                "Bytes of the frames kept in memory because the disk is full.",
+                stats.spilled_bytes,
+            ),
         ):
             family = GaugeMetricFamily(f"{PREFIX}_{name}", doc, labels=["robot"])
             family.add_metric([robot], value)
@@ -156,14 +168,18 @@ class AgentCollector(Collector):
             sent, dropped, in_flight = self.points()
             for name, doc, value in (
                 ("metric_points_sent", "Metric points the agent produced for the cloud.", sent),
-                ("metric_points_dropped", "Metric points neither kept (full disk) nor sent (no link).", dropped),
+                (
+                    "metric_points_dropped",
+                    "Metric points neither kept (full disk, memory budget spent) nor sent (no link).",
+                    dropped,
+                ),
             ):
                 counter = CounterMetricFamily(f"{PREFIX}_{name}", doc, labels=["robot"])
                 counter.add_metric([robot], value)
                 yield counter
             flying = GaugeMetricFamily(
                 f"{PREFIX}_unstored_frames_in_flight",
-                "Metric frames sent but not kept (full disk), not acked yet.",
+                "Metric frames sent but not kept (full disk, memory budget spent), not acked yet.",
                 labels=["robot"],
             )
             flying.add_metric([robot], in_flight)

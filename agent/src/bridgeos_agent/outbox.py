@@ -9,11 +9,14 @@ metric frames is thinned to every other frame (halving the time resolution of ol
 again and again if needed) and, when only state events are left, nothing more is dropped:
 state events are never discarded, whatever their volume.
 
-Full disk: a frame SQLite cannot write ("database or disk is full") is not lost silently. A
-state event is kept in memory instead, in its place in the order, until it is acked; a metric
-frame is not kept: its points are counted in ``unstored_points`` (the session still sends it
-once when connected, and counts it dropped when not). The agent says once that the disk is
-full, and once that it has room again.
+Full disk: a frame SQLite cannot write ("database or disk is full") is not lost. It is kept
+in memory instead, in its place in the order, until it is acked (sent again on reconnect like
+the stored ones): state events always, metric frames up to ``memory_bytes`` of memory. Past
+that budget the oldest metric frames in memory go first (never a state event): their points
+are counted in ``unstored_points`` and handed to the session (``evictions``), which counts them
+dropped unless they are in flight on the live link; a metric frame that does not fit at all is
+not kept (the session sends it once when connected, and counts it dropped when not). The agent
+says once that the disk is full, once that the budget is spent, and once that it has room again.
 
 The same file remembers the ids of the cloud's frames this robot applied (and the answer it
 gave), the newest ``APPLIED_KEPT``, so a command the cloud resends after the agent was killed
@@ -33,11 +36,13 @@ from pathlib import Path
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
 
-__all__ = ["AppliedFrames", "Outbox", "OutboxStats", "disk_full"]
+__all__ = ["DEFAULT_MEMORY_BYTES", "AppliedFrames", "Outbox", "OutboxStats", "disk_full"]
 
 logger = logging.getLogger("bridgeos_agent")
 
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
+# Metric frames kept in memory on a full disk: hours of a robot's metrics at 10 points/s.
+DEFAULT_MEMORY_BYTES = 8 * 1024 * 1024
 # As many applied ids as the session's in-memory dedup window; trimmed every APPLIED_TRIM_EVERY adds.
 APPLIED_KEPT = 2000
 APPLIED_TRIM_EVERY = 200
@@ -66,9 +71,11 @@ class OutboxStats:
     metric_frames: int
     bytes: int
     thinned_frames: int
-    # Frames kept in memory (state events written while the disk was full) and metric points not kept.
+    # Frames kept in memory (written while the disk was full) and metric points not kept.
     spilled_frames: int = 0
     unstored_points: int = 0
+    spilled_bytes: int = 0
+    spilled_points: int = 0  # metric points ever kept in memory for want of disk
 
 
 def disk_full(exc: sqlite3.Error) -> bool:
@@ -82,11 +89,16 @@ def disk_full(exc: sqlite3.Error) -> bool:
 class Outbox:
     """A durable FIFO of unacknowledged frames in one SQLite file."""
 
-    def __init__(self, path: Path | str, *, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+    def __init__(
+        self, path: Path | str, *, max_bytes: int = DEFAULT_MAX_BYTES, memory_bytes: int = DEFAULT_MEMORY_BYTES
+    ) -> None:
         if max_bytes < 1024:
             raise ValueError("max_bytes must be at least 1024")
+        if memory_bytes < 0:
+            raise ValueError("memory_bytes must not be negative")
         self.path = Path(path)
         self.max_bytes = max_bytes
+        self.memory_bytes = memory_bytes
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # One connection used from the event loop's thread only; autocommit per statement.
         self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
@@ -98,9 +110,14 @@ class Outbox:
         self._bytes = self._db.execute("SELECT coalesce(sum(length(frame)), 0) FROM outbox").fetchone()[0]
         self.thinned_frames = 0
         self.unstored_points = 0
+        self.spilled_points = 0
         self.disk_full = False
-        # id -> ((seq of the last stored frame, n), text): state events the full disk could not take.
+        # id -> ((seq of the last stored frame, n), text): frames the full disk could not take.
         self._spilled: dict[str, tuple[tuple[int, int], str]] = {}
+        self._spilled_metrics: dict[str, int] = {}  # id -> points of the metric frames among them, oldest first
+        self._spilled_bytes = 0
+        self._over_budget = False
+        self._evicted: list[tuple[str, str, int]] = []  # (id, text, points) dropped from memory, not yet told
         self._spill_count = 0
         self._reclaimed_at = -1e9
         self._acked: set[str] = set()  # acked while the disk was full: still on disk, no longer owed
@@ -120,10 +137,10 @@ class Outbox:
             self._full(exc)
             if self._reclaim():
                 return self.put(envelope)
-            if metrics:
-                self.unstored_points += len(envelope.data.get("metrics", ()))
-            else:
-                self.keep(envelope.id, text)
+            points = len(envelope.data.get("metrics", ())) if metrics else None
+            self.keep(envelope.id, text, points=points)
+            if points is not None and envelope.id in self._spilled:
+                self.spilled_points += points
             return text
         if self.disk_full:
             self._room_again()
@@ -140,19 +157,54 @@ class Outbox:
                     self._full(exc)
         return text
 
-    def keep(self, frame_id: str, text: str) -> None:
-        """Hold in memory, until acked, a frame the full disk could not take (sent again on reconnect)."""
-        if frame_id not in self._spilled:
-            self._spill_count += 1
-            self._spilled[frame_id] = ((self._last_seq(), self._spill_count), text)
+    def keep(self, frame_id: str, text: str, *, points: int | None = None) -> None:
+        """Hold in memory, until acked, a frame the full disk could not take (sent again on reconnect).
+
+        ``points`` marks a metric frame (with that many points): within ``memory_bytes`` only.
+        """
+        if frame_id in self._spilled:
+            return
+        self._spill_count += 1
+        self._spilled[frame_id] = ((self._last_seq(), self._spill_count), text)
+        self._spilled_bytes += len(text)
+        if points is not None:
+            self._spilled_metrics[frame_id] = points
+        self._fit(frame_id)
+
+    def _fit(self, newest: str) -> None:
+        """Drop the oldest metric frames kept in memory until under the budget (state events stay)."""
+        while self._spilled_bytes > self.memory_bytes and self._spilled_metrics:
+            frame_id = next(iter(self._spilled_metrics))
+            points = self._spilled_metrics.pop(frame_id)
+            _, text = self._spilled.pop(frame_id)
+            self._spilled_bytes -= len(text)
+            self.unstored_points += points
+            if frame_id != newest:
+                self._evicted.append((frame_id, text, points))  # the newest is simply not held: its sender sees
+            if not self._over_budget:
+                self._over_budget = True
+                logger.warning(
+                    "the outbox %s keeps %.3g MiB in memory while the disk is full: the oldest metric frames "
+                    "in memory are dropped from now on (their points counted unstored; state events are kept)",
+                    self.path,
+                    self.memory_bytes / (1024 * 1024),
+                )
+
+    def evictions(self) -> list[tuple[str, str, int]]:
+        """Return (id, text, points) of the metric frames dropped from memory since the last call."""
+        evicted, self._evicted = self._evicted, []
+        return evicted
 
     def held(self, frame_id: str) -> bool:
-        """Tell whether a frame is kept until acked (on disk or, for a state event on a full disk, in memory)."""
+        """Tell whether a frame is kept until acked (on disk or, on a full disk, in memory)."""
         return frame_id in self
 
     def ack(self, frame_id: str) -> bool:
         """Forget an acknowledged frame; return whether it was held."""
-        if self._spilled.pop(frame_id, None) is not None:
+        spilled = self._spilled.pop(frame_id, None)
+        if spilled is not None:
+            self._spilled_bytes -= len(spilled[1])
+            self._spilled_metrics.pop(frame_id, None)
             return True
         if frame_id in self._acked:
             return True
@@ -197,7 +249,9 @@ class Outbox:
         if spilled:
             # Kept-in-memory frames go in after the frame stored just before them.
             stored = (((seq, 0), frame_id, text) for seq, frame_id, text in self._stored_backlog(after, batch))
-            for (seq, _), frame_id, text in heapq.merge(stored, spilled):
+            for (seq, n), frame_id, text in heapq.merge(stored, spilled):
+                if n and frame_id not in self._spilled:
+                    continue  # acked or dropped from memory since the backlog began
                 yield seq, frame_id, text
             return
         yield from self._stored_backlog(after, batch)
@@ -243,6 +297,8 @@ class Outbox:
             self.thinned_frames,
             spilled,
             self.unstored_points,
+            self._spilled_bytes,
+            self.spilled_points,
         )
 
     def _last_seq(self) -> int:
@@ -269,17 +325,22 @@ class Outbox:
         if not self.disk_full:
             self.disk_full = True
             logger.warning(
-                "disk full under the outbox %s (%s): the agent runs on; state events are kept in memory until "
-                "acked, metric points that cannot be kept are counted (unstored, and dropped when not sent)",
+                "disk full under the outbox %s (%s): the agent runs on; frames are kept in memory until acked "
+                "(metric frames up to %.3g MiB, past that the oldest are dropped and their points counted "
+                "unstored, and dropped when not sent; state events always)",
                 self.path,
                 exc,
+                self.memory_bytes / (1024 * 1024),
             )
 
     def _room_again(self) -> None:
         self.disk_full = False
+        self._over_budget = False
         logger.warning(
-            "the outbox %s can write again: %d metric point(s) could not be kept while the disk was full",
+            "the outbox %s can write again: %d metric point(s) kept in memory, %d could not be kept, "
+            "while the disk was full",
             self.path,
+            self.spilled_points,
             self.unstored_points,
         )
 

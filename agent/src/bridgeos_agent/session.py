@@ -95,8 +95,9 @@ class Session:
         self.connected = asyncio.Event()
         self.cloud_bytes = [0, 0]  # received, sent on the cloud link
         self.metric_points_sent = 0
-        self.metric_points_dropped = 0  # not kept (full disk) and not sent (no connection)
-        self._unstored: dict[str, str] = {}  # metric frames sent but not kept (full disk), until acked
+        self.metric_points_dropped = 0  # not kept (full disk, memory budget spent) and not sent (no connection)
+        # Metric frames sent but not kept (full disk, memory budget spent): (text, points) until acked.
+        self._unstored: dict[str, tuple[str, int]] = {}
         self.reliable = self._new_reliable()
         self._replaying = False
         self._holding = False  # moving to another path: new frames wait in the outbox
@@ -113,7 +114,7 @@ class Session:
 
     @property
     def unstored_in_flight(self) -> int:
-        """Return how many metric frames the full disk could not keep are sent and not yet acked."""
+        """Return how many metric frames not kept (full disk, memory budget spent) are sent and not yet acked."""
         return len(self._unstored)
 
     @staticmethod
@@ -255,13 +256,25 @@ class Session:
         self.network.path = None
         self._holding = False
         self.connected.clear()
-        for frame_id, text in self._unstored.items():
-            self.outbox.keep(frame_id, text)  # in flight when the link dropped: sent again on reconnect
+        for frame_id, (text, points) in self._unstored.items():
+            # In flight when the link dropped: kept in memory (within its budget) and sent again on reconnect.
+            self.outbox.keep(frame_id, text, points=points)
+            if not self.outbox.held(frame_id):
+                self.metric_points_dropped += points
         self._unstored.clear()
+        self._count_evicted()
         # Everything unacked is sent again, in order, from the outbox on the next connection.
         self.reliable = self._new_reliable()
 
     # ------------------------------------------------------------------ sending
+
+    def _count_evicted(self) -> None:
+        """Account for the metric frames the outbox dropped from memory to stay in its budget."""
+        for frame_id, text, points in self.outbox.evictions():
+            if self.ws is not None and frame_id in self.reliable:
+                self._unstored[frame_id] = (text, points)  # sent on this link: it may still be acked
+            else:
+                self.metric_points_dropped += points
 
     async def _replay_backlog(self) -> None:
         """Send every frame still owed, oldest first, before anything new."""
@@ -272,11 +285,12 @@ class Session:
             for _, frame_id, text in self.outbox.backlog():
                 if self.ws is None:
                     return
+                # Reliable needs only the id and that the frame wants an ack; its text stays in the
+                # outbox (not decoded again here: a backlog can hold many MB of metrics). Registered
+                # before the send, so a frame dropped from memory meanwhile is known to be in flight.
+                self.reliable.send(_owed(frame_id), now)
                 await self.ws.send(text)
                 self.cloud_bytes[1] += len(text)
-                # Reliable needs only the id and that the frame wants an ack; its text stays in the
-                # outbox (not decoded again here: a backlog can hold many MB of metrics).
-                self.reliable.send(_owed(frame_id), now)
                 sent += 1
             if sent:
                 self.say(f"re-sent {sent} frame(s) kept while disconnected")
@@ -308,13 +322,15 @@ class Session:
             self.metric_points_sent += len(data["metrics"])
         if event in protocol.REQUIRES_ACK:
             text = self.outbox.put(envelope)
+            self._count_evicted()
             if self.outbox.disk_full and not self.outbox.held(envelope.id):
-                # Metrics the full disk could not keep: sent once if the cloud is there, else dropped (counted).
+                # Metrics neither the full disk nor the memory budget could keep: sent once if the cloud
+                # is there, else dropped (counted).
                 if self.ws is None or self._replaying or self._holding:
                     self.metric_points_dropped += len(data["metrics"])
                     return envelope
-                # Remembered until acked: if the link drops first, the outbox keeps it in memory.
-                self._unstored[envelope.id] = text
+                # Remembered until acked: if the link drops first, the outbox keeps it in memory if it can.
+                self._unstored[envelope.id] = (text, len(data["metrics"]))
                 await self.send_text(text)
                 return envelope
             if self.ws is not None and not self._replaying and not self._holding:
@@ -390,9 +406,14 @@ class Session:
         unstored = self._unstored.pop(frame_id, None)
         if getattr(payload, "code", None) in RETRY_CODES:
             if unstored is not None:
-                # Not on disk: held in memory and retransmitted like the frames that are.
-                self.outbox.keep(frame_id, unstored)
-                self.reliable.send(_owed(frame_id), time.monotonic())
+                # Not on disk: held in memory (within its budget) and retransmitted like the frames that are.
+                unsent, points = unstored
+                self.outbox.keep(frame_id, unsent, points=points)
+                self._count_evicted()
+                if self.outbox.held(frame_id):
+                    self.reliable.send(_owed(frame_id), time.monotonic())
+                else:
+                    self.metric_points_dropped += points  # refused for now, and no room to keep it
             return  # kept: retransmitted later
         text = self.outbox.frame(frame_id)
         self.outbox.ack(frame_id)
