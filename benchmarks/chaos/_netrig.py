@@ -22,7 +22,7 @@ import tempfile
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -230,6 +230,7 @@ class Agent:
         *,
         namespace: str | None = None,
         sample_interval: float = 0.5,
+        options: Sequence[str] = (),
     ) -> None:
         self.robot = robot
         self.namespace = namespace
@@ -256,6 +257,7 @@ class Agent:
             f"127.0.0.1:{self.metrics_port}",
             "--allow-insecure",
             "--stop-components-on-exit",
+            *options,
         ]
         if namespace is not None:
             command = ["ip", "netns", "exec", namespace, *command]
