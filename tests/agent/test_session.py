@@ -123,3 +123,71 @@ async def test_a_command_is_answered_even_when_its_id_cannot_be_kept_on_disk(tmp
 async def _answered(answers: dict[str, Envelope], frame_id: str) -> None:
     while frame_id not in answers:
         await asyncio.sleep(0.02)
+
+
+async def test_on_a_full_disk_metric_frames_wait_in_memory_and_past_the_budget_the_oldest_are_counted_dropped(
+    tmp_path,
+):
+    points: dict[str, int] = {}  # metric frame id -> points the cloud got
+    order: list[str] = []
+
+    async def cloud(ws):
+        protocol.decode(await ws.recv())  # authentication_robot
+        await ws.send(
+            protocol.encode(protocol.make(Event.AUTHENTICATION_SUCCESS, {"robot": "sess-3"}, now=time.time()))
+        )
+        async for raw in ws:
+            envelope = protocol.decode(raw)
+            if envelope.event == Event.METRICS:
+                points[envelope.id] = len(envelope.data["metrics"])
+                order.append(envelope.id)
+            if envelope.event in protocol.REQUIRES_ACK:
+                await ws.send(protocol.ack_text(envelope.id, now=time.time()))
+
+    def frame(n: int) -> dict:
+        return {"metrics": [{"name": "cpu", "value": float(i), "ts": 1000.0 + n} for i in range(5)]}
+
+    size = len(protocol.encode(protocol.make(Event.METRICS, frame(0), now=time.time())))
+    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
+        port = server.sockets[0].getsockname()[1]
+        settings = AgentSettings(
+            master=f"ws://127.0.0.1:{port}",
+            robot="sess-3",
+            token="token",
+            data_dir=tmp_path,
+            simulate=True,
+            sample_interval=3600,
+            detect_ros_master=False,
+            volume_sync_interval=0,
+            outbox_memory_bytes=1 << 20,
+        )
+        controller = RobotController(settings, plugins={})
+        session = controller.session
+        outbox = controller.outbox
+        assert outbox.memory_bytes == 1 << 20
+        # The disk is full (the file cannot grow) and the cloud is not reached yet.
+        pages = outbox._db.execute("PRAGMA page_count").fetchone()[0]
+        outbox._db.execute(f"PRAGMA max_page_count = {pages}")
+        while not outbox.disk_full:
+            await session.emit(Event.COMPONENT_STATUS, {"skill": "s", "component": "c", "status": "running"})
+        outbox.memory_bytes = outbox.stats().spilled_bytes + 3 * size + size // 2  # three metric frames, not four
+        emitted = [await session.emit(Event.METRICS, frame(n)) for n in range(8)]
+        # The newest three are held in memory; the five before went, oldest first, counted as dropped.
+        assert [outbox.held(e.id) for e in emitted] == [False] * 5 + [True] * 3
+        assert session.metric_points_dropped == outbox.unstored_points == 25
+        running = asyncio.create_task(controller.run())
+        try:
+            await asyncio.wait_for(controller.connected.wait(), 10)
+            deadline = time.monotonic() + 10
+            while (len(outbox) or session.unstored_in_flight) and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            assert len(outbox) == 0 and session.unstored_in_flight == 0
+            # Resent on reconnect, in order; every point the agent made reached the cloud or was counted dropped.
+            kept = [e.id for e in emitted[5:]]
+            assert [frame_id for frame_id in order if frame_id in kept] == kept
+            assert not any(e.id in points for e in emitted[:5])
+            assert session.metric_points_sent == sum(points.values()) + session.metric_points_dropped
+        finally:
+            controller.stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.wait_for(running, 15)
