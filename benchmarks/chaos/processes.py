@@ -4,7 +4,7 @@ daphne: a fleet of real agents (`--simulate`) streams metrics; daphne is killed,
 started again on the same port. Every point a robot made must be in PostgreSQL exactly once, and
 every robot connected again soon after daphne's return (`reconnect_s`).
 
-Celery worker: a retention task (`monitoring.tasks.prune_metrics`) is held mid-DELETE by a table
+Celery worker: a retention task (`monitoring.tasks.prune_metrics`) is held mid-way by a table
 lock, the worker and its pool are killed, and a new worker must finish the task: it is
 acknowledged late (`acks_late`), so Redis keeps it and hands it out again once its visibility
 timeout passed (short here, by `CELERY_VISIBILITY_TIMEOUT_S`, to keep the scenario brief).
@@ -136,18 +136,23 @@ def _count_old(database_url: str, robot: str) -> int:
 
 
 def _waiting_delete(database_url: str) -> bool:
-    """Whether a DELETE on the metric table waits for a lock (the task is mid-way)."""
+    """Whether the retention task waits for a lock on the metric table (it is mid-way).
+
+    With day partitions the task may wait in its DELETE, in a partition's DROP or LOCK, or in
+    creating the days ahead; ingest's COPY and INSERT wait there too and are not the task.
+    """
     with psycopg.connect(database_url, autocommit=True) as conn:
         row = conn.execute(
             "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock' "
-            "AND query ILIKE 'DELETE FROM %%monitoring_metric%%'"
+            "AND query ILIKE '%%monitoring_metric%%' AND query NOT ILIKE 'COPY%%' AND query NOT ILIKE 'INSERT%%' "
+            "AND query NOT ILIKE 'LOCK TABLE monitoring_metric IN SHARE MODE'"
         ).fetchone()
     return bool(row and row[0])
 
 
 def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility: float) -> Outcome:
-    """kill -9 the worker (and its pool) while a retention task is mid-DELETE; a new worker must finish it."""
-    injected = "Celery worker kill -9 mid-task (prune_metrics blocked mid-DELETE)"
+    """kill -9 the worker (and its pool) while a retention task is mid-way; a new worker must finish it."""
+    injected = "Celery worker kill -9 mid-task (prune_metrics blocked on a table lock)"
     database_url = env["DATABASE_URL"]
     prefix = f"chaos-wk-{uuid.uuid4().hex[:6]}"
     robot = create_robots(env, prefix, 1)[0][0]
@@ -168,7 +173,7 @@ def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility
             capture_output=True,
             cwd=str(workdir),
         )
-        eventually(lambda: _waiting_delete(database_url), timeout=30, what="the task's DELETE under way")
+        eventually(lambda: _waiting_delete(database_url), timeout=30, what="the task waiting on the metric table")
         worker.kill()
         holder.rollback()
         left_after_kill = _count_old(database_url, robot)
