@@ -77,7 +77,13 @@ class AppliedIds:
         self._flusher = None
         task = asyncio.get_running_loop().create_task(self.flush())
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._flushed)
+
+    def _flushed(self, task: asyncio.Task) -> None:
+        self._tasks.discard(task)
+        # A failed background write is retried by the next one; its ids are queued again.
+        if not task.cancelled():
+            task.exception()
 
     async def close(self) -> None:
         """Save every unsaved id and let go of Redis (at shutdown)."""
@@ -105,8 +111,16 @@ class AppliedIds:
                     del kept[:-WINDOW]
             else:
                 self._saving = asyncio.ensure_future(self._save(unsaved, self._saving))
-        if self._saving is not None:
-            await asyncio.shield(self._saving)
+        saving = self._saving
+        if saving is None:
+            return
+        if saving.done() and not unsaved:
+            # Settled before this call: a failure was its own waiters' to hear, and its ids are
+            # queued again for the next write, so it must not fail every later flush (Redis is back).
+            if not saving.cancelled():
+                saving.exception()
+            return
+        await asyncio.shield(saving)
 
     async def _save(self, unsaved: dict[str, list[str]], previous: asyncio.Future | None) -> None:
         assert self._redis is not None
@@ -118,6 +132,15 @@ class AppliedIds:
                     pipe.ltrim(key, 0, WINDOW - 1)
                     pipe.expire(key, KEEP_SECONDS)
                 await pipe.execute()
+        except Exception:
+            # Not saved (Redis gone): queue the ids again, before newer ones, for the next write.
+            for robot_id, ids in unsaved.items():
+                queued = self._unsaved[robot_id]
+                queued[:0] = ids
+                del queued[:-WINDOW]
+            if self._flusher is None:
+                self._flusher = asyncio.get_running_loop().call_later(FLUSH_INTERVAL, self._flush_soon)
+            raise
         finally:
             if previous is not None:
                 # Its failure was its own waiters' to hear; this write only has to end after it.
