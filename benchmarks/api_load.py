@@ -241,8 +241,10 @@ class KeepAliveConnection:
             self.reader = self.writer = None
 
 
-async def read_load(url: str, token: str, fleet: dict, args: dict) -> dict:
+async def read_load(urls: list[str], token: str, fleet: dict, args: dict) -> dict:
     """Each client reads at `client_rate` per second (open loop), or back to back when it is 0.
+
+    Clients are spread over the daphne processes in `urls` in turn (no stickiness).
 
     Open-loop latency is measured from when a request was due, so a server that falls
     behind is charged for the wait too (no coordinated omission).
@@ -255,7 +257,7 @@ async def read_load(url: str, token: str, fleet: dict, args: dict) -> dict:
     samples = [array("d") for _ in FAMILIES]  # latency in seconds, requests started in [t0, t1]
     errors: Counter[str] = Counter()
     bodies: dict[int, tuple[bytes, bool]] = {}
-    where = urlsplit(url)
+    wheres = [urlsplit(url) for url in urls]
     # Like a browser or httpx: accept gzip, so the server compresses the fleet as for real clients.
     headers = {"Authorization": f"Token {token}", "Accept-Encoding": "gzip"}
 
@@ -263,6 +265,7 @@ async def read_load(url: str, token: str, fleet: dict, args: dict) -> dict:
 
     async def client(index: int) -> None:
         rnd = random.Random(index)
+        where = wheres[index % len(wheres)]
         http = KeepAliveConnection(where.hostname or "127.0.0.1", where.port or 80, headers)
         due = time.time() + (rnd.random() / rate if rate else 0.0)
         try:
@@ -307,13 +310,13 @@ async def read_load(url: str, token: str, fleet: dict, args: dict) -> dict:
     }
 
 
-def load_main(url, token, fleet, args, start_event, results) -> None:
+def load_main(urls, token, fleet, args, start_event, results) -> None:
     # The fork inherits the parent's Django and fleet objects: without this, a full collection
     # in the load client pauses every request in flight and is counted as server latency.
     gc.freeze()
     start_event.wait()
     try:
-        results.put(asyncio.run(read_load(url, token, fleet, args)))
+        results.put(asyncio.run(read_load(urls, token, fleet, args)))
     except BaseException as exc:
         results.put({"crash": repr(exc)})
 
@@ -350,7 +353,11 @@ def spawn_profiler(pid: int, seconds: float, out: str) -> subprocess.Popen:
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
-async def measure(args, daphne: Daphne, fleet: dict, token: str, loader: mp.Process, start_event, results) -> dict:
+async def measure(
+    args, daphnes: list[Daphne], fleet: dict, token: str, loader: mp.Process, start_event, results
+) -> dict:
+    # The robot is on the first process; commands enter through the last (another one when there are two).
+    daphne = daphnes[0]
     import httpx
 
     from bridgeos_agent.link import Link
@@ -365,7 +372,7 @@ async def measure(args, daphne: Daphne, fleet: dict, token: str, loader: mp.Proc
     command = f"/api/robot/{robot_id}/skill/{fleet['skills'][0]}/start?wait=30"
     headers = {"Authorization": f"Token {token}"}
     loop = asyncio.get_running_loop()
-    async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{daphne.port}", headers=headers, timeout=60) as http:
+    async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{daphnes[-1].port}", headers=headers, timeout=60) as http:
         # Warm daphne up: imports, database connections, the thread pool.
         for _ in range(3):
             for path in ("/api/robot", f"/api/robot/{robot_id}/info"):
@@ -391,14 +398,14 @@ async def measure(args, daphne: Daphne, fleet: dict, token: str, loader: mp.Proc
         wall0 = time.time()
         start_event.set()
         await asyncio.sleep(args.warmup)
-        cpu0, window0 = daphne.cpu_seconds(), time.time()
+        cpu0, window0 = [d.cpu_seconds() for d in daphnes], time.time()
         profiler = spawn_profiler(daphne.pid, min(args.duration, 10), args.profile) if args.profile else None
         # Commands during the load: one every COMMAND_PERIOD_S, each on its own (open loop).
         tasks = []
         while time.time() < wall0 + args.warmup + args.duration:
             tasks.append(asyncio.create_task(command_round_trips(http, command, 1, strict=False)))
             await asyncio.sleep(COMMAND_PERIOD_S)
-        cpu = daphne.cpu_seconds() - cpu0
+        cpu = [d.cpu_seconds() - before for d, before in zip(daphnes, cpu0, strict=True)]
         cpu_window = time.time() - window0
         loaded = [pair for batch in await asyncio.gather(*tasks) for pair in batch]
         report = await loop.run_in_executor(None, results.get, True, 120)
@@ -456,7 +463,10 @@ async def measure(args, daphne: Daphne, fleet: dict, token: str, loader: mp.Proc
         "client_rate": args.client_rate,
         "list_share": args.list_share,
         "duration_s": round(elapsed, 1),
-        "daphne_cpu_percent": round(100 * cpu / cpu_window, 1),
+        # All processes together (one process: its own share of a core).
+        "daphne_cpu_percent": round(100 * sum(cpu) / cpu_window, 1),
+        "daphne_cpu_percent_each": [round(100 * c / cpu_window, 1) for c in cpu],
+        "daphnes": len(daphnes),
         "daphne_rss_mib": round(rss, 1),
         "daphne_peak_rss_mib": round(peak, 1),
         "client_cpu_percent": round(report["cpu_percent"], 1),
@@ -589,6 +599,7 @@ def main() -> None:
     parser.add_argument("--commands", type=int, default=200, help="sequential command round trips, idle")
     parser.add_argument("--alone", type=int, default=40, help="sequential reads per /info route, one client")
     parser.add_argument("--quick", action="store_true", help="8 s of load, 50 commands: under a minute in all")
+    parser.add_argument("--daphnes", type=int, default=1, help="daphne processes the read clients are spread over")
     parser.add_argument("--profile", metavar="OUT", help="record daphne with py-spy (raw) during the load")
     parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_api")
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/11")
@@ -598,6 +609,8 @@ def main() -> None:
         args.commands, args.alone = min(args.commands, 50), min(args.alone, 12)
     if args.robots < SMALL_FLEET or args.clients < 1 or args.duration <= 0 or not 0 <= args.list_share <= 1:
         parser.error(f"robots >= {SMALL_FLEET}, clients >= 1, duration > 0, 0 <= list share <= 1")
+    if args.daphnes < 1:
+        parser.error("daphnes must be at least 1")
 
     import httpx
     import redis
@@ -616,32 +629,37 @@ def main() -> None:
         f"{args.robots}"
     )
 
-    daphne = Daphne(env, Path(data_dir) / "daphne.log")
+    daphnes = [Daphne(env, Path(data_dir) / f"daphne-{n}.log") for n in range(args.daphnes)]
     loader = None
     try:
-        daphne.wait()
-        log(f"daphne pid {daphne.pid} on port {daphne.port}")
-        url = f"http://127.0.0.1:{daphne.port}"
+        for each in daphnes:
+            each.wait()
+            log(f"daphne pid {each.pid} on port {each.port}")
+        urls = [f"http://127.0.0.1:{each.port}" for each in daphnes]
+        url = urls[0]
         answer = httpx.get(url + "/api/auth", auth=(OPERATOR, PASSWORD), timeout=30)
         answer.raise_for_status()
         token = answer.json()["token"]
         ctx = mp.get_context("fork")
         start_event, results = ctx.Event(), ctx.Queue()
         load_args = {k: getattr(args, k) for k in ("clients", "client_rate", "duration", "warmup", "list_share")}
-        loader = ctx.Process(target=load_main, args=(url, token, fleet, load_args, start_event, results), daemon=True)
+        loader = ctx.Process(target=load_main, args=(urls, token, fleet, load_args, start_event, results), daemon=True)
         loader.start()
-        result = asyncio.run(measure(args, daphne, fleet, token, loader, start_event, results))
+        result = asyncio.run(measure(args, daphnes, fleet, token, loader, start_event, results))
     except BaseException:
-        log(f"daphne log tail:\n{daphne.log_tail()}")
+        for each in daphnes:
+            log(f"daphne {each.pid} log tail:\n{each.log_tail()}")
         raise
     finally:
         if loader is not None and loader.is_alive():
             loader.kill()
             loader.join()
-        daphne.stop()
-    errors = [line for line in daphne.log_tail(200_000).splitlines() if "Traceback" in line or "ERROR" in line]
-    if errors:
-        log(f"daphne logged {len(errors)} error line(s); see {daphne.log_path}")
+        for each in daphnes:
+            each.stop()
+    for each in daphnes:
+        errors = [line for line in each.log_tail(200_000).splitlines() if "Traceback" in line or "ERROR" in line]
+        if errors:
+            log(f"daphne logged {len(errors)} error line(s); see {each.log_path}")
     result["fleet"] = fleet["robots"]
     report(result, queries)
     del result["fleet"]

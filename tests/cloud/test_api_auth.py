@@ -68,6 +68,7 @@ ROUTES = [
     Route("DELETE", ROBOT, 204, 404, 204),
     Route("GET", ROBOT + "/info", 200, 404, 200),
     Route("POST", ROBOT + "/token", 200, 404, 200),
+    Route("GET", ROBOT + "/volumes", 200, 404, 200),
     # This cloud offers no VPN (BRIDGEOS_VPN_REMOTE unset): 409 to those who may ask.
     Route("GET", ROBOT + "/vpn", 409, 404, 409, robot=409),
     # Commands reach the robot only when it is connected; here it is not.

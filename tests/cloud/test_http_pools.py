@@ -21,7 +21,11 @@ async def test_reads_answer_at_once_while_more_commands_than_threads_wait_on_a_s
     try:
         async with async_client(daphne_server, key) as http:
             # More waiting commands than the server's 8 HTTP threads.
-            commands = [asyncio.create_task(http.post("/api/robot/silent-bot/stop?wait=4")) for _ in range(10)]
+            # The last two wait for a free write thread (4 s) and then for the robot (4 s more); a busy
+            # machine adds to that, so their own timeout is generous: what is timed is the read.
+            commands = [
+                asyncio.create_task(http.post("/api/robot/silent-bot/stop?wait=4", timeout=60)) for _ in range(10)
+            ]
             await asyncio.sleep(0.5)
             started = time.monotonic()
             read = await http.get("/api/robot/silent-bot/info")
