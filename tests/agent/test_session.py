@@ -191,3 +191,66 @@ async def test_on_a_full_disk_metric_frames_wait_in_memory_and_past_the_budget_t
             controller.stop()
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.wait_for(running, 15)
+
+
+async def test_a_frame_made_while_the_backlog_is_being_resent_is_sent_on_that_connection(tmp_path):
+    received: list[str] = []  # ids of the component_status frames the cloud got
+
+    async def cloud(ws):
+        protocol.decode(await ws.recv())  # authentication_robot
+        await ws.send(
+            protocol.encode(protocol.make(Event.AUTHENTICATION_SUCCESS, {"robot": "sess-4"}, now=time.time()))
+        )
+        async for raw in ws:
+            envelope = protocol.decode(raw)
+            if envelope.event == Event.COMPONENT_STATUS:
+                received.append(envelope.id)
+            if envelope.event in protocol.REQUIRES_ACK:
+                await ws.send(protocol.ack_text(envelope.id, now=time.time()))
+
+    def status(n: int) -> dict:
+        return {"skill": "nav", "component": f"c{n}", "status": "running"}
+
+    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
+        port = server.sockets[0].getsockname()[1]
+        settings = AgentSettings(
+            master=f"ws://127.0.0.1:{port}",
+            robot="sess-4",
+            token="token",
+            data_dir=tmp_path,
+            simulate=True,
+            sample_interval=3600,
+            detect_ros_master=False,
+            volume_sync_interval=0,
+        )
+        controller = RobotController(settings, plugins={})
+        outbox = controller.outbox
+        # A backlog made while the cloud was out of reach.
+        owed = [await controller.session.emit(Event.COMPONENT_STATUS, status(n)) for n in range(5)]
+        late: list[str] = []
+        original = outbox.backlog
+
+        def backlog(**kw):
+            rows = list(original(**kw))  # every read of the file done, as when the last page came short
+            yield from rows[:1]
+            if not late:
+                # A frame made while the replay is under way (e.g. the revert stopping a local copy).
+                made = protocol.make(Event.COMPONENT_STATUS, status(99), now=time.time())
+                outbox.put(made)
+                late.append(made.id)
+            yield from rows[1:]
+
+        outbox.backlog = backlog  # type: ignore[method-assign]
+        running = asyncio.create_task(controller.run())
+        try:
+            await asyncio.wait_for(controller.connected.wait(), 10)
+            deadline = time.monotonic() + 5
+            while len(outbox) and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            # Sent on this connection, after the backlog it was made during: not left for the next one.
+            assert received == [e.id for e in owed] + late
+            assert len(outbox) == 0
+        finally:
+            controller.stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.wait_for(running, 15)

@@ -280,20 +280,29 @@ class Session:
         """Send every frame still owed, oldest first, before anything new."""
         self._replaying = True
         try:
-            sent = 0
-            now = time.monotonic()
-            for _, frame_id, text in self.outbox.backlog():
-                if self.ws is None:
-                    return
-                # Reliable needs only the id and that the frame wants an ack; its text stays in the
-                # outbox (not decoded again here: a backlog can hold many MB of metrics). Registered
-                # before the send, so a frame dropped from memory meanwhile is known to be in flight.
-                self.reliable.send(_owed(frame_id), now)
-                await self.ws.send(text)
-                self.cloud_bytes[1] += len(text)
-                sent += 1
+            sent: set[str] = set()
+            # Frames made while the backlog is being sent wait in the outbox too: pass over it again
+            # until a pass finds nothing new, or they would wait for the next connection.
+            while True:
+                fresh = 0
+                now = time.monotonic()
+                for _, frame_id, text in self.outbox.backlog():
+                    if frame_id in sent:
+                        continue
+                    if self.ws is None:
+                        return
+                    # Reliable needs only the id and that the frame wants an ack; its text stays in the
+                    # outbox (not decoded again here: a backlog can hold many MB of metrics). Registered
+                    # before the send, so a frame dropped from memory meanwhile is known to be in flight.
+                    self.reliable.send(_owed(frame_id), now)
+                    await self.ws.send(text)
+                    self.cloud_bytes[1] += len(text)
+                    sent.add(frame_id)
+                    fresh += 1
+                if not fresh:
+                    break
             if sent:
-                self.say(f"re-sent {sent} frame(s) kept while disconnected")
+                self.say(f"re-sent {len(sent)} frame(s) kept while disconnected")
         finally:
             self._replaying = False
 
