@@ -50,7 +50,8 @@ VOLUME_PATTERN = r"^[a-zA-Z0-9][a-zA-Z0-9_.-]{1,127}$"
 # Absolute or relative ROS graph names; "~" (private) names are refused because the
 # router resolves them in its own namespace, not the component's.
 ROS_NAME_PATTERN = r"^/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$"
-ROS_TYPE_PATTERN = r"^[A-Za-z][A-Za-z0-9_]*/[A-Za-z][A-Za-z0-9_]*$"
+# ROS 1 spells a type 'package/Type'; ROS 2 also 'package/msg/Type' (srv, action).
+ROS_TYPE_PATTERN = r"^[A-Za-z][A-Za-z0-9_]*/((msg|srv|action)/)?[A-Za-z][A-Za-z0-9_]*$"
 IDENTIFIER_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]{0,63}$"
 ENV_NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*$"
 HTTP_PREFIX_PATTERN = r"^/[A-Za-z0-9._~!$&'()*+,;=:@%/-]*$"
@@ -263,6 +264,14 @@ class ServiceRoute(_Model):
     server: Slug = Field(description="Id of the component serving the service.")
 
 
+class ActionRoute(_Model):
+    """Relay one ROS 2 action (its goal, result and cancel services and its feedback and status topics)."""
+
+    name: RosName
+    type: RosType = Field(description="ROS 2 action type, 'package/action/Action'.")
+    server: Slug = Field(description="Id of the component serving the action.")
+
+
 def _only_get() -> list[HttpMethod]:
     return ["GET"]
 
@@ -291,6 +300,7 @@ class RouterConfig(_Model):
 
     topics: list[TopicRoute] = Field(default_factory=list)
     services: list[ServiceRoute] = Field(default_factory=list)
+    actions: list[ActionRoute] = Field(default_factory=list, description="ROS 2 actions.")
     http: list[HttpRoute] = Field(default_factory=list)
 
     @model_validator(mode="after")
@@ -300,6 +310,7 @@ class RouterConfig(_Model):
         for field, keys in (
             ("topics", [t.name.lstrip("/") for t in self.topics]),
             ("services", [s.name.lstrip("/") for s in self.services]),
+            ("actions", [a.name.lstrip("/") for a in self.actions]),
             ("http", [h.prefix.rstrip("/") or "/" for h in self.http]),
         ):
             seen: set[str] = set()
@@ -373,7 +384,10 @@ class ComponentConfig(_Model):
         description="Ids of components that must always run in the same location as this one.",
     )
     resources: ComponentResources = Field(default_factory=ComponentResources)
-    ros: bool = Field(default=True, description="Whether the component is a ROS node.")
+    ros: bool | Literal[2] = Field(
+        default=True,
+        description="The ROS the component speaks: true (or 1) for ROS 1, 2 for ROS 2, false when it is no ROS node.",
+    )
     robot: LaunchSpec | None = Field(default=None, description="Launch spec on the robot.")
     cloud: LaunchSpec | None = Field(default=None, description="Launch spec in the cloud.")
 
@@ -396,6 +410,13 @@ class ComponentConfig(_Model):
             ]
         )
         return self
+
+    @property
+    def ros_version(self) -> Literal[0, 1, 2]:
+        """Return 1 or 2 for the ROS the component speaks, 0 when it is no ROS node."""
+        if self.ros is False:
+            return 0
+        return 1 if self.ros is True else 2
 
     def launch_spec(self, location: Literal["robot", "cloud"]) -> LaunchSpec | None:
         """Return the launch spec for one concrete location."""
@@ -515,24 +536,37 @@ class SkillConfig(_Model):
                 )
 
     def _route_issues(self) -> Iterable[Issue]:
-        """Report routes naming unknown components or ROS routes to non-ROS components."""
+        """Report routes naming unknown components, non-ROS components or components of another ROS."""
 
-        def check(path: tuple[str | int, ...], cid: str, needs_ros: bool) -> Iterable[Issue]:
+        def check(path: tuple[str | int, ...], cid: str, ros: int | None) -> Iterable[Issue]:
             component = self.components.get(cid)
             if component is None:
                 yield path, f"unknown component {cid!r}"
-            elif needs_ros and not component.ros:
+            elif ros is not None and not component.ros_version:
                 yield path, f"component {cid!r} is not a ROS node (ros: false)"
+            elif ros and component.ros_version != ros:
+                # The router relays bytes; it does not translate between ROS 1 and ROS 2 messages.
+                yield path, f"component {cid!r} speaks ROS {component.ros_version}, the route's publisher ROS {ros}"
+
+        def version(cid: str) -> int:
+            component = self.components.get(cid)
+            return component.ros_version if component is not None else 0
 
         for index, topic in enumerate(self.router.topics):
             base = ("router", "topics", index)
-            yield from check((*base, "publisher"), topic.publisher, True)
+            yield from check((*base, "publisher"), topic.publisher, 0)
             for sub_index, sub in enumerate(topic.subscribers):
-                yield from check((*base, "subscribers", sub_index), sub, True)
+                yield from check((*base, "subscribers", sub_index), sub, version(topic.publisher))
+            if version(topic.publisher) == 1 and topic.type.count("/") > 1:
+                yield (*base, "type"), f"ROS 1 types are spelled 'package/Type', not {topic.type!r}"
         for index, service in enumerate(self.router.services):
-            yield from check(("router", "services", index, "server"), service.server, True)
+            yield from check(("router", "services", index, "server"), service.server, 0)
+        for index, action in enumerate(self.router.actions):
+            yield from check(("router", "actions", index, "server"), action.server, 0)
+            if version(action.server) == 1:
+                yield ("router", "actions", index, "server"), "actions are routed for ROS 2 components only"
         for index, route in enumerate(self.router.http):
-            yield from check(("router", "http", index, "component"), route.component, False)
+            yield from check(("router", "http", index, "component"), route.component, None)
 
     def linked_components(self, component_id: str) -> list[str]:
         """Return every component transitively linked to one, excluding itself."""
