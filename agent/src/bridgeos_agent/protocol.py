@@ -86,6 +86,7 @@ __all__ = [
     "RobotConfigUpdate",
     "RobotStart",
     "RobotStop",
+    "Ros2GraphInfo",
     "Shutdown",
     "SkillConfigGet",
     "SkillConfigPayload",
@@ -288,12 +289,29 @@ class AuthenticationClient(Payload):
     token: Token | None = None
 
 
+HostPort = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9.:\[\]-]{1,253}:[1-9][0-9]{0,4}$")]
+
+
+class Ros2GraphInfo(Payload):
+    """A robot's ROS 2 graph as its agent runs it (``bridgeos_agent.ros2graph.Ros2Graph``)."""
+
+    domain_id: int = Field(default=0, ge=0, le=232)
+    rmw: Annotated[str, StringConstraints(pattern=r"^rmw_[a-z0-9_]{1,60}$")] = "rmw_fastrtps_cpp"
+    discovery_range: Literal["OFF", "LOCALHOST", "SUBNET", "SYSTEM_DEFAULT"] = "LOCALHOST"
+    static_peers: list[Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9.:-]{1,253}$")]] = Field(
+        default_factory=list, max_length=64
+    )
+    discovery_server: HostPort | None = None
+
+
 class AuthenticationRobot(Payload):
     """Authenticate a robot with its id and token, saying which ROS master it found (None: none)."""
 
     robot: Slug
     token: Token
     ros_master: Url | None = None
+    # The robot's ROS 2 graph, when its agent can run ROS 2 (None: no rclpy there).
+    ros2: Ros2GraphInfo | None = None
 
 
 class AuthenticationSuccess(Payload):
@@ -304,6 +322,8 @@ class AuthenticationSuccess(Payload):
     session: SessionId | None = None
     # For a robot: the ROS master its components should use (its own, or one the cloud runs).
     ros_master: Url | None = None
+    # For a ROS 2 robot: "host:port" of the discovery server the cloud runs for its cloud graph.
+    ros2_discovery_server: HostPort | None = None
 
 
 class AuthenticationFailure(Payload):
