@@ -16,6 +16,7 @@ import pydantic
 from bridgeos_agent import __version__
 from bridgeos_agent.errors import field_errors
 from bridgeos_agent.robotconfig import parse_robot_config, robot_config_json_schema
+from bridgeos_agent.ros2graph import Ros2Graph, rclpy_missing
 from bridgeos_agent.skillconfig import parse_skill_config, skill_config_json_schema
 from bridgeos_agent.tls import InsecureMaster, check_master_url
 
@@ -188,6 +189,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="run as a simulated robot with synthetic resources (env BRIDGEOS_SIMULATE=1)",
     )
     run.add_argument(
+        "--ros2",
+        choices=("auto", "on", "off"),
+        default=os.environ.get("BRIDGEOS_ROS2", "auto"),
+        help="run ROS 2 routing in the graph of this process's ROS_DOMAIN_ID and discovery settings; auto: when "
+        "rclpy is installed and the robot is not simulated (env BRIDGEOS_ROS2)",
+    )
+    run.add_argument(
         "--sim-cpu", type=_positive("--sim-cpu"), default=2.0, metavar="CORES", help="simulated CPU cores (default 2)"
     )
     run.add_argument(
@@ -308,12 +316,27 @@ def _check_transport_args(parser: argparse.ArgumentParser, args: argparse.Namesp
         parser.error(f"--ca {args.ca}: no such file")
 
 
+def _check_ros2_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    # argparse checks choices only on the command line, not on a default taken from the env.
+    if args.ros2 not in ("auto", "on", "off"):
+        parser.error(f"--ros2 (env BRIDGEOS_ROS2) must be auto, on or off, not {args.ros2!r}")
+    if args.ros2 == "off":
+        return
+    try:
+        Ros2Graph.from_env()
+    except ValueError as exc:
+        parser.error(f"the ROS 2 environment is not usable: {exc}")
+    if args.ros2 == "on" and (missing := rclpy_missing()):
+        parser.error(f"--ros2 on: {missing}")
+
+
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Check the run options, then run the Robot Controller until it is stopped."""
     _check_connection_args(parser, args)
     if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
         parser.error(f"--data-dir {args.data_dir} exists and is not a directory")
     _check_transport_args(parser, args)
+    _check_ros2_args(parser, args)
     from bridgeos_agent.agent import run_agent
 
     return run_agent(args)

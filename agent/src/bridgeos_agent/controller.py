@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import importlib.util
 import logging
 import time
 from collections.abc import Callable, Coroutine, Iterable, Mapping
@@ -30,6 +31,7 @@ from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Envelope, Event
 from bridgeos_agent.protocol import SkillStatusName as SS
 from bridgeos_agent.robotconfig import RobotConfig
+from bridgeos_agent.ros2graph import Ros2Graph
 from bridgeos_agent.rosmaster import find_ros_master
 from bridgeos_agent.runtime import ComponentSpec, Runtime, Usage, create_runtime
 from bridgeos_agent.session import AuthenticationRefused, Session
@@ -65,6 +67,7 @@ class AgentSettings:
     reconnect_max: float = 3.0
     runtime_options: dict[str, Any] = field(default_factory=dict)
     detect_ros_master: bool = True
+    ros2: str = "auto"  # auto (when rclpy is importable and the robot is not simulated) | on | off
     stop_components_on_exit: bool = False
     simulated: SimulatedRobot | None = None
     # How long a move to the cloud waits for the cloud to report its copy running.
@@ -120,6 +123,8 @@ class RobotController:
         self.config_from_cloud = asyncio.Event()
         self.skills: dict[str, SkillRecord] = {}
         self.ros_master: str | None = None  # the master components use
+        self.ros2_graph: Ros2Graph | None = None  # the robot's ROS 2 graph, when the agent routes ROS 2
+        self.ros2_discovery_server: str | None = None  # "host:port" the cloud runs for the robot's cloud graph
         self.stopped = asyncio.Event()
         self.exit_code = 0
         self.usage: dict[tuple[str, str], Usage] = {}  # the runtime's last measurement per (skill, component)
@@ -167,6 +172,8 @@ class RobotController:
         if self.settings.detect_ros_master:
             self.local_ros_master = self.ros_master = await asyncio.to_thread(find_ros_master)
         self.say(f"ROS master: {self.ros_master or 'none found here; asking the cloud for one'}")
+        self.ros2_graph = self._detect_ros2()
+        self.session.local_ros2 = self.ros2_graph.as_dict() if self.ros2_graph is not None else None
         loop = asyncio.get_running_loop()
         self.cloud_role.start(self._link_timing()[1])
         for coroutine, name in (
@@ -267,10 +274,31 @@ class RobotController:
         ws = self.session.ws
         return float(getattr(ws, "latency", 0.0) or 0.0) if ws is not None else 0.0
 
-    def _on_authenticated(self, offered: str | None) -> None:
-        """Count the new connection, then take the ROS master the cloud named."""
+    def _detect_ros2(self) -> Ros2Graph | None:
+        """Return the ROS 2 graph this agent routes in, or None (saying why) when ROS 2 routing is off."""
+        mode = self.settings.ros2
+        if mode == "off" or (mode == "auto" and self.settings.simulate):
+            return None
+        if importlib.util.find_spec("rclpy") is None:
+            self.say("ROS 2: rclpy is not installed here, so ROS 2 routing is off (pip install 'bridgeos-agent[ros2]')")
+            return None
+        try:
+            graph = Ros2Graph.from_env()
+        except ValueError as exc:
+            self.say(f"ROS 2: routing is off, the ROS 2 environment is not usable ({exc})")
+            return None
+        self.say(f"ROS 2: domain {graph.domain_id}, {graph.rmw}, discovery {graph.discovery_range}")
+        return graph
+
+    def _on_authenticated(self, success: Any) -> None:
+        """Count the new connection, then take the ROS master and ROS 2 discovery server the cloud named."""
         self.metrics.connected()
-        self._use_ros_master(offered)
+        self._use_ros_master(getattr(success, "ros_master", None))
+        server = getattr(success, "ros2_discovery_server", None)
+        if self.ros2_graph is not None and server != self.ros2_discovery_server:
+            self.ros2_discovery_server = server
+            if server:
+                self.say(f"ROS 2: the robot's cloud graph is found through the discovery server {server}")
 
     def _use_ros_master(self, offered: str | None) -> None:
         """Take the ROS master the cloud named for this robot (ours, or one it runs)."""

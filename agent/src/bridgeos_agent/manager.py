@@ -223,7 +223,7 @@ class SkillManager:
             if config.ros:
                 metrics = dataclasses.replace(metrics, loss_rate_robot=loss["robot"], loss_rate_cloud=loss["cloud"])
             try:
-                estimate = estimator.estimate(policy, location, usage, metrics, config.ros)
+                estimate = estimator.estimate(policy, location, usage, metrics, bool(config.ros_version))
             except ValueError as exc:
                 # A user cost function that fails here (say, a division by a zero free CPU) skips
                 # this component's decision; it is logged once per distinct error, not every interval.

@@ -29,6 +29,7 @@ from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
 from bridgeos_agent.robotconfig import RobotConfig
+from bridgeos_agent.ros2graph import Ros2Graph, namespace_arguments
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.runtime import ComponentSpec, ComponentState, RuntimeFailure, Status
 from bridgeos_agent.state import SkillRecord, previous_placement
@@ -165,9 +166,15 @@ class Placement:
         }
         if controller.ros_master:
             env["ROS_MASTER_URI"] = controller.ros_master
-        if component.ros:
+        if component.ros_version:
             # The Skill Router relays between this namespace and the names peers use.
-            env["ROS_NAMESPACE"] = instance_namespace(record.config.skill_id, name, "robot")
+            env["ROS_NAMESPACE"] = namespace = instance_namespace(record.config.skill_id, name, "robot")
+            if component.ros_version == 2:
+                # ROS 2 reads its namespace from the command line, not from ROS_NAMESPACE.
+                env.update((controller.ros2_graph or Ros2Graph()).env())
+                env["BRIDGEOS_ROS_ARGS"] = " ".join(namespace_arguments(namespace))
+                if launch.command:
+                    launch = launch.model_copy(update={"command": [*launch.command, *namespace_arguments(namespace)]})
         plugin_env = record.context("env")
         if isinstance(plugin_env, dict):
             env.update({k: str(v) for k, v in plugin_env.items()})
@@ -180,7 +187,7 @@ class Placement:
             resources=component.resources,
             env=env,
             volumes=tuple(record.config.volumes),
-            ros=component.ros,
+            ros=bool(component.ros_version),
         )
 
     async def _start_on_robot(self, record: SkillRecord, name: str) -> None:

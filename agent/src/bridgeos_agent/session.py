@@ -72,7 +72,7 @@ class Session:
         say: Callable[[str], None],
         handle: Callable[[Envelope], Awaitable[Reply | None]],
         timing: Callable[[], tuple[float, float]],
-        on_authenticated: Callable[[str | None], None],
+        on_authenticated: Callable[[Any], None],
         on_contact: Callable[[], None],
         on_refused: Callable[[Envelope, str], None],
         stop: Callable[[int], None],
@@ -91,6 +91,7 @@ class Session:
         self._stop = stop
         self._stopped = stopped
         self.local_ros_master: str | None = None  # told to the cloud when authenticating
+        self.local_ros2: dict[str, Any] | None = None  # the robot's ROS 2 graph, told to the cloud too
         self.ws: Any = None
         self.connected = asyncio.Event()
         self.cloud_bytes = [0, 0]  # received, sent on the cloud link
@@ -221,12 +222,14 @@ class Session:
             "token": self.settings.token,
             "ros_master": self.local_ros_master,
         }
+        if self.local_ros2 is not None:
+            credentials["ros2"] = self.local_ros2
         await ws.send(protocol.encode(protocol.make(Event.AUTHENTICATION_ROBOT, credentials, now=time.time())))
         answer = protocol.decode(await asyncio.wait_for(ws.recv(), 10), direction=protocol.Direction.CLOUD_TO_ROBOT)
         if answer.event != Event.AUTHENTICATION_SUCCESS:
             reason = getattr(protocol.parse_payload(answer), "reason", answer.event)
             raise AuthenticationRefused(reason)
-        self._on_authenticated(getattr(protocol.parse_payload(answer), "ros_master", None))
+        self._on_authenticated(protocol.parse_payload(answer))
         if isinstance(ws, _Connection):
             ws.on_pong = self._on_contact
         self.ws = ws
