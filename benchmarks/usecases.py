@@ -87,9 +87,11 @@ BIG_CLOUD_RATE = 0.2  # clouds a second with --cloud-mb: one every 5 s (a 35 MB 
 # The Skill Router of the thesis-sized run, in a process of its own (the robot's middleware, so in
 # the robot's cgroup): the people detection sample's routes, each component active where it runs.
 ROUTER = """
-import asyncio, json, signal, sys
+import asyncio, json, logging, signal, sys
 from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.skillconfig import load_sample_skill_config
+
+logging.basicConfig(level=logging.INFO, format="[router] %(message)s", stream=sys.stdout)
 
 async def main(master, host, sample, where):
     settings = RouterSettings(ros_host=host, http_host="127.0.0.1", statistics_period=2.0)
@@ -440,7 +442,8 @@ def measure(
     while run.first_output() is None and run.skill != "navigation":
         run.check_alive()
         if time.monotonic() > deadline:
-            raise RuntimeError(f"{run.skill}: no result in {patience:.0f} s")
+            tails = "\n".join(f"--- {name}\n{run.tail(name, 6)}" for name in run.processes if name != "rosmaster")
+            raise RuntimeError(f"{run.skill}: no result in {patience:.0f} s\n{tails}")
         time.sleep(0.1)
     first = run.first_output()
     time.sleep(warmup)
