@@ -86,6 +86,19 @@ POLICY = {
     "cloud": "cloud_rtt + link_scale * bandwidth / max(bandwidth_available, 0.5)",
 }
 CONSTANTS = {"cpu_scale": 200.0, "cloud_rtt": 20.0, "link_scale": 100.0}
+# --cloud-mb: the sampler takes the camera's clouds at this rate (benchmarks/usecases.py's big-cloud
+# rate) and thins one MB of cloud in this many core-seconds (voxel sampling a 35 MB cloud: 0.56 s here).
+CLOUD_RATE_HZ = 0.2
+SAMPLING_S_PER_MB = 0.016
+
+
+def size_clouds(megabytes: float) -> None:
+    """Make the sampler declare what thesis-sized clouds cost it: their Mbit/s and sampling CPU."""
+    COMPONENTS["sampler"] = {
+        "cpu": SAMPLING_S_PER_MB * megabytes * CLOUD_RATE_HZ,
+        "bandwidth": megabytes * 8 * CLOUD_RATE_HZ,
+    }
+
 
 # Burn a share of one core in short slices: what the component declares is what the runtime measures.
 BURNER = """
@@ -417,9 +430,17 @@ def main() -> None:
     parser.add_argument(
         "--noise-margin", type=float, help="the manager's noise_margin (default: its own; 0 waits for no confirmation)"
     )
+    parser.add_argument(
+        "--cloud-mb", type=float, help="the sampler takes pointclouds this big (thesis: 30-40 MB) at 0.2 Hz"
+    )
     parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
     args = parser.parse_args()
+    if args.cloud_mb is not None:
+        if not 1 <= args.cloud_mb <= 100:
+            parser.error("--cloud-mb is between 1 and 100 MB")
+        size_clouds(args.cloud_mb)
+        log(f"{args.cloud_mb:g} MB clouds at {CLOUD_RATE_HZ:g} Hz: the sampler declares {COMPONENTS['sampler']}")
     # --quick stays under a minute with its stable phase: shorter changing phases, a 14 s stable one.
     phase_s = args.phase_s or (8.0 if args.quick else 60.0)
     if phase_s < 2 * DECISION_INTERVAL:

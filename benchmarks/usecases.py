@@ -26,6 +26,14 @@ namespaces, tc, cgroups) and ROS 1.
     .venv/bin/python benchmarks/usecases.py --quick   # all-robot and all-cloud per Skill, short windows
     .venv/bin/python benchmarks/usecases.py           # every combination (16), 30 s windows
 
+With ``--cloud-mb 35`` people detection also runs with the thesis's 30-40 MB clouds (§5.3.1), its
+topics relayed by the real Skill Router (TCPROS, on the robot, inside the robot's cgroup) as in
+the thesis: each combination measures the seconds from the camera's stamp to the detections, the
+peak RSS of the router and of each node, and what the router dropped. The figures are printed
+beside Table 5.2's, and added to the last line as ``people_detection_<MB>mb_*`` keys.
+
+    .venv/bin/python benchmarks/usecases.py --quick --cloud-mb 35 --skills=   # only the big clouds, 2 combos
+
 The last line is one JSON object with the figures.
 """
 
@@ -54,6 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _netshape
 from _common import ROOT, free_port, log
 
+from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.skillconfig import SkillConfig, load_sample_skill_config
 
 ROS_PYTHON = "/usr/bin/python3"
@@ -69,6 +78,43 @@ ENERGY_W = {"cpu": 10.0, "ram": 3.0, "radio": 2.5}
 ROBOT_RAM_MIB = 2048.0
 PERFORMANCE_SLACK = 0.10  # a best combination may be this much slower than all on the robot
 MAX_LOSS_PCT = 5.0
+# Thesis Table 5.2, People Detection: its best combination (Test 4, sampler and detector in the
+# cloud) against all on the robot. "Performance" is the change of the mean processing time of a
+# pointcloud (the text: "a dramatic increase in the mean processing time"), so + is slower.
+THESIS_TABLE_5_2 = {"processing_time": 64.76, "cpu": -88.32, "ram": -45.85, "network": 137.21, "power": -63.10}
+BIG_CLOUD_RATE = 0.2  # clouds a second with --cloud-mb: one every 5 s (a 35 MB cloud takes 7 s over wifi)
+
+# The Skill Router of the thesis-sized run, in a process of its own (the robot's middleware, so in
+# the robot's cgroup): the people detection sample's routes, each component active where it runs.
+ROUTER = """
+import asyncio, json, logging, signal, sys
+from bridgeos_agent.router import RouterSettings, SkillRouter
+from bridgeos_agent.skillconfig import load_sample_skill_config
+
+logging.basicConfig(level=logging.INFO, format="[router] %(message)s", stream=sys.stdout)
+
+async def main(master, host, sample, where):
+    settings = RouterSettings(ros_host=host, http_host="127.0.0.1", statistics_period=2.0)
+    router = SkillRouter(load_sample_skill_config(sample), ros_master=master, settings=settings)
+    for component, location in json.loads(where).items():
+        router.set_active(component, location)
+    await router.start()
+    print("[router] routing", flush=True)
+    stop = asyncio.Event()
+    asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+    while not stop.is_set():
+        try:
+            await asyncio.wait_for(stop.wait(), 2.0)
+        except asyncio.TimeoutError:
+            pass
+        for name, stats in router.statistics().items():
+            if stats.get("kind") == "topic":
+                print(f"[router] metric relay_dropped={stats['dropped']} topic={name}", flush=True)
+                print(f"[router] metric relay_delivered={stats['delivered']} topic={name}", flush=True)
+    await router.close()
+
+asyncio.run(main(*sys.argv[1:5]))
+"""
 
 
 @dataclass(frozen=True)
@@ -79,6 +125,18 @@ class SkillRun:
     performance: str  # what the performance figure is, for the table
     higher_is_better: bool
     extra_args: dict[str, list[str]] = field(default_factory=dict)  # component -> arguments appended
+    routed: bool = False  # components in their instance namespaces, topics relayed by a Skill Router
+
+
+def big_cloud_run(megabytes: float, rate: float) -> SkillRun:
+    """Return people detection publishing thesis-sized clouds, relayed by the Skill Router."""
+    return SkillRun(
+        "people_detection",
+        f"{megabytes:g} MB pointcloud→detection ms (median)",
+        False,
+        {"pointcloud": ["--megabytes", f"{megabytes:g}", "--rate", f"{rate:g}"]},
+        routed=True,
+    )
 
 
 SKILLS = {
@@ -102,6 +160,14 @@ class Process:
         assert self.popen.stdout is not None
         for raw in self.popen.stdout:
             self.lines.append((time.monotonic(), raw.decode(errors="replace").rstrip()))
+
+    def peak_rss_mib(self) -> float | None:
+        """Return the process's peak resident memory so far (VmHWM), or None once it is gone."""
+        with contextlib.suppress(OSError, ValueError):
+            for line in Path(f"/proc/{self.popen.pid}/status").read_text().splitlines():
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+        return None
 
     def metrics(self, name: str) -> list[tuple[float, float, str]]:
         """Return (time, value, labels) of every report of a metric."""
@@ -128,6 +194,16 @@ class Measurement:
     power_w: float
     loss_pct: float
     init_s: float | None
+    results: int = 0  # Skill results in the window (detections, goals, map reports)
+    peak_rss_mib: dict[str, float] = field(default_factory=dict)  # per process, thesis-sized run only
+    relay_dropped: int = 0  # messages the Skill Router dropped for slow subscribers (routed runs)
+    relay_delivered: int = 0  # messages it delivered to subscribers
+
+    @property
+    def relay_loss_pct(self) -> float:
+        """Return the share of the router's deliveries it dropped (a subscriber behind the link)."""
+        total = self.relay_dropped + self.relay_delivered
+        return 100 * self.relay_dropped / total if total else 0.0
 
     @property
     def label(self) -> str:
@@ -211,6 +287,7 @@ class Run:
         link: _netshape.Link,
         cgroup: RobotCgroup,
         home: Path,
+        spec: SkillRun | None = None,
     ) -> None:
         self.skill, self.config, self.where, self.link, self.cgroup, self.home = (
             skill,
@@ -220,12 +297,13 @@ class Run:
             cgroup,
             home,
         )
+        self.spec = spec or SKILLS[skill]
         self.processes: dict[str, Process] = {}
         self.master_uri = f"http://{link.host_ip}:{free_port()}"
         self.started = 0.0
 
     def env(self, location: str, component: str) -> dict[str, str]:
-        return {
+        env = {
             "PATH": f"/usr/bin:/bin:/usr/sbin:/sbin:{Path(USECASE).parent}",
             "HOME": os.environ.get("HOME", "/root"),
             "LANG": "C.UTF-8",
@@ -236,6 +314,11 @@ class Run:
             "BRIDGEOS_COMPONENT": component,
             "BRIDGEOS_LOCATION": location,
         }
+        if os.environ.get("PYTHONPATH"):
+            env["PYTHONPATH"] = os.environ["PYTHONPATH"]  # a worktree's agent, when the run uses one
+        if self.spec.routed and component in self.config.components:
+            env["ROS_NAMESPACE"] = instance_namespace(self.config.skill_id, component, location)  # type: ignore[arg-type]
+        return env
 
     def spawn(self, name: str, command: list[str], env: dict[str, str]) -> None:
         popen = subprocess.Popen(
@@ -254,12 +337,16 @@ class Run:
                 raise RuntimeError(f"rosmaster did not answer: {self.tail('rosmaster')}")
             time.sleep(0.05)
         self.started = time.monotonic()
+        if self.spec.routed:
+            placement = json.dumps(self.where)
+            router = [sys.executable, "-c", ROUTER, self.master_uri, self.link.host_ip, self.spec.sample, placement]
+            self.spawn("router", self.cgroup.wrap(router), self.env("robot", "router"))
         for component, spec in self.config.components.items():
             location = self.where[component]
             container = spec.robot if location == "robot" else spec.cloud
             assert container is not None, f"{component} has no {location} container"
             command = [USECASE if part == "bridgeos-usecase" else part for part in container.command]
-            command += SKILLS[self.skill].extra_args.get(component, [])
+            command += self.spec.extra_args.get(component, [])
             if component in HARDWARE:
                 pass
             elif location == "robot":
@@ -338,15 +425,25 @@ def _answers(host: str, port: int) -> bool:
 
 
 def measure(
-    run: Run, warmup: float, window: float, link_mbit: float, robot_cores: float, patience: float
+    run: Run,
+    warmup: float,
+    window: float,
+    link_mbit: float,
+    robot_cores: float,
+    patience: float,
+    min_results: int = 0,
 ) -> Measurement:
-    """Start the run, wait for its first result and the warm-up, then measure the window."""
+    """Start the run, wait for its first result and the warm-up, then measure the window.
+
+    With ``min_results`` the window lasts until that many results came in it too (or patience ends).
+    """
     run.start()
     deadline = time.monotonic() + patience
     while run.first_output() is None and run.skill != "navigation":
         run.check_alive()
         if time.monotonic() > deadline:
-            raise RuntimeError(f"{run.skill}: no result in {patience:.0f} s")
+            tails = "\n".join(f"--- {name}\n{run.tail(name, 6)}" for name in run.processes if name != "rosmaster")
+            raise RuntimeError(f"{run.skill}: no result in {patience:.0f} s\n{tails}")
         time.sleep(0.1)
     first = run.first_output()
     time.sleep(warmup)
@@ -358,11 +455,27 @@ def measure(
         time.monotonic(),
     )
     rss = []
+    enough_by = begin + window + patience  # how long a window waits for its min_results
+
+    def results() -> int:
+        return sum(1 for t, _ in run._performance_events() if t >= begin)
+
     # Navigation's result is a goal reached: its window lasts until it holds one.
-    while time.monotonic() - begin < window or (run.first_output() is None and time.monotonic() < deadline):
+    while (
+        time.monotonic() - begin < window
+        or (run.first_output() is None and time.monotonic() < deadline)
+        or (results() < min_results and time.monotonic() < enough_by)
+    ):
         time.sleep(min(0.5, max(0.05, window - (time.monotonic() - begin))))
         rss.append(run.cgroup.rss_mib())
+        run.check_alive()
     end = time.monotonic()
+    peaks = {name: peak for name, p in run.processes.items() if (peak := p.peak_rss_mib()) is not None}
+    relayed = run.processes.get("router")
+    relay = {
+        name: int(sum({labels: v for _, v, labels in relayed.metrics(name)}.values())) if relayed else 0
+        for name in ("relay_dropped", "relay_delivered")
+    }
     seconds = end - begin
     lo1, radio1, cpu1 = (
         interface_bytes("lo", "tx_bytes"),
@@ -393,6 +506,10 @@ def measure(
         power_w=power,
         loss_pct=run.loss_pct(),
         init_s=(first - run.started) if first is not None else None,
+        results=sum(1 for t, _ in run._performance_events() if begin <= t <= end),
+        peak_rss_mib={k: v for k, v in peaks.items() if k != "rosmaster"},
+        relay_dropped=relay["relay_dropped"],
+        relay_delivered=relay["relay_delivered"],
     )
 
 
@@ -457,11 +574,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=float, default=None, help="seconds measured per combination")
     parser.add_argument("--warmup", type=float, default=None, help="seconds after the first result before measuring")
     parser.add_argument("--skills", default=",".join(SKILLS), help="comma-separated Skills to run")
+    parser.add_argument(
+        "--cloud-mb", type=float, default=None, help="also run people detection with clouds this big (thesis: 30-40)"
+    )
+    parser.add_argument(
+        "--cloud-rate", type=float, default=BIG_CLOUD_RATE, help=f"clouds a second with --cloud-mb ({BIG_CLOUD_RATE:g})"
+    )
+    parser.add_argument(
+        "--cloud-frames",
+        type=int,
+        default=None,
+        help="detections each --cloud-mb window waits for (default 6, quick 1)",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / ".data" / "bench" / "usecases.md", help="matrix table")
     args = parser.parse_args(argv)
     skills = [s for s in args.skills.split(",") if s]
     unknown = set(skills) - set(SKILLS)
-    if unknown or not skills:
+    if args.cloud_mb is not None and not 1 <= args.cloud_mb <= 100:
+        parser.error("--cloud-mb is between 1 and 100 MB")
+    if not 0.01 <= args.cloud_rate <= 10 or (args.cloud_frames is not None and not 1 <= args.cloud_frames <= 100):
+        parser.error("--cloud-rate is between 0.01 and 10 clouds a second, --cloud-frames between 1 and 100")
+    if unknown or not (skills or args.cloud_mb):
         parser.error(f"--skills takes {', '.join(SKILLS)}, not {', '.join(sorted(unknown)) or 'nothing'}")
     if not 0.1 <= args.robot_cpu <= 2:
         parser.error("--robot-cpu is between 0.1 and 2 cores")
@@ -500,6 +633,13 @@ def main(argv: list[str] | None = None) -> int:
                 results[skill].append(row)
             tables.append(table(skill, results[skill]))
             log("\n" + tables[-1])
+        if args.cloud_mb is not None:
+            # --quick: one detection past the first per combination, no warm-up (a 35 MB cloud takes 7 s on wifi).
+            frames = args.cloud_frames or (1 if args.quick else 6)
+            big_warmup = 0.0 if args.quick else warmup
+            big = run_big_clouds(args, link, cgroup, Path(tmp), link_mbit, big_warmup, window, frames)
+            tables.append(big_table(big, args.cloud_mb, args.cloud_rate))
+            log("\n" + tables[-1])
 
     figures: dict[str, object] = {"preset": args.preset, "robot_cpu": args.robot_cpu, "combinations": 0}
     losses, inits = [], []
@@ -515,11 +655,121 @@ def main(argv: list[str] | None = None) -> int:
             figures[f"{skill}_{key}_pct"] = _round(change_pct(getattr(best, attr), getattr(base, attr)))
     figures["delivery_ratio"] = round(1 - statistics.fmean(losses) / 100, 4) if losses else None
     figures["skill_init_s"] = round(statistics.median(inits), 2) if inits else None
+    if args.cloud_mb is not None:
+        figures.update(big_figures(big, args.cloud_mb))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n\n".join(tables) + "\n")
     log(f"matrix written to {args.out}")
     print(json.dumps(figures))
     return 0
+
+
+def run_big_clouds(
+    args: argparse.Namespace,
+    link: _netshape.Link,
+    cgroup: RobotCgroup,
+    home: Path,
+    link_mbit: float,
+    warmup: float,
+    window: float,
+    frames: int,
+) -> list[Measurement]:
+    """Run people detection with thesis-sized clouds through the Skill Router, per combination."""
+    spec = big_cloud_run(args.cloud_mb, args.cloud_rate)
+    config = load_sample_skill_config(spec.sample)
+    combos = placements(config)
+    if args.quick:
+        combos = [combos[0], combos[-1]]
+    rows = []
+    for index, where in enumerate(combos, 1):
+        run = Run("people_detection", config, where, link, cgroup, home, spec)
+        log(f"people detection, {args.cloud_mb:g} MB clouds {index}/{len(combos)}: " + _where(where))
+        try:
+            # The first cloud is rendered on the capped robot and may queue behind the link: patience.
+            rows.append(measure(run, warmup, window, link_mbit, args.robot_cpu, patience=120, min_results=frames))
+        finally:
+            run.stop()
+        row = rows[-1]
+        log(
+            f"  {row.results} detections, median {row.performance or float('nan'):.0f} ms, router dropped "
+            f"{row.relay_dropped}, peak RSS MiB " + ", ".join(f"{k} {v:.0f}" for k, v in row.peak_rss_mib.items())
+        )
+    return rows
+
+
+def _where(where: dict[str, str]) -> str:
+    return ", ".join(f"{c}@{w}" for c, w in where.items())
+
+
+def big_table(rows: list[Measurement], megabytes: float, rate: float) -> str:
+    """Return the thesis-sized run as a table, then Table 5.2's row beside ours (Test 4 against Test 1)."""
+    processes = sorted({name for row in rows for name in row.peak_rss_mib})
+    lines = [
+        f"### people detection with {megabytes:g} MB clouds at {rate:g} Hz, relayed by the Skill Router",
+        "",
+        "| combination | cloud→detection s (median) | detections | robot CPU % | robot RAM MiB | robot network kB/s "
+        "| radio kB/s | power W | router dropped (of relayed) | "
+        + " | ".join(f"peak RSS {p} MiB" for p in processes)
+        + " |",
+        "|---" * (9 + len(processes)) + "|",
+    ]
+    for row in rows:
+        perf = f"{row.performance / 1000:.2f}" if row.performance is not None else "—"
+        peaks = " | ".join(f"{row.peak_rss_mib[p]:.0f}" if p in row.peak_rss_mib else "—" for p in processes)
+        lines.append(
+            f"| {row.label} | {perf} | {row.results} | {row.cpu_pct:.1f} | {row.ram_mib:.1f} | {row.network_kbps:.1f} "
+            f"| {row.radio_kbps:.1f} | {row.power_w:.2f} | {row.relay_dropped} ({row.relay_loss_pct:.0f} %) | {peaks} |"
+        )
+    ours = table_5_2_changes(rows)
+    lines += [
+        "",
+        "Table 5.2 (people detection, Test 4 = sampler and detector in the cloud, against Test 1 = all on the robot):",
+        "",
+        "| change vs all on the robot | processing time | CPU | RAM | network IO | power |",
+        "|---|---|---|---|---|---|",
+        "| thesis (T2.Micro robot, 220 Mb LAN) | "
+        + " | ".join(f"{THESIS_TABLE_5_2[k]:+.2f} %" for k in THESIS_TABLE_5_2)
+        + " |",
+        "| this run | "
+        + " | ".join(f"{ours[k]:+.2f} %" if ours[k] is not None else "—" for k in THESIS_TABLE_5_2)
+        + " |",
+        "",
+        f"Network IO here is everything the robot's side sent (loopback, the router's relays included, plus the "
+        f"link); the link alone went from {rows[0].radio_kbps:.0f} to {rows[-1].radio_kbps:.0f} kB/s.",
+    ]
+    return "\n".join(lines)
+
+
+def table_5_2_changes(rows: list[Measurement]) -> dict[str, float | None]:
+    """Return Table 5.2's changes (%) of all in the cloud against all on the robot (+ is more)."""
+    base, test4 = rows[0], rows[-1]
+    return {
+        "processing_time": _round(change_pct(test4.performance, base.performance)),
+        "cpu": _round(change_pct(test4.cpu_pct, base.cpu_pct)),
+        "ram": _round(change_pct(test4.ram_mib, base.ram_mib)),
+        "network": _round(change_pct(test4.network_kbps, base.network_kbps)),
+        "power": _round(change_pct(test4.power_w, base.power_w)),
+    }
+
+
+def big_figures(rows: list[Measurement], megabytes: float) -> dict[str, object]:
+    """Return the thesis-sized run's last-line figures (``people_detection_<MB>mb_*``)."""
+    key = f"people_detection_{megabytes:g}mb".replace(".", "_")
+    base, cloud = rows[0], rows[-1]
+    figures: dict[str, object] = {
+        f"{key}_robot_s": _round(base.performance / 1000 if base.performance is not None else None),
+        f"{key}_cloud_s": _round(cloud.performance / 1000 if cloud.performance is not None else None),
+        f"{key}_detections": [row.results for row in rows],
+        f"{key}_router_dropped": [row.relay_dropped for row in rows],
+        f"{key}_router_loss_pct": [round(row.relay_loss_pct, 2) for row in rows],
+        f"{key}_router_peak_rss_mib": _round(max((r.peak_rss_mib.get("router", 0.0) for r in rows), default=None)),
+        f"{key}_node_peak_rss_mib": _round(
+            max((v for r in rows for k, v in r.peak_rss_mib.items() if k != "router"), default=None)
+        ),
+    }
+    for name, change in table_5_2_changes(rows).items():
+        figures[f"{key}_{name}_pct"] = change
+    return figures
 
 
 def _round(value: float | None) -> float | None:

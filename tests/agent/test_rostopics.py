@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import os
 import socket
+import subprocess
+import sys
 
 from bridgeos_agent.rosnode import RosNode
 from bridgeos_agent.rostopics import Inbound, Subscription, iter_frames, read_header
 from bridgeos_agent.tcpros import encode_header, frame
+from tests.agent.roshelpers import private_rosmaster
 
 
 async def _connected(received: list[tuple[bytes, int]]) -> tuple[Inbound, asyncio.StreamReader, asyncio.StreamWriter]:
@@ -66,3 +70,37 @@ async def test_frames_cut_anywhere_arrive_in_order_and_whole() -> None:
         await asyncio.sleep(0)
     assert await _frames(received, len(messages)) == messages
     writer.close()
+
+
+BIND_CHECK = """
+import asyncio, os, sys
+from bridgeos_agent.rosnode import RosNode
+
+async def main():
+    node = RosNode("/test_bind", sys.argv[1], host="127.0.0.2")  # not loopback to the node: binds wide
+    await node.start()
+    try:
+        assert node.uri.startswith("http://127.0.0.2:"), node.uri
+        assert await node._xmlrpc(node.uri, "getPid", ("/test",)) == [1, "", os.getpid()]
+        _, writer = await asyncio.open_connection("127.0.0.2", node.tcpros_port)
+        writer.close()
+    finally:
+        await node.close()
+
+asyncio.run(main())
+"""
+
+
+def test_a_node_on_a_non_loopback_address_answers_on_the_ports_it_advertises(tmp_path) -> None:
+    # Bound to every address, IPv4 and IPv6 got a port each and either could be advertised: asyncio
+    # orders them through a set, so which one depends on the hash seed. Eight seeds cover both orders.
+    with private_rosmaster(tmp_path) as master:
+        for seed in range(8):
+            done = subprocess.run(
+                [sys.executable, "-c", BIND_CHECK, master],
+                env={**os.environ, "PYTHONHASHSEED": str(seed)},
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert done.returncode == 0, f"PYTHONHASHSEED={seed}: {done.stderr[-2000:]}"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.usecases import Measurement, best_of, change_pct, placements
+from benchmarks.usecases import Measurement, best_of, big_figures, big_table, change_pct, main, placements
 from bridgeos_agent.skillconfig import load_sample_skill_config
 
 ROOT = Path(__file__).resolve().parent.parent.parent
@@ -69,6 +69,33 @@ def test_the_best_is_the_cheapest_that_keeps_performance_and_messages() -> None:
     assert best_of([base, cheap_but_slow, cheap_but_lossy, fine], higher_is_better=False) is fine
     assert best_of([base, cheap_but_slow], higher_is_better=False) is base
     assert fine.label == "cloud: a" and base.label == "all on robot"
+
+
+def test_thesis_sized_figures_compare_test_4_with_test_1_as_table_5_2_does() -> None:
+    robot = row(2000.0, power=3.0, sampler="robot", detector="robot")
+    robot.peak_rss_mib = {"router": 125.0, "sampler": 224.0}
+    cloud = row(3000.0, power=1.2, sampler="cloud", detector="cloud")
+    cloud.cpu_pct, cloud.ram_mib, cloud.radio_kbps = 4.0, 50.0, 7500.0
+    cloud.relay_dropped, cloud.relay_delivered, cloud.peak_rss_mib = 1, 3, {"router": 210.0}
+    figures = big_figures([robot, cloud], 35.0)
+    assert figures["people_detection_35mb_robot_s"] == 2.0 and figures["people_detection_35mb_cloud_s"] == 3.0
+    # As the thesis's table: + is slower (processing time) or more (resources).
+    assert figures["people_detection_35mb_processing_time_pct"] == pytest.approx(50.0)
+    assert figures["people_detection_35mb_cpu_pct"] == pytest.approx(-60.0)
+    assert figures["people_detection_35mb_ram_pct"] == pytest.approx(-50.0)
+    assert figures["people_detection_35mb_power_pct"] == pytest.approx(-60.0)
+    assert figures["people_detection_35mb_router_loss_pct"] == [0.0, 25.0]
+    assert figures["people_detection_35mb_router_peak_rss_mib"] == 210.0
+    assert figures["people_detection_35mb_node_peak_rss_mib"] == 224.0
+    text = big_table([robot, cloud], 35.0, 0.2)
+    assert "+64.76 %" in text and "+50.00 %" in text and "1 (25 %)" in text
+
+
+@pytest.mark.parametrize("bad", [["--cloud-mb", "500"], ["--cloud-mb", "35", "--cloud-rate", "0"], ["--skills="]])
+def test_bad_thesis_sized_options_are_refused_clearly(bad: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(bad)
+    assert exit_.value.code == 2 and "error:" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="network namespaces and cgroups need root")

@@ -95,7 +95,14 @@ class RosNode:
 
     async def start(self) -> None:
         """Serve the slave API and TCPROS, and check the master answers."""
-        bind = "127.0.0.1" if self.host in ("127.0.0.1", "localhost", "::1") else None
+        # One address family, the advertised host's: bound to every address (None), each family
+        # gets a port of its own and the first (IPv6's) was advertised with the IPv4 host, so
+        # peers were refused and the master's publisherUpdate never arrived (seen as a Skill Router
+        # on a robot's own address that silently never connected to a publisher).
+        if self.host in ("127.0.0.1", "localhost", "::1"):
+            bind = "127.0.0.1"
+        else:
+            bind = "::" if ":" in self.host else "0.0.0.0"
         self._session = aiohttp.ClientSession(
             connector=aiohttp.TCPConnector(limit=64), timeout=aiohttp.ClientTimeout(total=30)
         )

@@ -37,6 +37,10 @@ logger = logging.getLogger(__name__)
 QUEUE_MESSAGES = 1000  # per subscriber connection, once its socket stops taking data...
 QUEUE_BYTES = 16 << 20  # ...and at most this much of it (a thousand pointclouds would not fit a robot)
 HIGH_WATER = 1 << 20  # bytes the kernel-side write buffer may hold before a connection queues
+# Writes this big go to the transport as a view: asyncio keeps the unsent rest of a ``bytes`` as a
+# copied slice and then copies that again into its buffer; a view saves the first copy (a 35 MB
+# pointcloud's peak memory in the router drops by one cloud).
+BIG_WRITE = 1 << 20
 # A publisher whose bursts arrive closer than this is read in bursts of COALESCE_S instead: one
 # wakeup per message would cost the router several µs of CPU each (throughput under load beats a
 # fraction of a millisecond there; at nominal rates nothing waits).
@@ -103,7 +107,7 @@ class Outbound:
             return 0
         if self.backlog is None:
             if self.transport.get_write_buffer_size() <= HIGH_WATER:
-                self.transport.write(blob)
+                self.transport.write(memoryview(blob) if len(blob) >= BIG_WRITE else blob)
                 return 0
             self.backlog = deque()
             self._flusher = asyncio.get_running_loop().create_task(self._flush())
@@ -125,7 +129,7 @@ class Outbound:
                 data = b"".join(self.backlog)
                 self.backlog.clear()
                 self.backlog_bytes = 0
-                self.transport.write(data)
+                self.transport.write(memoryview(data) if len(data) >= BIG_WRITE else data)
                 await self.writer.drain()
         except (ConnectionError, RuntimeError):
             self.close()
