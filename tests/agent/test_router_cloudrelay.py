@@ -8,6 +8,7 @@ what crossed which connection is measured by the peers, not by the routers.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import logging
 import os
@@ -225,6 +226,36 @@ async def test_switching_the_subscriber_robot_cloud_robot_under_a_1khz_stream_lo
     own = router._topics["/chatter"].deliveries["listener"].messages
     assert own >= len(robot) and stats["subscribers"]["listener"]["messages"] == own + len(cloud)
     assert stats["dropped"] == 0
+
+
+async def test_moving_the_publisher_into_the_cloud_hands_the_link_to_the_relay_without_interleaving(
+    nodes, make_router, cloud_relay, rosmaster
+):
+    # The listener already runs in the cloud; the talker moves robot -> cloud -> robot under a 1 kHz stream.
+    link = CloudLink(cloud_relay["url"], TOKEN, poll=0.3)
+    router = await make_router(link, talker="robot", listener="cloud")
+    nodes.run("listener", "listener", namespace=ns("listener", "cloud"))
+    assert await router.wait_ready("listener", "cloud", 45)
+    nodes.run("robot", "talker", "--tag", "robot", "--rate", "1000", "--wait", namespace=ns("talker", "robot"))
+    await eventually(lambda: len(nodes.messages("listener")) >= 500, what="the robot talker at the cloud listener")
+    nodes.run("cloud", "talker", "--tag", "cloud", "--rate", "1000", "--wait", namespace=ns("talker", "cloud"))
+    assert await router.wait_ready("talker", "cloud", 45)
+    await router.switch("talker", "cloud")
+    await eventually(lambda: subscribers_of(rosmaster, f"{ns('talker', 'cloud')}/chatter") == {cloud_relay["node"]})
+    heard = len(nodes.messages("listener"))
+    await eventually(lambda: len(nodes.messages("listener")) >= heard + 500, what="the cloud talker via the relay")
+    assert await router.wait_ready("talker", "robot", 45)
+    await router.switch("talker", "robot")
+    heard = len(nodes.messages("listener"))
+    await eventually(lambda: len(nodes.messages("listener")) >= heard + 500, what="the robot talker again")
+    tags = [tag for tag, _ in nodes.messages("listener")]
+    runs = [tags[0]] + [b for a, b in itertools.pairwise(tags) if a != b]
+    assert runs == ["robot", "cloud", "robot"], "the streams interleave at a switch"
+    cut = tags.index("cloud")
+    back = cut + tags[cut:].index("robot")
+    heard_seqs = [seq for _, seq in nodes.messages("listener")]
+    for part in (heard_seqs[:cut], heard_seqs[cut:back], heard_seqs[back:]):
+        assert part == list(range(part[0], part[0] + len(part))), "a stream lost or repeated messages"
 
 
 async def test_without_a_reachable_relay_the_robots_router_relays_everything_and_says_so(nodes, make_router, caplog):
