@@ -286,6 +286,21 @@ def measure(quick: bool = True) -> dict[str, Any]:
     }
 
 
+def figure(quick: bool = True) -> float | None:
+    """Return robot_link_bytes_all_cloud_over_before for another benchmark; None (said why) when it cannot run."""
+    try:
+        result = measure(quick)
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as exc:
+        print(f"robot link bytes not measured: {exc}", file=sys.stderr, flush=True)
+        return None
+    print(
+        f"robot link, every movable component in the cloud: {result['robot_link_kbytes_per_s_before']} kB/s before,"
+        f" {result['robot_link_kbytes_per_s_after']} kB/s with the cloud relay (benchmarks/_cloudlinks.py)",
+        flush=True,
+    )
+    return float(result["robot_link_bytes_all_cloud_over_before"])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")

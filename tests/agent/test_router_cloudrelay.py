@@ -22,7 +22,7 @@ import pytest
 
 import bridgeos_agent
 from bridgeos_agent.router import RouterSettings, SkillRouter
-from bridgeos_agent.router.cloudrelay import CloudLink, FrameLog, fingerprint
+from bridgeos_agent.router.cloudrelay import CloudLink, FrameLog, fingerprint, link_from_env
 from bridgeos_agent.skillconfig import parse_skill_config
 from tests.agent.roshelpers import Nodes, private_rosmaster
 from tests.agent.test_router import eventually
@@ -288,3 +288,15 @@ async def test_the_relay_refuses_a_caller_without_its_token_and_bad_handovers(cl
         robot_pair = {"active": {"talker": "cloud", "listener": "robot"}, "pairs": [["/chatter", "listener", None]]}
         async with http.post(cloud_relay["url"] + "/take", json=robot_pair, headers=headers) as response:
             assert response.status == 400 and "not cloud to cloud" in (await response.json())["error"]
+
+
+def test_the_relay_setting_is_checked_and_names_the_skill():
+    assert link_from_env("chat", {}) is None
+    link = link_from_env(
+        "chat", {"BRIDGEOS_CLOUD_RELAY_URL": "http://cloud:8000/{skill}/", "BRIDGEOS_CLOUD_RELAY_TOKEN": "t"}
+    )
+    assert link is not None and link.url == "http://cloud:8000/chat"
+    with pytest.raises(ValueError, match="not an http"):
+        link_from_env("chat", {"BRIDGEOS_CLOUD_RELAY_URL": "cloud:8000", "BRIDGEOS_CLOUD_RELAY_TOKEN": "t"})
+    with pytest.raises(ValueError, match="TOKEN is needed"):
+        link_from_env("chat", {"BRIDGEOS_CLOUD_RELAY_URL": "http://cloud:8000"})

@@ -58,7 +58,7 @@ from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 if TYPE_CHECKING:
     from bridgeos_agent.router.routes import RouterBase
 
-__all__ = ["CloudLink", "CloudRelay", "FrameLog", "cloud_pairs", "fingerprint"]
+__all__ = ["CloudLink", "CloudRelay", "FrameLog", "cloud_pairs", "fingerprint", "link_from_env"]
 
 logger = logging.getLogger(__name__)
 
@@ -679,14 +679,18 @@ class CloudLink:
         return robot, cloud, messages, dropped
 
 
-def link_from_env(env: dict[str, str] | None = None) -> CloudLink | None:
-    """Return the link to this robot's cloud relay (BRIDGEOS_CLOUD_RELAY_URL and _TOKEN), if one is set."""
+def link_from_env(skill: str, env: dict[str, str] | None = None) -> CloudLink | None:
+    """Return the link to a Skill's cloud relay, if BRIDGEOS_CLOUD_RELAY_URL (``{skill}`` filled in) is set.
+
+    Raises ValueError, changing nothing, for a URL that is not http(s) or a missing token.
+    """
     env = dict(os.environ) if env is None else env
-    url = env.get("BRIDGEOS_CLOUD_RELAY_URL", "")
-    if not url:
+    template = env.get("BRIDGEOS_CLOUD_RELAY_URL", "")
+    if not template:
         return None
+    url = template.replace("{skill}", skill)
     if not url.startswith(("http://", "https://")):
-        raise ValueError(f"BRIDGEOS_CLOUD_RELAY_URL: {url!r} is not an http(s) URL")
+        raise ValueError(f"BRIDGEOS_CLOUD_RELAY_URL: {template!r} is not an http(s) URL")
     token = env.get("BRIDGEOS_CLOUD_RELAY_TOKEN", "")
     if not token:
         raise ValueError("BRIDGEOS_CLOUD_RELAY_TOKEN is needed with BRIDGEOS_CLOUD_RELAY_URL")

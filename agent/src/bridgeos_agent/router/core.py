@@ -298,6 +298,14 @@ async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
     for name, location in record.locations.items():
         if location in LOCATIONS and name in record.config.components:
             router.set_active(name, location)
+    from bridgeos_agent.router.cloudrelay import link_from_env  # (it builds on this module)
+
+    try:
+        router.cloud_link = link_from_env(supervisor.skill)
+    except ValueError as exc:
+        logger.error(
+            "skill %s: no cloud relay (%s); the robot's router relays every link itself", supervisor.skill, exc
+        )
     supervisor.context["router"] = router
     try:
         await router.start()
