@@ -258,6 +258,23 @@ async def test_moving_the_publisher_into_the_cloud_hands_the_link_to_the_relay_w
         assert part == list(range(part[0], part[0] + len(part))), "a stream lost or repeated messages"
 
 
+async def test_a_subscriber_stopped_in_the_cloud_and_started_on_the_robot_is_served_by_the_robot(
+    nodes, make_router, cloud_relay, rosmaster
+):
+    link = CloudLink(cloud_relay["url"], TOKEN, poll=0.3)
+    router = await make_router(link, talker="cloud", listener="cloud")
+    nodes.run("talker", "talker", "--tag", "c", "--rate", "200", namespace=ns("talker", "cloud"))
+    await eventually(lambda: link.owned == {("/chatter", "listener")}, what="the pair handed to the relay")
+    router.set_active("listener", None)  # the component stops...
+    await eventually(lambda: not link.owned, what="the pair taken back")
+    nodes.run("robot", "listener", namespace=ns("listener", "robot"))
+    assert await router.wait_ready("listener", "robot", 45)
+    router.set_active("listener", "robot")  # ...and starts again on the robot
+    await eventually(lambda: len(nodes.messages("robot")) >= 50, what="the robot's router serving the robot listener")
+    seqs = [seq for _, seq in nodes.messages("robot")]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+
 async def test_without_a_reachable_relay_the_robots_router_relays_everything_and_says_so(nodes, make_router, caplog):
     link = CloudLink("http://127.0.0.1:9", TOKEN)  # nothing listens on the discard port
     with caplog.at_level(logging.WARNING, logger="bridgeos_agent.router"):

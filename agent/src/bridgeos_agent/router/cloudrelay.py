@@ -67,6 +67,7 @@ LOG_FRAMES = 8192
 LOG_BYTES = 64 << 20
 QUIET_S = 0.05  # after a drain, before another relay writes to the same subscriber (its reader threads)
 KEEP_S = 5.0  # a cloud source subscribed for a readiness check is kept this long
+REFRESH_S = 2.0  # how often the relay asks the master about sources it has not heard yet
 FAILURES = 3  # polls in a row without an answer before the robot takes every pair back
 
 Pair = tuple[str, str]  # (canonical topic, subscriber component)
@@ -275,12 +276,28 @@ class CloudRelay(SkillRouter):
         app.router.add_post("/reset", self._reset)
         app.router.add_get("/ready", self._ready_view)
         app.router.add_get("/statistics", self._statistics_view)
+        self._spawn(self._refresh_loop())
         self._control = web.AppRunner(app, access_log=None)
         await self._control.setup()
         site = web.TCPSite(self._control, self.settings.http_host, 0)
         await site.start()
         port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
         self.control_url = f"http://{self.settings.http_advertise}:{port}"
+
+    async def _refresh_loop(self) -> None:
+        """Ask the master again for the publishers of every source not connected yet.
+
+        The relay sits across the robot's link from the master (the robot's own, usually), so a
+        lost ``publisherUpdate`` would otherwise leave a cloud source unheard for good.
+        """
+        while True:
+            await asyncio.sleep(REFRESH_S)
+            node = self.node
+            if node is None:
+                continue
+            for name, subscription in list(node.subscriptions.items()):
+                if subscription.where is not None and not subscription.connected:
+                    node.subscribe(name, subscription.type, subscription.callback)
 
     async def close(self) -> None:
         await super().close()
@@ -455,10 +472,9 @@ class CloudLink:
                 reason,
             )
         self.up, self.reason = False, reason
-        for name, subscriber in self.owned:
-            topic = router._topics.get(name)
-            if topic is not None and subscriber in topic.deliveries:
-                topic.deliveries[subscriber].gate = None
+        for topic in router._topics.values():
+            for delivery in topic.deliveries.values():
+                delivery.gate = None  # handed over, held or awaiting a cut point: all ours again
         self.owned = set()
         self.seen = dict(router._active)
         self.prune(router)
@@ -531,11 +547,15 @@ class CloudLink:
                     answer = await self._call("POST", "/release", {"active": plan["active"], "pairs": plan["take"]})
                     for name, subscriber, anchor in answer["anchors"]:
                         topic = router._topics.get(name)
-                        where = router._active.get(subscriber)
-                        if topic is None or subscriber not in topic.deliveries or where is None:
+                        if topic is None or subscriber not in topic.deliveries:
                             continue
                         delivery = topic.deliveries[subscriber]
-                        if delivery.gate is HOLD:
+                        where = router._active.get(subscriber)
+                        if delivery.gate is not HOLD:
+                            continue
+                        if where is None:
+                            delivery.gate = None  # stopped: whichever instance starts next gets the stream
+                        else:
                             start_after(topic, delivery, where, anchor, router.settings.drain_timeout)
                 if plan["give"]:
                     await drained([p for g in plan["give"] for p in g[3]], router.settings.drain_timeout)
