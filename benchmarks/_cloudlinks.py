@@ -259,6 +259,8 @@ class NotStarted(RuntimeError):
     def __init__(self, message: str, home: Path, relay: bool) -> None:
         said = "".join(f"{p.name}: {p.read_text()[-300:]}" for p in sorted(home.glob("*.out")))
         said += (home / "relay.log").read_text()[-1500:] if relay else ""
+        for log in home.glob("log/**/master.log"):
+            said += "master: " + "".join(line for line in log.read_text().splitlines(True) if "http" in line)[-1500:]
         super().__init__(f"{message}\n{said}")
 
 
