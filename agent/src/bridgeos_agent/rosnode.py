@@ -95,7 +95,13 @@ class RosNode:
 
     async def start(self) -> None:
         """Serve the slave API and TCPROS, and check the master answers."""
-        bind = "127.0.0.1" if self.host in ("127.0.0.1", "localhost", "::1") else None
+        # One listening socket: bound to every family at once (None), IPv4 and IPv6 each get a port of
+        # their own, and the advertised URI could name the IPv6 one (the master's publisherUpdate was
+        # then refused and the node heard nothing, seen with ROS_IP on a non-loopback address).
+        if self.host in ("127.0.0.1", "localhost", "::1"):
+            bind = "127.0.0.1"
+        else:
+            bind = "::" if ":" in self.host else "0.0.0.0"
         self._session = aiohttp.ClientSession(
             connector=aiohttp.TCPConnector(limit=64), timeout=aiohttp.ClientTimeout(total=30)
         )
