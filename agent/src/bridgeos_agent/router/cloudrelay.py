@@ -285,11 +285,9 @@ class CloudRelay(SkillRouter):
         self.control_url = f"http://{self.settings.http_advertise}:{port}"
 
     async def _refresh_loop(self) -> None:
-        """Ask the master again for the publishers of every source not connected yet.
-
-        The relay sits across the robot's link from the master (the robot's own, usually), so a
-        lost ``publisherUpdate`` would otherwise leave a cloud source unheard for good.
-        """
+        """Ask the master again for the publishers of every source not connected yet."""
+        # The relay sits across the robot's link from the master (the robot's own, usually): a
+        # lost publisherUpdate would otherwise leave a cloud source unheard for good.
         while True:
             await asyncio.sleep(REFRESH_S)
             node = self.node
@@ -700,10 +698,7 @@ class CloudLink:
 
 
 def link_from_env(skill: str, env: dict[str, str] | None = None) -> CloudLink | None:
-    """Return the link to a Skill's cloud relay, if BRIDGEOS_CLOUD_RELAY_URL (``{skill}`` filled in) is set.
-
-    Raises ValueError, changing nothing, for a URL that is not http(s) or a missing token.
-    """
+    """Return the link to a Skill's cloud relay if BRIDGEOS_CLOUD_RELAY_URL is set; ValueError if it is bad."""
     env = dict(os.environ) if env is None else env
     template = env.get("BRIDGEOS_CLOUD_RELAY_URL", "")
     if not template:
