@@ -49,6 +49,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import _cloudlinks
 from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, log, migrate, setup_django
 
 from bridgeos_agent.controller import AgentSettings, RobotController
@@ -435,6 +436,7 @@ def main() -> None:
     )
     parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
+    parser.add_argument("--no-cloud-links", action="store_true", help="skip the robot-link bytes run (_cloudlinks.py)")
     args = parser.parse_args()
     if args.cloud_mb is not None:
         if not 1 <= args.cloud_mb <= 100:
@@ -566,6 +568,9 @@ def main() -> None:
         print(f"stable phase: estimated reward standard deviation (cost units): {spread}")
     print(f"decision networks trained: {run.trained}/{len(names)}; last decisions by a trusted network: {run.trusted}")
     print(f"machine load (1 min) {load_before[0]:.2f} before, {load_after[0]:.2f} after, on {os.cpu_count()} cores")
+    # Issue 22: bytes on the robot's link with every movable component in the cloud, after cloud-side
+    # routing over before (a ROS pipeline of its own on a real link; run after the scenario, never during it).
+    link_ratio = None if args.no_cloud_links else _cloudlinks.figure(args.quick)
     print(
         json.dumps(
             {
@@ -586,6 +591,7 @@ def main() -> None:
                 "phases": len(script.phases),
                 "phase_s": phase_s,
                 "load_1min": round(load_after[0], 2),
+                "robot_link_bytes_all_cloud_over_before": link_ratio,
             }
         ),
         flush=True,

@@ -8,6 +8,7 @@ its ``ROS_NAMESPACE`` gives it, exactly like a Skill component.
     listener --topic chatter                       prints "tag seq" per message, one a line
     server   --service trigger --tag robot         std_srvs/Trigger answering with its tag
     pairs    --pairs 10 --rate 100 --seconds 5 --mode pub|sub --prefix /bench   (benchmark; rate 0: flat out)
+    component --inputs a,b [--topic out --rate 20 --size 1000]   subscribes to inputs, publishes its output
 """
 
 from __future__ import annotations
@@ -126,9 +127,41 @@ def pairs(args: argparse.Namespace) -> None:
         print(json.dumps(stats), flush=True)
 
 
+def component(args: argparse.Namespace) -> None:
+    """Subscribe to a Skill component's inputs and publish its output (padding of --size) at --rate."""
+    import rospy
+    from std_msgs.msg import String
+
+    rospy.init_node(f"component_{args.tag}", anonymous=True, disable_signals=True)
+    counts = {}
+    for name in filter(None, args.inputs.split(",")):
+        counts[name] = 0
+
+        def received(msg: String, name: str = name) -> None:
+            counts[name] += 1
+
+        rospy.Subscriber(name, String, received, queue_size=None)
+    pub = rospy.Publisher(args.topic, String, queue_size=None) if args.publish else None
+    print("ready", flush=True)
+    padding = "x" * args.size
+    period = 1.0 / args.rate
+    seq = 0
+    next_at = time.monotonic()
+    while not rospy.is_shutdown():
+        if pub is not None:
+            seq += 1
+            pub.publish(String(data=f"{args.tag} {seq} {time.time():.6f} {padding}"))
+        next_at += period
+        delay = next_at - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        elif delay < -0.5:
+            next_at = time.monotonic()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("role", choices=["talker", "listener", "server", "pairs"])
+    parser.add_argument("role", choices=["talker", "listener", "server", "pairs", "component"])
     parser.add_argument("--topic", default="chatter")
     parser.add_argument("--service", default="trigger")
     parser.add_argument("--tag", default="robot")
@@ -142,8 +175,11 @@ def main() -> None:
     parser.add_argument("--mode", choices=["pub", "sub"], default="pub")
     parser.add_argument("--prefix", default="/bench")
     parser.add_argument("--sample", type=int, default=1)
+    parser.add_argument("--inputs", default="", help="component: topics to subscribe, comma-separated")
+    parser.add_argument("--publish", action="store_true", help="component: publish --topic")
     args = parser.parse_args()
-    {"talker": talker, "listener": listener, "server": server, "pairs": pairs}[args.role](args)
+    roles = {"talker": talker, "listener": listener, "server": server, "pairs": pairs, "component": component}
+    roles[args.role](args)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,13 @@ forwards message bytes without decoding them, keeps one bounded queue per subscr
 connection so a slow peer or a big topic never delays another, keeps the last N messages
 of marked topics for new instances, counts everything for the Skill Manager and publishes
 ``rosgraph_msgs/TopicStatistics`` on ``/statistics``.
+
+Cloud-side routing (``cloudrelay``): the same router run in the cloud for one robot's Skill, a
+cloud relay, delivers the (topic, subscriber) pairs whose two ends are both active in the cloud,
+so their bytes do not cross the robot's link. The robot's router hands those pairs over and
+takes them back at an exact cut point (one relay per pair at any moment, nothing lost or
+repeated), stops receiving cloud streams nobody on the robot needs, adds the relay's counts to
+its own, and relays everything itself (said once in its log) when no relay answers.
 """
 
 from __future__ import annotations

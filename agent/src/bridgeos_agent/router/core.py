@@ -23,6 +23,7 @@ from bridgeos_agent.tcpros import TOPIC_STATISTICS_DEFINITION, TOPIC_STATISTICS_
 
 if TYPE_CHECKING:
     from bridgeos_agent.hosts import SkillHost
+    from bridgeos_agent.router.cloudrelay import CloudLink
     from bridgeos_agent.supervisor import SkillSupervisor
 
 __all__ = ["SkillRouter", "skill_router_plugin"]
@@ -73,6 +74,9 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
         self._tasks: set[asyncio.Task[None]] = set()
         self._ros_warned = False
         self._started = clock()
+        # Set before start(): the link to this robot's cloud relay (router/cloudrelay.py), which then
+        # delivers the cloud-to-cloud pairs; None: this router relays everything.
+        self.cloud_link: CloudLink | None = None
 
     # ------------------------------------------------------------------ life cycle
 
@@ -92,6 +96,8 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
             await self._start_http()
         if self.ros_routes:
             await self.enable_ros(self.ros_master)
+        if self.cloud_link is not None and self.node is not None:
+            await self.cloud_link.start(self)
 
     async def enable_ros(self, master: str | None) -> bool:
         """Start ROS routing against ``master``; say once, clearly, when it cannot run."""
@@ -142,6 +148,8 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
 
     async def close(self) -> None:
         """Stop routing: unregister from the master, close servers and connections."""
+        if self.cloud_link is not None:
+            await self.cloud_link.close()
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -165,6 +173,9 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
         """Make an instance active at once (a component's first start, or its stop)."""
         self._check(component, location)
         self._active[component] = location  # type: ignore[assignment]
+        link = self.cloud_link
+        if link is not None and link.up:
+            self._spawn(link.handover(self, link.plan(self)))
 
     async def switch(self, component: str, location: str) -> None:
         """Route to ``location``'s instance from now on; return once the old one's calls have ended."""
@@ -173,6 +184,8 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
             raise ValueError("switch needs a location")
         old = self._active.get(component)
         self._active[component] = location  # type: ignore[assignment]
+        link = self.cloud_link
+        plan = link.plan(self) if link is not None and link.up else None  # in this same step
         # Topics switch in one step of the event loop: a burst goes wholly to the old or the new
         # instance. Requests and service calls already on their way finish at the old instance.
         if old is not None and old != location:
@@ -181,6 +194,8 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
                 drained = self._drained.setdefault(key, asyncio.Event())
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(drained.wait(), self.settings.drain_timeout)
+        if link is not None and plan is not None:
+            await link.handover(self, plan)
         logger.info("skill %s: %s now routed to its %s instance", self.skill, component, location)
 
     def _check(self, component: str, location: str | None) -> None:
@@ -207,6 +222,8 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
             await asyncio.sleep(0.05)
 
     async def _ready(self, component: str, location: Where) -> bool:
+        if self.cloud_link is not None and not await self.cloud_link.ready(self, component, location):
+            return False
         node = self.node
         if node is not None:
             for topic in self._topics.values():
@@ -281,6 +298,14 @@ async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
     for name, location in record.locations.items():
         if location in LOCATIONS and name in record.config.components:
             router.set_active(name, location)
+    from bridgeos_agent.router.cloudrelay import link_from_env  # (it builds on this module)
+
+    try:
+        router.cloud_link = link_from_env(supervisor.skill)
+    except ValueError as exc:
+        logger.error(
+            "skill %s: no cloud relay (%s); the robot's router relays every link itself", supervisor.skill, exc
+        )
     supervisor.context["router"] = router
     try:
         await router.start()

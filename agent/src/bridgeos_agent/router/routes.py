@@ -25,11 +25,14 @@ class Delivery:
 
     # "robot" and "cloud": the router's publication in that instance's namespace (slots, not a dict:
     # a router may map tens of thousands of topics).
-    __slots__ = ("bytes_cloud", "bytes_robot", "cloud", "dropped", "messages", "robot")
+    __slots__ = ("bytes_cloud", "bytes_robot", "cloud", "dropped", "gate", "messages", "robot")
 
     def __init__(self) -> None:
         self.robot: Publication | None = None
         self.cloud: Publication | None = None
+        # None: this router delivers; else a cloudrelay.Gate says why not (yet): the pair is
+        # handed to the other relay, or held until a handover's cut point arrives.
+        self.gate: Any = None
         self.messages = 0
         self.dropped = 0
         self.bytes_robot = 0
@@ -50,10 +53,12 @@ class RoutedTopic:
         "has_header",
         "last_age",
         "last_rate",
+        "log",
         "messages",
         "node_pub",
         "outside_dropped",
         "outside_messages",
+        "parked",
         "route",
         "store",
         "w_age_max",
@@ -79,6 +84,8 @@ class RoutedTopic:
         self.store: deque[bytes] | None = deque(maxlen=route.store) if route.store else None
         self.has_header = False
         self.node_pub = ""
+        self.log: Any = None  # cloudrelay.FrameLog of the cloud source's recent frames, when a cloud relay is linked
+        self.parked = False  # a cloud relay delivering none of this topic: it only logs the frames
         self.last_rate = 0.0  # messages/s over the last statistics window
         self.last_age: float | None = None  # mean age of header.stamp then (s), when the type has a header
         # Totals since the router started (the publisher's side).

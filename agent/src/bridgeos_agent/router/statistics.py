@@ -96,6 +96,9 @@ class RouterStatistics(RouterBase):
                 "bytes": service.bytes,
                 "errors": service.errors,
             }
+        link = getattr(self, "cloud_link", None)
+        if link is not None:
+            link.merge(result)  # what the cloud relay delivered
         return result
 
     def _totals(self, component: str) -> tuple[int, int, int, int]:
@@ -123,6 +126,12 @@ class RouterStatistics(RouterBase):
             messages += counts[0]
             robot += counts[1]
             dropped += counts[2]
+        link = getattr(self, "cloud_link", None)
+        if link is not None:
+            extra = link.totals(self, component)
+            robot, cloud, messages, dropped = (
+                a + b for a, b in zip((robot, cloud, messages, dropped), extra, strict=True)
+            )
         return robot, cloud, messages, dropped
 
     def routed(self, component: str) -> bool:

@@ -8,7 +8,7 @@ import time
 from bridgeos_agent.rosnames import canonical_name, instance_name
 from bridgeos_agent.rostopics import Inbound, Outbound, Publication, Subscription, iter_frames
 from bridgeos_agent.router.routes import Delivery, RoutedTopic, RouterBase
-from bridgeos_agent.router.settings import locations
+from bridgeos_agent.router.settings import Where, locations
 from bridgeos_agent.skillconfig import TopicRoute
 from bridgeos_agent.tcpros import header_stamp
 
@@ -18,27 +18,36 @@ __all__ = ["TopicRouting"]
 class TopicRouting(RouterBase):
     """Advertise, subscribe and relay the routed topics, counting what passes."""
 
+    # The robot's router owns the canonical names (outside nodes live on the robot's graph); a
+    # cloud relay serves only the cloud instances (cloudrelay.CloudRelay overrides both).
+    canonical_names = True
+
+    def _places(self, where: str) -> tuple[Where, ...]:
+        """Return the locations whose instances this router advertises and subscribes for a component."""
+        return locations(where)
+
     def _add_topic(self, route: TopicRoute) -> None:
         node = self.node
         assert node is not None
         components = self.config.components
         canonical = canonical_name(route.name)
-        topic = RoutedTopic(route, node.advertise(canonical, route.type), self.clock())
+        canonical_pub = node.advertise(canonical, route.type) if self.canonical_names else None
+        topic = RoutedTopic(route, canonical_pub, self.clock())
         self._topics[canonical] = topic
         for subscriber in route.subscribers:
             if subscriber == route.publisher:
                 continue  # never route a component's own messages back to it
             delivery = topic.deliveries[subscriber] = Delivery()
-            for location in locations(components[subscriber].location):
+            for location in self._places(components[subscriber].location):
                 publication = node.advertise(instance_name(route.name, self.skill, subscriber, location), route.type)
                 setattr(delivery, location, publication)
                 if topic.store is not None:
                     publication.on_connect = functools.partial(self._replay, topic)
-        for location in locations(components[route.publisher].location):
+        for location in self._places(components[route.publisher].location):
             name = instance_name(route.name, self.skill, route.publisher, location)
             subscription = node.subscribe(name, route.type, self._on_messages)
             subscription.owner, subscription.where = topic, location
-        if topic.deliveries:
+        if topic.deliveries and self.canonical_names:
             # Outside publishers on the canonical name reach the subscribers too.
             node.subscribe(canonical, route.type, self._on_messages).owner = topic
 
@@ -95,7 +104,10 @@ class TopicRouting(RouterBase):
                 dropped += lost
             topic.outside_dropped += dropped
         else:
-            if active.get(topic.route.publisher) != source:
+            log = topic.log
+            if log is not None and source == "cloud":
+                log.add(blob, count)  # a handover's cut point is found in here
+            if active.get(topic.route.publisher) != source or topic.parked:
                 return  # the inactive instance's traffic goes nowhere
             topic.messages += count
             canonical = topic.canonical_pub
@@ -107,6 +119,9 @@ class TopicRouting(RouterBase):
             for component, delivery in topic.deliveries.items():
                 where = active.get(component)
                 if where is None:
+                    continue
+                if delivery.gate is not None:
+                    dropped += delivery.gate.burst(topic, delivery, where, source, blob, count)
                     continue
                 lost = getattr(delivery, where).send(blob, count)
                 delivery.messages += count - lost
