@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Build the local bridgeOS images, skipping each one whose inputs have not changed.
 #
-#   docker/build-images.sh          # the images the tests use: base and ros
+#   docker/build-images.sh          # the images the tests use: base, ros and ros2
 #   docker/build-images.sh ros      # one image (and, first, what it is built on)
 #   docker/build-images.sh ros2     # ROS 2 Jazzy from the PyPI wheels (cloud copies, discovery servers)
 #   docker/build-images.sh stack    # what docker/stack.yml runs: cloud agent postgres redis haproxy
@@ -14,8 +14,9 @@ set -euo pipefail
 
 DOCKER_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 IMAGES=(base ros ros2 python cloud agent postgres redis haproxy)
-# Built only when asked (scripts/deploy.sh, the deploy test): CI's services.sh builds base and ros.
-DEFAULT_IMAGES=(base ros)
+# Built only when asked (scripts/deploy.sh, the deploy test): CI's services.sh builds base, ros and ros2
+# (ros2 for the Swarm test of a ROS 2 cloud copy: about 3 minutes once, then skipped while unchanged).
+DEFAULT_IMAGES=(base ros ros2)
 STACK_IMAGES=(cloud agent postgres redis haproxy)
 LABEL=org.bridgeos.inputs
 LOG_DIR=${BRIDGEOS_LOG_DIR:-/var/log}

@@ -182,7 +182,10 @@ def _mark_all_connected(logins: list[Login], outcomes: list[Connected]) -> None:
             outcome.robot, outcome.config, outcome.ros_master = robot.id, robot.config, master or None
             servers = ros2_discovery_wanted.send(Robot, robot_id=robot.id, graph=login.ros2)
             outcome.ros2_discovery_server = next((answer for _, answer in servers if answer), None)
-            robot.ros2 = login.ros2
+            # Kept with the graph, so the API and the dashboard show where its cloud copies find each other.
+            robot.ros2 = (
+                None if login.ros2 is None else {**login.ros2, "cloud_discovery_server": outcome.ros2_discovery_server}
+            )
             outcome.replaced_channel = robot.channel if robot.connected and robot.channel != login.channel else ""
             robot.connected, robot.channel, robot.last_seen = True, login.channel, now
             robot.status, robot.ros_master = RobotStatus.RUNNING, master
