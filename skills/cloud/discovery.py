@@ -5,7 +5,7 @@ gets a UDP port of the cloud host kept for it (``RobotCloud.ros2_discovery_port`
 worker task runs ``fast-discovery-server`` there. The robot's cloud copies and the cloud side
 of its Skill Router are clients of that server and of nothing else, so robots sharing a host
 and a ROS_DOMAIN_ID never discover each other's nodes. Limit: one small server process (about
-10 MB resident) and one UDP port of ``BRIDGEOS_CLOUD_ROS2_DISCOVERY_PORTS`` per ROS 2 robot.
+20 MB resident, measured) and one UDP port of ``BRIDGEOS_CLOUD_ROS2_DISCOVERY_PORTS`` per ROS 2 robot.
 """
 
 from __future__ import annotations

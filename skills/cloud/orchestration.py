@@ -207,6 +207,10 @@ def ros2_env(robot: Robot) -> dict[str, str]:
     if runtime_name() == "process":
         # The cloud's own venv has the ROS 2 wheels: its python3 comes first for the copy's command.
         env["PATH"] = os.pathsep.join([os.path.dirname(sys.executable), os.environ.get("PATH", os.defpath)])
+    else:
+        # A container has a /dev/shm of its own, yet Fast DDS takes a host-networked peer for one on the
+        # same host and sends it data over shared memory, which never arrives (measured): UDP only.
+        env["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
     return env
 
 

@@ -16,7 +16,6 @@ import random
 import subprocess
 import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import psutil
@@ -47,6 +46,8 @@ pytestmark = [
 DOMAIN = 45
 GRAPH = {"domain_id": DOMAIN, "rmw": "rmw_fastrtps_cpp", "discovery_range": "LOCALHOST"}
 SKILL = "ros2cloud"
+# The cloud's venv (the worker's interpreter, with the ROS 2 wheels), however its path is spelled.
+VENV_BIN = os.path.realpath(os.path.dirname(sys.executable))
 # The nodes: a talker publishing "<TAG>:<n>" on its topic, and a listener printing how many it heard.
 TALKER = """
 import os, sys, rclpy
@@ -283,12 +284,13 @@ async def test_a_ros2_cloud_copy_runs_in_its_robots_graph_with_its_namespace(sta
         # The process really runs so, with the cloud venv's python3 (the one with rclpy).
         pid = int(instance.container["id"])
         process = psutil.Process(pid)
+        # Read once it has exec'd the command: before that, /proc shows the forking worker's env.
+        await eventually(lambda: process.cmdline()[-3:] == namespace_arguments(namespace), what="the command exec'd")
         env = process.environ()
         launched = {k: v for k, v in env.items() if k.startswith(("ROS_", "RMW_", "BRIDGEOS_CLOUD_KEY"))}
         assert launched.get("ROS_DISCOVERY_SERVER") == address, (process.cmdline(), launched)
         assert env["ROS_DOMAIN_ID"] == str(DOMAIN)
-        assert Path(env["PATH"].split(os.pathsep)[0]).resolve() == Path(sys.executable).parent.resolve()
-        assert process.cmdline()[-3:] == namespace_arguments(namespace)
+        assert _first_on_path(env) == VENV_BIN
 
         # And it talks in the robot's cloud graph, under its namespace.
         listener = node(LISTENER, [f"{namespace}/chatter", "12"], address)
@@ -332,6 +334,10 @@ async def test_an_invalid_ros2_block_is_refused_clearly_and_changes_nothing(stac
 
 
 # --------------------------------------------------------------------------- checks
+
+
+def _first_on_path(env: dict[str, str]) -> str:
+    return os.path.realpath(env["PATH"].split(os.pathsep)[0])
 
 
 async def _no_servers(stack, *robot_ids: str) -> bool:
