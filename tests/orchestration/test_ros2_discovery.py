@@ -299,6 +299,8 @@ async def test_a_ros2_cloud_copy_runs_in_its_robots_graph_with_its_namespace(sta
         if listener is not None:
             stop(listener)
         await link.send(Event.COMPONENT_STOP, {"skill": SKILL, "component": "talker", "location": "cloud"})
+        # The stop done before the tables are flushed: the worker's writes would deadlock with the flush.
+        await eventually(lambda: _copy_stopped("r2-copy"), timeout=60, what="the cloud copy stopped")
         await link.close()
 
 
@@ -351,6 +353,12 @@ async def _is(value, expected) -> bool:
 @sync_to_async
 def _disconnected(*robot_ids: str) -> bool:
     return not Robot.objects.filter(id__in=robot_ids, connected=True).exists()
+
+
+@sync_to_async
+def _copy_stopped(robot_id: str) -> bool:
+    instance = CloudInstance.objects.filter(component__skill__robot_id=robot_id).first()
+    return instance is None or (instance.desired == "stopped" and instance.status in ("stopped", "failed"))
 
 
 @sync_to_async

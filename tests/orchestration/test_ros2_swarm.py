@@ -23,7 +23,19 @@ from skills.cloud.runtime import object_name
 from tests.agent.test_controller import eventually, make_robot
 
 from .conftest import make_stack
-from .test_ros2_discovery import DOMAIN, GRAPH, LISTENER, TALKER, _copy_running, heard, login, node, server_status, stop
+from .test_ros2_discovery import (
+    DOMAIN,
+    GRAPH,
+    LISTENER,
+    TALKER,
+    _copy_running,
+    _copy_stopped,
+    heard,
+    login,
+    node,
+    server_status,
+    stop,
+)
 
 IMAGE = "bridgeos/ros2:jazzy"
 SKILL = "ros2swarm"
@@ -96,6 +108,8 @@ async def test_a_ros2_cloud_copy_in_the_ros2_image_talks_through_its_robots_disc
         if listener is not None:
             stop(listener)
         await link.send(Event.COMPONENT_STOP, {"skill": SKILL, "component": "talker", "location": "cloud"})
+        # The stop done before the tables are flushed: the worker's writes would deadlock with the flush.
+        await eventually(lambda: _copy_stopped("r2-swarm"), timeout=60, what="the cloud copy stopped")
         await link.close()
 
 
