@@ -180,7 +180,7 @@ def _mark_all_connected(logins: list[Login], outcomes: list[Connected]) -> None:
             answers = [answer for _, answer in ros_master_wanted.send(Robot, robot_id=robot.id, reported=reported)]
             master = next((answer for answer in answers if answer is not None), reported or "")
             outcome.robot, outcome.config, outcome.ros_master = robot.id, robot.config, master or None
-            servers = ros2_discovery_wanted.send(Robot, robot_id=robot.id, graph=login.ros2)
+            servers = ros2_discovery_wanted.send(Robot, robot_id=robot.id, graph=login.ros2, previous=robot.ros2)
             outcome.ros2_discovery_server = next((answer for _, answer in servers if answer), None)
             # Kept with the graph, so the API and the dashboard show where its cloud copies find each other.
             robot.ros2 = (

@@ -19,6 +19,8 @@ def provide_ros_master(sender: Any, robot_id: str, reported: str | None, **kw: A
 
 
 @receiver(ros2_discovery_wanted, dispatch_uid="skills-ros2-discovery")
-def provide_ros2_discovery(sender: Any, robot_id: str, graph: dict[str, Any] | None, **kw: Any) -> str | None:
+def provide_ros2_discovery(
+    sender: Any, robot_id: str, graph: dict[str, Any] | None, previous: dict[str, Any] | None = None, **kw: Any
+) -> str | None:
     """Return "host:port" of the discovery server the cloud runs for a connecting ROS 2 robot (None: no ROS 2)."""
-    return discovery_server_for(robot_id, graph)
+    return discovery_server_for(robot_id, graph, previous)

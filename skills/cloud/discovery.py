@@ -33,12 +33,17 @@ from .runtime import discovery_address
 logger = logging.getLogger(__name__)
 
 
-def discovery_server_for(robot_id: str, graph: dict[str, Any] | None) -> str | None:
+def discovery_server_for(
+    robot_id: str, graph: dict[str, Any] | None, previous: dict[str, Any] | None = None
+) -> str | None:
     """Return the discovery server a connecting ROS 2 robot's cloud graph uses (in the caller's transaction).
 
     None for a robot without ROS 2 (a server it had is stopped once this commits); else
     "host:port" of its own, a port kept for it and the server started once this commits.
     """
+    if graph is None and previous is None:
+        # Neither now nor at its last login a ROS 2 robot: no query (a connect storm of ROS 1 robots).
+        return None
     cloud = RobotCloud.objects.select_for_update().filter(robot_id=robot_id).first()
     if graph is None:
         if cloud is not None and cloud.ros2_discovery_port is not None:
