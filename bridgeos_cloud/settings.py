@@ -326,6 +326,9 @@ BRIDGEOS = {
     "CLOUD_ROS_MASTERS": env_str("BRIDGEOS_CLOUD_ROS_MASTERS", ""),
     "CLOUD_ROS_MASTER_PORTS": env_str("BRIDGEOS_CLOUD_ROS_MASTER_PORTS", "41311-41999"),
     "CLOUD_ROS_IMAGE": env_str("BRIDGEOS_CLOUD_ROS_IMAGE", "bridgeos/ros:noetic"),
+    # A Fast DDS discovery server per ROS 2 robot (its cloud graph): the UDP ports they use, and their image.
+    "CLOUD_ROS2_DISCOVERY_PORTS": env_str("BRIDGEOS_CLOUD_ROS2_DISCOVERY_PORTS", "42811-43999"),
+    "CLOUD_ROS2_IMAGE": env_str("BRIDGEOS_CLOUD_ROS2_IMAGE", "bridgeos/ros2:jazzy"),
     # ROS nodes in the cloud: "host" networking (peers on this host reach them) or the robot's overlay network.
     "CLOUD_ROS_NETWORK": env_str("BRIDGEOS_CLOUD_ROS_NETWORK", "host"),
     "CLOUD_START_TIMEOUT_S": env_float("BRIDGEOS_CLOUD_START_TIMEOUT_S", 60.0),

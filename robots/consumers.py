@@ -175,7 +175,10 @@ class RobotConsumer(ProtocolConsumer):
         if presence is not None:
             # Registered before its first robot is marked connected here, so no sweep takes that for an orphan.
             await presence.joined()
-        login = services.Login(credentials.robot, credentials.token, address, self.channel_name, credentials.ros_master)
+        ros2 = None if credentials.ros2 is None else credentials.ros2.model_dump(mode="json")
+        login = services.Login(
+            credentials.robot, credentials.token, address, self.channel_name, credentials.ros_master, ros2
+        )
         connected, reports = await login_queue().submit(login)
         if connected.blocked_s:
             await self.refuse("too many failed attempts; try again later", envelope.id, CLOSE_TOO_MANY_FAILURES)
@@ -192,7 +195,11 @@ class RobotConsumer(ProtocolConsumer):
         await self.send_envelope(
             protocol.make(
                 Event.AUTHENTICATION_SUCCESS,
-                {"robot": connected.robot, "ros_master": connected.ros_master},
+                {
+                    "robot": connected.robot,
+                    "ros_master": connected.ros_master,
+                    "ros2_discovery_server": connected.ros2_discovery_server,
+                },
                 reply_to=envelope.id,
                 now=time.time(),
             )

@@ -48,6 +48,9 @@ class Robot(models.Model):
     channel = models.CharField(max_length=200, blank=True, editable=False)
     # The ROS master the robot's components use: the one it reported, or one the cloud runs.
     ros_master = models.CharField(max_length=2048, blank=True, editable=False)
+    # The robot's ROS 2 graph as its agent reported it at login (protocol.Ros2GraphInfo), with the
+    # "cloud_discovery_server" its cloud copies use ("host:port"); None: no ROS 2 there.
+    ros2 = models.JSONField(null=True, blank=True, editable=False)
     config = models.JSONField(
         default=default_robot_config, help_text="Resources, heuristic, threshold, offloading mode, subnets."
     )

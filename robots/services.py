@@ -31,7 +31,7 @@ from monitoring.services import record_event, record_events
 
 from .choices import RobotStatus
 from .models import ApiToken, Robot, hash_token
-from .signals import credentials_rotated, ros_master_wanted
+from .signals import credentials_rotated, ros2_discovery_wanted, ros_master_wanted
 
 
 def create_robot(
@@ -116,6 +116,8 @@ class Login:
     address: str
     channel: str
     ros_master: str | None = None
+    # The robot's ROS 2 graph (protocol.Ros2GraphInfo as JSON data), when its agent runs ROS 2.
+    ros2: dict[str, Any] | None = None
 
 
 @dataclass
@@ -127,6 +129,7 @@ class Connected:
     config: dict[str, Any] = field(default_factory=dict)
     replaced_channel: str = ""
     ros_master: str | None = None
+    ros2_discovery_server: str | None = None
 
 
 def connect_robots(logins: list[Login]) -> list[Connected]:
@@ -177,6 +180,12 @@ def _mark_all_connected(logins: list[Login], outcomes: list[Connected]) -> None:
             answers = [answer for _, answer in ros_master_wanted.send(Robot, robot_id=robot.id, reported=reported)]
             master = next((answer for answer in answers if answer is not None), reported or "")
             outcome.robot, outcome.config, outcome.ros_master = robot.id, robot.config, master or None
+            servers = ros2_discovery_wanted.send(Robot, robot_id=robot.id, graph=login.ros2, previous=robot.ros2)
+            outcome.ros2_discovery_server = next((answer for _, answer in servers if answer), None)
+            # Kept with the graph, so the API and the dashboard show where its cloud copies find each other.
+            robot.ros2 = (
+                None if login.ros2 is None else {**login.ros2, "cloud_discovery_server": outcome.ros2_discovery_server}
+            )
             outcome.replaced_channel = robot.channel if robot.connected and robot.channel != login.channel else ""
             robot.connected, robot.channel, robot.last_seen = True, login.channel, now
             robot.status, robot.ros_master = RobotStatus.RUNNING, master
@@ -196,16 +205,20 @@ def _update_connected(robots: list[Robot], now: datetime) -> None:
         return
     if connection.vendor != "postgresql":
         # The embedded SQLite has no column list on VALUES; it serves one small fleet anyway.
-        Robot.objects.bulk_update(robots, ["connected", "channel", "last_seen", "status", "ros_master"])
+        Robot.objects.bulk_update(robots, ["connected", "channel", "last_seen", "status", "ros_master", "ros2"])
         return
     table = connection.ops.quote_name(Robot._meta.db_table)
-    rows = ", ".join(["(%s, %s, %s)"] * len(robots))
+    rows = ", ".join(["(%s, %s, %s, %s::jsonb)"] * len(robots))
     # Only the table name and placeholders are formatted in; every value is a query parameter.
-    params: list[Any] = [value for robot in robots for value in (robot.id, robot.channel, robot.ros_master)]
+    params: list[Any] = [
+        value
+        for robot in robots
+        for value in (robot.id, robot.channel, robot.ros_master, None if robot.ros2 is None else json.dumps(robot.ros2))
+    ]
     with connection.cursor() as cursor:
         cursor.execute(
-            f"UPDATE {table} SET connected = TRUE, last_seen = %s, status = %s,"
-            f" channel = v.channel, ros_master = v.ros_master FROM (VALUES {rows}) AS v(id, channel, ros_master)"
+            f"UPDATE {table} SET connected = TRUE, last_seen = %s, status = %s, channel = v.channel,"
+            f" ros_master = v.ros_master, ros2 = v.ros2 FROM (VALUES {rows}) AS v(id, channel, ros_master, ros2)"
             f" WHERE {table}.id = v.id",
             [now, RobotStatus.RUNNING, *params],
         )

@@ -15,3 +15,9 @@ config_checked = Signal()
 # that marks it connected; a receiver may answer the ROS master its components use (the cloud's
 # orchestration: a shared one, or one of its own in the cloud). No answer: the reported one.
 ros_master_wanted = Signal()
+
+# Sent with robot_id=, graph= (the ROS 2 graph the robot reported as a dict, or None) and previous= (the
+# graph kept from its last login, or None) inside the transaction
+# that marks it connected; a receiver may answer the "host:port" of the discovery server the cloud runs for
+# the robot's ROS 2 cloud graph (the cloud's orchestration). No answer: none.
+ros2_discovery_wanted = Signal()

@@ -129,12 +129,17 @@ class CloudInstance(models.Model):
 
 
 class RobotCloud(models.Model):
-    """What the cloud runs for one robot besides its components: its network and its ROS master."""
+    """What the cloud runs for one robot besides its components: its network, ROS master and ROS 2 discovery server."""
 
     robot = models.OneToOneField(Robot, on_delete=models.CASCADE, primary_key=True, related_name="cloud")
     network = models.CharField(max_length=128, blank=True, help_text="The robot's cloud network, once created.")
     ros_master_port = models.PositiveIntegerField(null=True, blank=True, unique=True)
     ros_master_status = models.CharField(
+        max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value
+    )
+    # The Fast DDS discovery server of the robot's ROS 2 cloud graph (a UDP port of the cloud host).
+    ros2_discovery_port = models.PositiveIntegerField(null=True, blank=True, unique=True)
+    ros2_discovery_status = models.CharField(
         max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value
     )
     message = models.TextField(blank=True)

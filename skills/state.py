@@ -24,7 +24,7 @@ from .models import Component, Skill
 
 # The fields of each level of a robot's state, in the order they are shown. A robot's state
 # also carries its "skills" (each with its "components"); a robot's owner is its username.
-ROBOT_FIELDS = ("id", "name", "owner", "status", "connected", "last_seen", "ros_master", "config")
+ROBOT_FIELDS = ("id", "name", "owner", "status", "connected", "last_seen", "ros_master", "ros2", "config")
 SKILL_FIELDS = ("skill_id", "name", "status", "updated_at")
 COMPONENT_FIELDS = ("component_id", "location", "active_location", "status", "container", "resources", "updated_at")
 

@@ -13,7 +13,7 @@ from typing import Any
 
 from celery import Task, shared_task
 
-from .cloud import converge, masters, reconcile
+from .cloud import converge, discovery, masters, reconcile
 from .cloud.orchestration import TryAgain
 
 RETRIES = 4
@@ -60,6 +60,13 @@ def ensure_ros_master(self: Task, robot_id: str) -> str:
     """Run (or stop) a robot's dedicated ROS master as its row says."""
     # Given up on, the reconciler starts or stops it on its next round.
     return masters.converge_ros_master(robot_id)
+
+
+@shared_task(**RETRIED)
+def ensure_ros2_discovery(self: Task, robot_id: str) -> str:
+    """Run (or stop) a ROS 2 robot's discovery server as its row says."""
+    # Given up on, the reconciler starts or stops it on its next round.
+    return discovery.converge_discovery_server(robot_id)
 
 
 @shared_task(acks_late=True, ignore_result=True)

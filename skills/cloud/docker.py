@@ -35,7 +35,9 @@ from bridgeos_agent.runtime.docker import VOLUMES_MOUNT, DockerRuntime
 from bridgeos_agent.runtime.usage import cpu_share, docker_usage
 
 from .runtime import (
+    DISCOVERY_COMPONENT,
     KIND_COMPONENT,
+    KIND_ROS2_DISCOVERY,
     KIND_ROS_MASTER,
     LABEL_CLOUD,
     LABEL_COMPONENT,
@@ -222,19 +224,45 @@ class CloudDockerRuntime(DockerRuntime, CloudRuntime):
         """Run ``rosmaster --core -p PORT`` from the ROS image with host networking."""
         from django.conf import settings
 
+        return await self._start_host_container(
+            KIND_ROS_MASTER,
+            MASTER_COMPONENT,
+            settings.BRIDGEOS["CLOUD_ROS_IMAGE"],
+            ["rosmaster", "--core", "-p", str(port)],
+            {"ROS_MASTER_URI": f"http://{self.host}:{port}", "ROS_HOME": "/tmp/ros"},
+            "ROS master",
+        )
+
+    async def start_discovery_server(self, host: str, port: int) -> ComponentState:
+        """Run Fast DDS's ``fast-discovery-server`` from the ROS 2 image with host networking."""
+        from django.conf import settings
+
+        return await self._start_host_container(
+            KIND_ROS2_DISCOVERY,
+            DISCOVERY_COMPONENT,
+            settings.BRIDGEOS["CLOUD_ROS2_IMAGE"],
+            ["fast-discovery-server", "-i", "0", "-l", host, "-p", str(port)],
+            {},
+            "ROS 2 discovery server",
+        )
+
+    async def _start_host_container(
+        self, kind: str, component: str, image: str, command: list[str], env: dict[str, str], what: str
+    ) -> ComponentState:
+        """Run one of the robot's host-networked services (idempotent: a running one is kept)."""
         api = await self._connect()
-        name = self.master_name
+        name = object_name(self.robot, kind=kind)
         info = await self._inspect(name)
         if info is not None and (info.get("State") or {}).get("Running"):
-            return _container_state("ros", MASTER_COMPONENT, info)
+            return _container_state("ros", component, info)
         if info is not None:
             await self._remove_named(name, 1.0)
         config = {
-            "image": settings.BRIDGEOS["CLOUD_ROS_IMAGE"],
-            "command": ["rosmaster", "--core", "-p", str(port)],
+            "image": image,
+            "command": command,
             "name": name,
-            "environment": {"ROS_MASTER_URI": f"http://{self.host}:{port}", "ROS_HOME": "/tmp/ros"},
-            "labels": labels(self.robot, kind=KIND_ROS_MASTER),
+            "environment": env,
+            "labels": labels(self.robot, kind=kind),
             "host_config": api.create_host_config(network_mode="host", init=True),
             "detach": True,
         }
@@ -242,17 +270,17 @@ class CloudDockerRuntime(DockerRuntime, CloudRuntime):
             container_id = (await self._call(api.create_container, **config))["Id"]
             await self._call(api.start, container_id)
         except docker.errors.APIError as exc:
-            raise RuntimeFailure(f"robot {self.robot}: Docker refused its ROS master: {exc.explanation}") from None
-        return await self.wait_running_named(name)
-
-    async def wait_running_named(self, name: str) -> ComponentState:
-        """Return the state of a container by name."""
+            raise RuntimeFailure(f"robot {self.robot}: Docker refused its {what}: {exc.explanation}") from None
         info = await self._inspect(name)
-        return absent("ros", MASTER_COMPONENT) if info is None else _container_state("ros", MASTER_COMPONENT, info)
+        return absent("ros", component) if info is None else _container_state("ros", component, info)
 
     async def stop_ros_master(self) -> None:
         """Stop and remove the robot's ROS master container."""
         await self._remove_named(self.master_name, 10.0)
+
+    async def stop_discovery_server(self) -> None:
+        """Stop and remove the robot's ROS 2 discovery server container."""
+        await self._remove_named(object_name(self.robot, kind=KIND_ROS2_DISCOVERY), 10.0)
 
     async def observe(self) -> list[Observed]:
         """List every container of this cloud (running or not), for every robot."""

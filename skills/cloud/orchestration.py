@@ -6,7 +6,9 @@ import asyncio
 import concurrent.futures
 import ipaddress
 import logging
+import os
 import secrets
+import sys
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
@@ -16,19 +18,21 @@ from django.db import transaction
 
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Location
+from bridgeos_agent.ros2graph import DEFAULT_RMW, namespace_arguments
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.runtime.base import RuntimeFailure
-from bridgeos_agent.skillconfig import parse_skill_config
+from bridgeos_agent.skillconfig import LaunchSpec, parse_skill_config
 from bridgeos_cloud.celery import app as celery_app
 from network.ipam import subnets
 from robots.models import Robot
 
-from ..models import CloudInstance, Component
+from ..models import CloudInstance, Component, RobotCloud
 from .backends import create_cloud_runtime
 from .runtime import (
     NO_RESTARTS,
     CloudRuntime,
     CloudSpec,
+    discovery_address,
     object_name,
     ros_networking,
     runtime_name,
@@ -158,12 +162,20 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
         "BRIDGEOS_COMPONENT": component.component_id,
         "BRIDGEOS_LOCATION": Location.CLOUD.value,
     }
-    master = robot.ros_master or settings.BRIDGEOS["CLOUD_ROS_MASTER"]
-    if master:
-        env["ROS_MASTER_URI"] = master
+    launch = declared.cloud
+    if declared.ros_version == 2:
+        # A ROS 2 node has no master: it joins the robot's cloud graph (its discovery server).
+        namespace = instance_namespace(skill.skill_id, component.component_id, "cloud")
+        env.update(ros2_env(robot))
+        env["ROS_NAMESPACE"] = namespace
+        launch = ros2_launch(launch, namespace)
+    else:
+        master = robot.ros_master or settings.BRIDGEOS["CLOUD_ROS_MASTER"]
+        if master:
+            env["ROS_MASTER_URI"] = master
     # The Skill's manager runs on the robot: the cloud relays this copy's calls to it (skills.api.componentsapi).
     env["BRIDGEOS_MANAGER_URL"] = f"{settings.BRIDGEOS['CLOUD_URL'].rstrip('/')}/api/cloud/manager/{instance.token}"
-    if declared.ros:
+    if declared.ros_version == 1:
         env["ROS_NAMESPACE"] = instance_namespace(skill.skill_id, component.component_id, "cloud")
         env.update(_ros_address(robot.id, skill.skill_id, component.component_id))
     return CloudSpec(
@@ -171,7 +183,7 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
         skill=skill.skill_id,
         component=component.component_id,
         location=Location.CLOUD.value,
-        launch=declared.cloud,
+        launch=launch,
         resources=declared.resources,
         env=env,
         volumes=tuple(config.volumes),
@@ -179,6 +191,37 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
         ros=declared.ros,
         token=instance.token,
     )
+
+
+def ros2_env(robot: Robot) -> dict[str, str]:
+    """Return the env that puts a cloud copy of the robot's ROS 2 component in the robot's cloud graph."""
+    graph = robot.ros2 or {}
+    env = {"ROS_DOMAIN_ID": str(graph.get("domain_id", 0)), "RMW_IMPLEMENTATION": graph.get("rmw") or DEFAULT_RMW}
+    port = RobotCloud.objects.filter(robot_id=robot.id).values_list("ros2_discovery_port", flat=True).first()
+    if robot.ros2 is not None and port is not None:
+        # Host-networked copies and host processes reach the server where robots do.
+        env["ROS_DISCOVERY_SERVER"] = discovery_address(port)
+    else:
+        # No server (the robot reported no ROS 2 graph): at least keep the copy's discovery on this host.
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    if runtime_name() == "process":
+        # The cloud's own venv has the ROS 2 wheels: its python3 comes first for the copy's command.
+        env["PATH"] = os.pathsep.join([os.path.dirname(sys.executable), os.environ.get("PATH", os.defpath)])
+    else:
+        # A container has a /dev/shm of its own, yet Fast DDS takes a host-networked peer for one on the
+        # same host and sends it data over shared memory, which never arrives (measured): UDP only.
+        env["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
+    return env
+
+
+def ros2_launch(launch: LaunchSpec, namespace: str) -> LaunchSpec:
+    """Return a ROS 2 copy's cloud launch: its command pushed into ``namespace``, the ROS 2 image by default."""
+    update: dict[str, Any] = {}
+    if launch.command:
+        update["command"] = [*launch.command, *namespace_arguments(namespace)]
+    if not launch.image and runtime_name() != "process":
+        update["image"] = settings.BRIDGEOS["CLOUD_ROS2_IMAGE"]
+    return launch.model_copy(update=update) if update else launch
 
 
 def cloud_subnet(robot: Robot) -> str | None:

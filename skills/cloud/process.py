@@ -22,6 +22,7 @@ from typing import Any
 import psutil
 from django.conf import settings
 
+from bridgeos_agent.ros2graph import discovery_server_command
 from bridgeos_agent.runtime.base import (
     ComponentSpec,
     ComponentState,
@@ -34,9 +35,12 @@ from bridgeos_agent.runtime.base import (
 from bridgeos_agent.runtime.groups import adopt, signal_group
 from bridgeos_agent.runtime.process import ProcessRuntime
 from bridgeos_agent.runtime.usage import measure
+from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
 
 from .runtime import (
+    DISCOVERY_COMPONENT,
     KIND_COMPONENT,
+    KIND_ROS2_DISCOVERY,
     KIND_ROS_MASTER,
     MASTER_COMPONENT,
     NO_RESTARTS,
@@ -178,8 +182,6 @@ class CloudProcessRuntime(ProcessRuntime, CloudRuntime):
             raise RuntimeFailure(
                 f"no {ROSMASTER} on the cloud host: install Debian's ros-core (scripts/services.sh ros)"
             )
-        from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
-
         spec = ComponentSpec(
             robot=self.robot,
             skill="ros",
@@ -197,6 +199,35 @@ class CloudProcessRuntime(ProcessRuntime, CloudRuntime):
     async def stop_ros_master(self) -> None:
         """Stop the robot's ROS master process."""
         await self._terminate_found(KIND_ROS_MASTER, "ros", MASTER_COMPONENT, 10.0)
+
+    async def start_discovery_server(self, host: str, port: int) -> ComponentState:
+        """Run Fast DDS's ``fast-discovery-server`` of this Python's ROS 2 wheels as a process of its own."""
+        found = await self._find(KIND_ROS2_DISCOVERY, "ros", DISCOVERY_COMPONENT)
+        if found is not None:
+            return ComponentState(
+                skill="ros", component=DISCOVERY_COMPONENT, status=Status.RUNNING, pid_or_container_id=found.pid
+            )
+        try:
+            command, env = discovery_server_command(host, port)
+        except FileNotFoundError as exc:
+            raise RuntimeFailure(f"robot {self.robot}: {exc}") from None
+        spec = ComponentSpec(
+            robot=self.robot,
+            skill="ros",
+            component=DISCOVERY_COMPONENT,
+            location="cloud",
+            launch=LaunchSpec(command=command),
+            resources=ComponentResources(),
+            env={**env, "PATH": "/usr/bin:/bin"},
+            restart=NO_RESTARTS,
+        )
+        return await ProcessRuntime.start(
+            self, _marked(spec, _key(KIND_ROS2_DISCOVERY, self.robot, "ros", DISCOVERY_COMPONENT))
+        )
+
+    async def stop_discovery_server(self) -> None:
+        """Stop the robot's discovery server process."""
+        await self._terminate_found(KIND_ROS2_DISCOVERY, "ros", DISCOVERY_COMPONENT, 10.0)
 
     async def observe(self) -> list[Observed]:
         """List every process of this cloud, for every robot."""

@@ -22,6 +22,8 @@ from robots.models import Robot
 
 from ..models import CloudInstance, Component, RobotCloud
 from .converge import run_copy, stop_copy
+from .discovery import converge_discovery_server
+from .discovery import wanted as discovery_wanted
 from .locks import LockBusy, orchestration_lock
 from .masters import converge_ros_master, master_url
 from .orchestration import (
@@ -38,6 +40,7 @@ from .orchestration import (
 from .reporting import announce, cloud_is_active, fail, record_running, tell_robot
 from .runtime import (
     KIND_COMPONENT,
+    KIND_ROS2_DISCOVERY,
     KIND_ROS_MASTER,
     CloudRuntime,
     Observed,
@@ -68,13 +71,24 @@ def reconcile(*, now: float | None = None) -> dict[str, int]:
 
 
 def _reconcile(now: float) -> dict[str, int]:
-    done = {"restarted": 0, "crashed": 0, "removed": 0, "relaunched": 0, "masters": 0, "metrics": 0}
+    done = {
+        "restarted": 0,
+        "crashed": 0,
+        "removed": 0,
+        "relaunched": 0,
+        "masters": 0,
+        "ros2_discovery": 0,
+        "metrics": 0,
+    }
     observed = with_runtime("reconciler", lambda runtime: runtime.observe())
     by_key: dict[tuple[str, str, str], Observed] = {}
     masters: dict[str, Observed] = {}
+    servers: dict[str, Observed] = {}
     for item in observed:
         if item.kind == KIND_ROS_MASTER:
             masters[item.robot] = item
+        elif item.kind == KIND_ROS2_DISCOVERY:
+            servers[item.robot] = item
         elif item.kind == KIND_COMPONENT:
             by_key[item.key] = item
     instances = list(
@@ -107,6 +121,7 @@ def _reconcile(now: float) -> dict[str, int]:
         if key not in wanted:
             done["removed"] += _remove_orphan(item)
     done["masters"] = _reconcile_masters(masters)
+    done["ros2_discovery"] = _reconcile_discovery_servers(servers)
     _remove_orphan_networks()
     done["metrics"] = collect_stats({key[0] for key in wanted})
     prometheus.reconciled(done)
@@ -268,6 +283,29 @@ def _reconcile_masters(masters: dict[str, Observed]) -> int:
                 fixed += 1
             except RuntimeFailure as exc:
                 logger.info("orphan ROS master of %s not removed now: %s", robot_id, exc)
+    return fixed
+
+
+def _reconcile_discovery_servers(servers: dict[str, Observed]) -> int:
+    """Start the ROS 2 discovery servers robots use that are not running; remove those of robots gone."""
+    fixed = 0
+    clouds = {c.robot_id: c for c in RobotCloud.objects.select_related("robot").exclude(ros2_discovery_port=None)}
+    for robot_id, cloud in clouds.items():
+        seen = servers.get(robot_id)
+        running = seen is not None and seen.status is Status.RUNNING
+        if discovery_wanted(cloud.robot) != running:
+            try:
+                converge_discovery_server(robot_id)
+                fixed += 1
+            except TryAgain as exc:
+                logger.info("ROS 2 discovery server of %s: %s", robot_id, exc)
+    for robot_id, seen in servers.items():
+        if robot_id not in clouds:
+            try:
+                with_runtime(robot_id, lambda runtime, seen=seen: runtime.remove(seen))
+                fixed += 1
+            except RuntimeFailure as exc:
+                logger.info("orphan ROS 2 discovery server of %s not removed now: %s", robot_id, exc)
     return fixed
 
 

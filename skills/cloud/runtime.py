@@ -2,7 +2,7 @@
 
 Every cloud runtime is the agent's `Runtime` (start, stop, status, logs, stats, get_state,
 load_state, close) plus a few things only the cloud does: a network per robot, a ROS master
-per robot, the address and published ports robots reach a copy at, a restart, and an
+and a ROS 2 discovery server per robot, the address and published ports robots reach a copy at, a restart, and an
 inventory of everything this cloud runs (so the reconciler can restart the crashed and
 remove orphans).
 
@@ -12,7 +12,7 @@ one place, whichever worker process launched the copy.
 
 Names and labels: every object carries ``io.bridgeos.cloud=<cloud id>`` (so clouds sharing an
 engine never touch each other's objects), the robot, skill and component, and its kind
-(``component`` or ``ros-master``). Names are at most 63 characters (a DNS label, as Swarm
+(``component``, ``ros-master`` or ``ros2-discovery``). Names are at most 63 characters (a DNS label, as Swarm
 requires): a readable prefix and a hash of the whole identity, so two long ids never collide.
 """
 
@@ -33,6 +33,7 @@ from bridgeos_cloud.env import ConfigError
 
 __all__ = [
     "KIND_COMPONENT",
+    "KIND_ROS2_DISCOVERY",
     "KIND_ROS_MASTER",
     "NO_RESTARTS",
     "RUNTIMES",
@@ -41,6 +42,7 @@ __all__ = [
     "EngineBusy",
     "Observed",
     "cloud_id",
+    "discovery_address",
     "object_name",
     "runtime_name",
 ]
@@ -48,7 +50,9 @@ __all__ = [
 RUNTIMES = ("swarm", "docker", "process")
 KIND_COMPONENT = "component"
 KIND_ROS_MASTER = "ros-master"
+KIND_ROS2_DISCOVERY = "ros2-discovery"
 MASTER_COMPONENT = "rosmaster"  # the component id a robot's ROS master is known by in labels
+DISCOVERY_COMPONENT = "ros2discovery"  # and its ROS 2 discovery server's
 
 LABEL_CLOUD = "io.bridgeos.cloud"
 LABEL_ROBOT = "io.bridgeos.robot"
@@ -89,10 +93,18 @@ def labels(robot: str, skill: str = "", component: str = "", *, kind: str = KIND
         LABEL_CLOUD: cloud_id(),
         LABEL_ROBOT: robot,
         LABEL_SKILL: skill,
-        LABEL_COMPONENT: component or (MASTER_COMPONENT if kind == KIND_ROS_MASTER else ""),
+        LABEL_COMPONENT: component or _SERVICE_COMPONENTS.get(kind, ""),
         LABEL_KIND: kind,
         LABEL_LOCATION: "cloud",
     }
+
+
+_SERVICE_COMPONENTS = {KIND_ROS_MASTER: MASTER_COMPONENT, KIND_ROS2_DISCOVERY: DISCOVERY_COMPONENT}
+
+
+def discovery_address(port: int) -> str:
+    """Return "host:port" of a ROS 2 discovery server on the cloud host, as robots and cloud copies reach it."""
+    return f"{settings.BRIDGEOS['CLOUD_HOST']}:{port}"
 
 
 def runtime_name() -> str:
@@ -187,6 +199,14 @@ class CloudRuntime(Runtime):
     @abstractmethod
     async def stop_ros_master(self) -> None:
         """Stop the robot's dedicated ROS master, if it runs."""
+
+    @abstractmethod
+    async def start_discovery_server(self, host: str, port: int) -> ComponentState:
+        """Run the robot's Fast DDS discovery server on UDP ``host:port`` of the cloud host (idempotent)."""
+
+    @abstractmethod
+    async def stop_discovery_server(self) -> None:
+        """Stop the robot's discovery server, if it runs."""
 
     @abstractmethod
     async def observe(self) -> list[Observed]:

@@ -52,7 +52,9 @@ from bridgeos_agent.runtime.engine import open_client
 from bridgeos_agent.runtime.usage import cpu_share, docker_usage, get_json
 
 from .runtime import (
+    DISCOVERY_COMPONENT,
     KIND_COMPONENT,
+    KIND_ROS2_DISCOVERY,
     KIND_ROS_MASTER,
     LABEL_CLOUD,
     LABEL_COMPONENT,
@@ -328,14 +330,40 @@ class SwarmRuntime(CloudRuntime):
         """Run ``rosmaster --core -p PORT`` from the ROS image as a host-networked service."""
         from django.conf import settings
 
+        return await self._start_host_service(
+            KIND_ROS_MASTER,
+            MASTER_COMPONENT,
+            settings.BRIDGEOS["CLOUD_ROS_IMAGE"],
+            ["rosmaster", "--core", "-p", str(port)],
+            {"ROS_MASTER_URI": f"http://{self.host}:{port}", "ROS_HOME": "/tmp/ros"},
+            "ROS master",
+        )
+
+    async def start_discovery_server(self, host: str, port: int) -> ComponentState:
+        """Run Fast DDS's ``fast-discovery-server`` from the ROS 2 image as a host-networked service."""
+        from django.conf import settings
+
+        return await self._start_host_service(
+            KIND_ROS2_DISCOVERY,
+            DISCOVERY_COMPONENT,
+            settings.BRIDGEOS["CLOUD_ROS2_IMAGE"],
+            ["fast-discovery-server", "-i", "0", "-l", host, "-p", str(port)],
+            {},
+            "ROS 2 discovery server",
+        )
+
+    async def _start_host_service(
+        self, kind: str, component: str, image: str, command: list[str], env: dict[str, str], what: str
+    ) -> ComponentState:
+        """Run one of the robot's host-networked services (idempotent: an existing one is kept)."""
         api = await self._connect()
-        name = self.master_name
+        name = object_name(self.robot, kind=kind)
         if await self._service(name) is None:
             container = ContainerSpec(
-                image=settings.BRIDGEOS["CLOUD_ROS_IMAGE"],
-                command=["rosmaster", "--core", "-p", str(port)],
-                env={"ROS_MASTER_URI": f"http://{self.host}:{port}", "ROS_HOME": "/tmp/ros"},
-                labels=labels(self.robot, kind=KIND_ROS_MASTER),
+                image=image,
+                command=command,
+                env=env,
+                labels=labels(self.robot, kind=kind),
                 init=True,
                 stop_grace_period=STOP_GRACE_NS,
             )
@@ -350,19 +378,21 @@ class SwarmRuntime(CloudRuntime):
                     api.create_service,
                     template,
                     name=name,
-                    labels=labels(self.robot, kind=KIND_ROS_MASTER),
+                    labels=labels(self.robot, kind=kind),
                     endpoint_spec=EndpointSpec(mode="dnsrr"),
                 )
             except docker.errors.APIError as exc:
                 if exc.status_code != 409:
-                    raise RuntimeFailure(
-                        f"robot {self.robot}: Swarm refused its ROS master: {exc.explanation}"
-                    ) from None
-        return await self._wait_task(name, "ros", MASTER_COMPONENT, 60.0)
+                    raise RuntimeFailure(f"robot {self.robot}: Swarm refused its {what}: {exc.explanation}") from None
+        return await self._wait_task(name, "ros", component, 60.0)
 
     async def stop_ros_master(self) -> None:
         """Remove the robot's ROS master service."""
         await self._remove_service(self.master_name, 10.0)
+
+    async def stop_discovery_server(self) -> None:
+        """Remove the robot's ROS 2 discovery server service."""
+        await self._remove_service(object_name(self.robot, kind=KIND_ROS2_DISCOVERY), 10.0)
 
     async def observe(self) -> list[Observed]:
         """List every service of this cloud with the state of its newest task."""

@@ -42,6 +42,7 @@ def test_without_parameters_the_fleet_is_todays_bare_array_of_full_robots(fleet)
         "connected",
         "last_seen",
         "ros_master",
+        "ros2",
         "config",
         "skills",
     }

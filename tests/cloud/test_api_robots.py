@@ -180,7 +180,18 @@ def test_deleting_a_robot_takes_its_skills_and_components_with_it(http):
 
 def test_robot_info_shows_its_skills_and_components(http):
     info = http.get("/api/robot/alice-bot/info").json()
-    assert set(info) == {"id", "name", "owner", "status", "connected", "last_seen", "ros_master", "config", "skills"}
+    assert set(info) == {
+        "id",
+        "name",
+        "owner",
+        "status",
+        "connected",
+        "last_seen",
+        "ros_master",
+        "ros2",
+        "config",
+        "skills",
+    }
     [skill] = info["skills"]
     assert skill["skill_id"] == SKILL and skill["status"] == "stopped"
     components = {c["component_id"]: c for c in skill["components"]}

@@ -1,4 +1,4 @@
-"""Remove everything this cloud runs on its engine: cloud copies, ROS masters, networks."""
+"""Remove everything this cloud runs on its engine: cloud copies, ROS masters, ROS 2 discovery servers, networks."""
 
 from __future__ import annotations
 
@@ -13,7 +13,10 @@ from skills.models import CloudInstance, Component, RobotCloud
 
 
 class Command(BaseCommand):
-    help = "Stop every cloud copy and ROS master of this cloud and remove its networks (`make run` does on exit)."
+    help = (
+        "Stop every cloud copy, ROS master and ROS 2 discovery server of this cloud and remove its networks"
+        " (`make run` does on exit)."
+    )
 
     def handle(self, *args: Any, **options: Any) -> None:
         async def sweep(runtime: CloudRuntime) -> tuple[int, int]:
@@ -30,6 +33,8 @@ class Command(BaseCommand):
             CloudInstance.objects.exclude(status="stopped").update(desired="stopped", status="stopped", container={})
             Component.objects.filter(active_location="cloud").update(status="stopped")
             RobotCloud.objects.exclude(ros_master_status="stopped").update(ros_master_status="stopped")
+            RobotCloud.objects.exclude(ros2_discovery_status="stopped").update(ros2_discovery_status="stopped")
         self.stdout.write(
-            f"cloud {cloud_id()} ({runtime_name()}): removed {removed} copies and ROS masters, {networks} networks"
+            f"cloud {cloud_id()} ({runtime_name()}): removed {removed} copies, ROS masters and discovery servers,"
+            f" {networks} networks"
         )
