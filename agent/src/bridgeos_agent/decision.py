@@ -271,15 +271,12 @@ class Decider:
         target = squash(outcome.realized, self.scale) - squash(outcome.estimated, self.scale)
         return self.model.record(outcome.features.vector(self.scale), target)
 
-    def _conclude(self, given: DecisionInput, now: float, predicted: Sequence[float]) -> tuple[Decision, bool]:
-        """Learn the outcome, compare the reward with the threshold; return the decision and whether training is due.
+    def _conclude(self, given: DecisionInput, now: float, predicted: Sequence[float]) -> Decision:
+        """Compare the reward (the network's where trusted, else the estimate) with the threshold.
 
         predicted: the network's outputs for :meth:`queries` (empty while it has never trained).
         """
         target: Side = "cloud" if given.location == "robot" else "robot"
-        due = False
-        if given.outcome is not None:
-            due = self._learn(given.outcome, predicted[1] if len(predicted) > 1 else None)
         correction = None
         if predicted and math.isfinite(predicted[0]):
             there = given.features.cost_cloud if target == "cloud" else given.features.cost_robot
@@ -315,7 +312,7 @@ class Decider:
                 f" (network not trusted at the {target}: held-out error {network:.3g} vs the estimate's {estimate:.3g})"
             )
         decision = self._record(given, now, migrate, reason, prediction, trusted, margin)
-        return dataclasses.replace(decision, decided_by="network" if trusted else "estimate"), due
+        return dataclasses.replace(decision, decided_by="network" if trusted else "estimate")
 
     def _record(
         self,
@@ -360,9 +357,10 @@ def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], n
     if len(deciders) != len(inputs):
         raise ValueError("one input per decider")
     decisions: list[Decision | None] = [d._precondition(given, now) for d, given in zip(deciders, inputs, strict=True)]
-    adaptive = [i for i, decision in enumerate(decisions) if decision is None]
+    # Every outcome is learnt, whoever decides (a manual mode or a recommendation included).
+    learners = [i for i, decision in enumerate(decisions) if decision is None or inputs[i].outcome is not None]
     # A network that never trained predicts noise: it is neither asked nor scored.
-    asked = [i for i in adaptive if deciders[i].model.steps > 0]
+    asked = [i for i in learners if deciders[i].model.steps > 0]
     queries = {i: deciders[i].queries(inputs[i]) for i in asked}
     models = [deciders[i].model for i in asked for _ in queries[i]]
     values = predict_many(models, [v for i in asked for v in queries[i]]) if models else []
@@ -372,11 +370,13 @@ def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], n
         predicted[i] = values[position : position + len(queries[i])]
         position += len(queries[i])
     due: list[DecisionModel] = []
-    for i in adaptive:
-        decision, train = deciders[i]._conclude(inputs[i], now, predicted.get(i, []))
-        decisions[i] = decision
-        if train:
-            due.append(deciders[i].model)
+    for i in learners:
+        decider, given, outputs = deciders[i], inputs[i], predicted.get(i, [])
+        # Learnt before deciding: the trust gate counts this outcome's held-out score.
+        if given.outcome is not None and decider._learn(given.outcome, outputs[1] if len(outputs) > 1 else None):
+            due.append(decider.model)
+        if decisions[i] is None:
+            decisions[i] = decider._conclude(given, now, outputs)
     for _ in range(TRAIN_STEPS if due else 0):
         train_many(due)
     return [d for d in decisions if d is not None]
