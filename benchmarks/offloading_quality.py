@@ -25,6 +25,16 @@ change in it, so every move there after its first SETTLE_S seconds (the adaptati
 ``flaps_per_10min`` cover the changing phases, as before the stable phase existed; ``adapt_s`` covers
 every change, the one into the stable phase included.
 
+The misdeclared scenario (issue 22) runs beside it, in the same run, on two more robots with the
+same script and seed: the detector declares a tenth of the 0.2 cores it burns, and those robots'
+runtimes enforce no cgroup limit (held to its declaration it would be throttled instead). One robot's
+manager decides by the estimate alone (its network never reaches ``trained_after``), the other's
+learns from outcomes (``decision``: the network learns what the component cost where it ran and
+decides once it beats the estimate on held-out outcomes). Both are costed with what the components
+really burn: ``estimate_only_over_oracle_misdeclared`` and ``cost_over_oracle_misdeclared`` (goal
+<= 1.10), and ``learned_decisions_share``, the share of the learned robot's adaptive decisions its
+networks took. ``--no-misdeclared`` runs the main robot alone.
+
     .venv/bin/python benchmarks/offloading_quality.py --quick     # 4 phases of 8 s, then 14 s stable
     .venv/bin/python benchmarks/offloading_quality.py             # 8 phases of 60 s, then 300 s stable
 
