@@ -97,7 +97,7 @@ MISDECLARED = "detector"
 MISDECLARED_SHARE = 0.1
 ESTIMATE_ROBOT, LEARNED_ROBOT = f"{ROBOT_ID}-estimate", f"{ROBOT_ID}-learned"
 # Learning from outcomes: every outcome trains, and the trust gate (held-out outcomes), not a sample count, decides.
-LEARNING = {"trained_after": 10, "warmup_train_every": 1, "train_every": 1}
+LEARNING = {"trained_after": 3, "warmup_train_every": 1, "train_every": 1}
 ESTIMATE_ONLY = {"trained_after": 1_000_000}
 
 # Declared usage: cores, Mbit/s exchanged with the robot's sensors (what crosses the link in the cloud).

@@ -68,7 +68,7 @@ DecidedBy = Literal["rule", "estimate", "network"]
 
 
 #: Held-out outcomes per location over which the network's and the estimate's errors are averaged.
-TRUST_WINDOW = 10
+TRUST_WINDOW = 6
 #: Held-out outcomes at a location before the network may decide for it.
 TRUST_MIN_SCORES = 3
 #: The network decides for a location when its mean held-out error is at most this share of the estimate's.
