@@ -96,8 +96,10 @@ GOALS = {
 MISDECLARED = "detector"
 MISDECLARED_SHARE = 0.1
 ESTIMATE_ROBOT, LEARNED_ROBOT = f"{ROBOT_ID}-estimate", f"{ROBOT_ID}-learned"
-# Learning from outcomes: every outcome trains, and the trust gate (held-out outcomes), not a sample count, decides.
-LEARNING = {"trained_after": 3, "warmup_train_every": 1, "train_every": 1}
+# Learning from outcomes: every outcome trains, three steps (one Adam step per outcome needs a stay of
+# 30 decisions or more to learn a tenfold misdeclaration, three about 10), and the trust gate
+# (held-out outcomes), not a sample count, decides.
+LEARNING = {"trained_after": 3, "warmup_train_every": 1, "train_every": 1, "train_steps": 3}
 ESTIMATE_ONLY = {"trained_after": 1_000_000}
 
 # Declared usage: cores, Mbit/s exchanged with the robot's sensors (what crosses the link in the cloud).

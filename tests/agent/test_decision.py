@@ -87,7 +87,7 @@ def misdeclared(where: str, free: float = 1.3, declared_share: float = 0.1) -> D
 
 def delay_manager(trained_after: int = 5) -> ManagerConfig:
     """Return offloading_quality's decision settings, with a network allowed to decide after a few outcomes."""
-    network = NeuralNetworkConfig(trained_after=trained_after, warmup_train_every=1, train_every=1)
+    network = NeuralNetworkConfig(trained_after=trained_after, warmup_train_every=1, train_every=1, train_steps=3)
     return ManagerConfig(threshold=2.0, hysteresis=3.0, cooldown=0.0, neural_network=network)
 
 

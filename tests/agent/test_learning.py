@@ -47,7 +47,7 @@ def misdeclared_skill() -> dict:
         "hysteresis": 3.0,
         "cooldown": 0.0,
         "decision_interval": 60.0,  # the test steps the manager itself
-        "neural_network": {"trained_after": 5, "warmup_train_every": 1, "train_every": 1},
+        "neural_network": {"trained_after": 5, "warmup_train_every": 1, "train_every": 1, "train_steps": 3},
     }
     return parse_skill_config(config).model_dump(mode="json")
 

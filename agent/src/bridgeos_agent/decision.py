@@ -76,9 +76,6 @@ TRUST_RATIO = 0.5
 #: Recent estimated rewards from which their noise is measured, and how many it takes to measure it.
 NOISE_WINDOW = 20
 NOISE_MIN_SAMPLES = 6
-#: Training steps each time training is due: outcomes are few (one per decision), and one Adam step per
-#: outcome needs a visit of 30 or more decisions to learn a tenfold misdeclaration; three need about 8.
-TRAIN_STEPS = 3
 #: Decisions in a row whose reward must clear threshold + hysteresis when it is within the noise.
 CONFIRMATIONS = 3
 #: median |X - Y| of two independent N(0, s) draws is 0.6745 * sqrt(2) * s: this turns it back into s.
@@ -377,6 +374,7 @@ def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], n
             due.append(decider.model)
         if decisions[i] is None:
             decisions[i] = decider._conclude(given, now, outputs)
-    for _ in range(TRAIN_STEPS if due else 0):
-        train_many(due)
+    # Each model its own number of steps (neural_network.train_steps): one batch per round.
+    for round_ in range(max((m.config.train_steps for m in due), default=0)):
+        train_many([m for m in due if m.config.train_steps > round_])
     return [d for d in decisions if d is not None]
