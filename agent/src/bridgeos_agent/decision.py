@@ -362,8 +362,9 @@ def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], n
     decisions: list[Decision | None] = [d._precondition(given, now) for d, given in zip(deciders, inputs, strict=True)]
     # Every outcome is learnt, whoever decides (a manual mode or a recommendation included).
     learners = [i for i, decision in enumerate(decisions) if decision is None or inputs[i].outcome is not None]
-    # A network that never trained predicts noise: it is neither asked nor scored.
-    asked = [i for i in learners if deciders[i].model.steps > 0]
+    # A network still warming up (fewer than trained_after samples) may not decide: neither asked nor
+    # scored, so 2000 warming-up components cost no inference.
+    asked = [i for i in learners if deciders[i].model.trained]
     queries = {i: deciders[i].queries(inputs[i]) for i in asked}
     models = [deciders[i].model for i in asked for _ in queries[i]]
     values = predict_many(models, [v for i in asked for v in queries[i]]) if models else []
