@@ -103,7 +103,7 @@ def test_network_learns_a_misdeclared_component_and_decides_once_it_beats_the_es
     decider = Decider("detector", delay_manager())
     visited_robot(decider, 20)
     network, estimate = decider.errors("robot")
-    assert decider.trust("robot") and network is not None and estimate is not None and network <= 0.5 * estimate
+    assert decider.trust("robot") and network is not None and estimate is not None and network <= 0.75 * estimate
     # Back in the cloud the estimate says the robot costs 3 against 22 here: it would move. The network,
     # having measured ~31 on the robot, keeps it in the cloud.
     decision = decider.decide(misdeclared("cloud"), now=100.0)
