@@ -62,6 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, log, migrate, setup_django
 
 from bridgeos_agent.controller import AgentSettings, RobotController
+from bridgeos_agent.decisionmodel import _load_torch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Sample, SimulatedRobot
 from bridgeos_agent.policies import Metrics, PolicyEstimator
@@ -504,6 +505,9 @@ def main() -> None:
     script = Script([*changing, STABLE] if stable_s else changing, phase_s, stable_s=stable_s)
     load_before = os.getloadavg()
     log(f"machine load {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f} on {os.cpu_count()} cores")
+    # An agent imports torch once, at its first movable Skill; here that would eat the first phase
+    # (8 s under load, the managers' decisions waiting for it), so it is imported before the script.
+    _load_torch()
 
     data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-offloading-"))
     cloud = f"bench-offload-{os.getpid()}"

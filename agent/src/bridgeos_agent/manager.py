@@ -31,6 +31,7 @@ from bridgeos_agent.decision import (
     Side,
     decide_batch,
 )
+from bridgeos_agent.decisionmodel import _load_torch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Reporter
 from bridgeos_agent.policies import Metrics, PolicyCosts, PolicyEstimator
@@ -420,6 +421,11 @@ class SkillManager:
         cast("dict[str, str]", supervisor.context.setdefault("env", {}))["BRIDGEOS_MANAGER_URL"] = url
         supervisor.mark_ready("manager")
         try:
+            if any(c.location == "either" for c in self.record.config.components.values()):
+                # The first network built imports torch: seconds on a robot (8 s on a loaded 2-core
+                # machine), which in the first decision would freeze the agent's event loop, every
+                # Skill's included. Imported in a thread, only the decisions wait for it.
+                await asyncio.to_thread(_load_torch)
             while True:
                 await asyncio.sleep(self.record.config.manager.decision_interval)
                 self._share_usage()
