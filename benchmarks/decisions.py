@@ -40,6 +40,7 @@ from bridgeos_agent.decision import (
     DecisionInput,
     DecisionModel,
     Features,
+    Outcome,
     decide_batch,
     predict_many,
 )
@@ -74,7 +75,11 @@ def noisy_input(rng: random.Random, location: str) -> DecisionInput:
         cost_cloud=cost_cloud,
     )
     here, there = (cost_robot, cost_cloud) if location == "robot" else (cost_cloud, cost_robot)
-    return DecisionInput(location=location, estimated_reward=here - there + rng.gauss(0, 0.1), features=features)
+    # What running here cost, beside the estimate from the other side: every decision brings one to learn.
+    outcome = Outcome(location, here, here + rng.gauss(0, 0.1), features)
+    return DecisionInput(
+        location=location, estimated_reward=here - there + rng.gauss(0, 0.1), features=features, outcome=outcome
+    )
 
 
 def simulate(deciders: list[Decider], seconds: int, rng: random.Random) -> tuple[float, int, int]:

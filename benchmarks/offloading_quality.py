@@ -25,6 +25,16 @@ change in it, so every move there after its first SETTLE_S seconds (the adaptati
 ``flaps_per_10min`` cover the changing phases, as before the stable phase existed; ``adapt_s`` covers
 every change, the one into the stable phase included.
 
+The misdeclared scenario (issue 22) runs beside it, in the same run, on two more robots with the
+same script and seed: the detector declares a tenth of the 0.2 cores it burns, and those robots'
+runtimes enforce no cgroup limit (held to its declaration it would be throttled instead). One robot's
+manager decides by the estimate alone (its network never reaches ``trained_after``), the other's
+learns from outcomes (``decision``: the network learns what the component cost where it ran and
+decides once it beats the estimate on held-out outcomes). Both are costed with what the components
+really burn: ``estimate_only_over_oracle_misdeclared`` and ``cost_over_oracle_misdeclared`` (goal
+<= 1.10), and ``learned_decisions_share``, the share of the learned robot's adaptive decisions its
+networks took. ``--no-misdeclared`` runs the main robot alone.
+
     .venv/bin/python benchmarks/offloading_quality.py --quick     # 4 phases of 8 s, then 14 s stable
     .venv/bin/python benchmarks/offloading_quality.py             # 8 phases of 60 s, then 300 s stable
 
@@ -44,7 +54,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -53,10 +63,12 @@ import _cloudlinks
 from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, log, migrate, setup_django
 
 from bridgeos_agent.controller import AgentSettings, RobotController
+from bridgeos_agent.decisionmodel import _load_torch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Sample, SimulatedRobot
 from bridgeos_agent.policies import Metrics, PolicyEstimator
 from bridgeos_agent.robotconfig import parse_robot_config
+from bridgeos_agent.runtime.cgroups import Cgroups
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 
 ROBOT_ID = "offload-bench"
@@ -73,7 +85,24 @@ TIMELINE_STEP = 0.1
 FLAP_WINDOW = 60.0
 ADAPTED_WITHIN = 1.05
 SETTLE_S = 10.0  # the adaptation goal: moves later than this into the stable phase are noise
-GOALS = {"cost_over_oracle": 1.05, "adapt_s": 10.0, "flaps_per_10min": 1.0, "stable_moves_per_10min": 1.0}
+GOALS = {
+    "cost_over_oracle": 1.05,
+    "adapt_s": 10.0,
+    "flaps_per_10min": 1.0,
+    "stable_moves_per_10min": 1.0,
+    "cost_over_oracle_misdeclared": 1.10,
+}
+# The misdeclared scenario (issue 22): this component declares a tenth of the CPU it burns. Two more
+# robots run it beside the main one, same script and seed: one decides by the estimate alone (its
+# network is never trained enough to be trusted), the other learns from outcomes.
+MISDECLARED = "detector"
+MISDECLARED_SHARE = 0.1
+ESTIMATE_ROBOT, LEARNED_ROBOT = f"{ROBOT_ID}-estimate", f"{ROBOT_ID}-learned"
+# Learning from outcomes: every outcome trains, three steps (one Adam step per outcome needs a stay of
+# 30 decisions or more to learn a tenfold misdeclaration, three about 10), and the trust gate
+# (held-out outcomes), not a sample count, decides.
+LEARNING = {"trained_after": 3, "warmup_train_every": 1, "train_every": 1, "train_steps": 3}
+ESTIMATE_ONLY = {"trained_after": 1_000_000}
 
 # Declared usage: cores, Mbit/s exchanged with the robot's sensors (what crosses the link in the cloud).
 COMPONENTS = {
@@ -193,16 +222,17 @@ class ScriptedRobot(SimulatedRobot):
         return sample
 
 
-def skill_config(noise_margin: float | None = None) -> SkillConfig:
-    """Return the benchmark's Skill: four movable burners under the delay policy."""
+def skill_config(noise_margin: float | None = None, *, misdeclared: bool = False, learn: bool = True) -> SkillConfig:
+    """Return the benchmark's Skill: four movable burners under the delay policy (MISDECLARED's CPU understated)."""
     components = {}
     for name, usage in COMPONENTS.items():
         command = [sys.executable, "-c", BURNER, str(usage["cpu"])]
+        declared = usage["cpu"] * (MISDECLARED_SHARE if misdeclared and name == MISDECLARED else 1.0)
         components[name] = {
             "name": name.title(),
             "location": "either",
             "ros": False,
-            "resources": {"cpu": usage["cpu"], "ram": 32, "bandwidth": usage["bandwidth"]},
+            "resources": {"cpu": declared, "ram": 32, "bandwidth": usage["bandwidth"]},
             "robot": {"command": command},
             "cloud": {"command": command},
         }
@@ -217,8 +247,7 @@ def skill_config(noise_margin: float | None = None) -> SkillConfig:
                 "cooldown": COOLDOWN,
                 **({} if noise_margin is None else {"noise_margin": noise_margin}),
                 "decision_interval": DECISION_INTERVAL,
-                # Trusted early, so the run shows the network deciding (or the trust gate refusing it).
-                "neural_network": {"trained_after": 100},
+                "neural_network": LEARNING if learn else ESTIMATE_ONLY,
                 "constants": CONSTANTS,
                 "cost_functions": POLICY,
             },
@@ -280,14 +309,25 @@ class Run:
     decisions: int = 0
     trusted: int = 0
     trained: int = 0
+    decided_by: dict[tuple[str, float], str] = field(default_factory=dict)  # (name, at) -> rule/estimate/network
+    # name -> the network's and the estimate's mean held-out error on the robot at the end
+    robot_errors: dict[str, tuple[float | None, float | None]] = field(default_factory=dict)
+
+    @property
+    def learned_share(self) -> float:
+        """Return the share of the adaptive decisions (not settled by a rule) the network took."""
+        adaptive = [by for by in self.decided_by.values() if by != "rule"]
+        return sum(by == "network" for by in adaptive) / len(adaptive) if adaptive else 0.0
 
 
-async def run_scenario(ws_url: str, token: str, script: Script, data_dir: Path, config: SkillConfig) -> Run:
+async def run_scenario(
+    ws_url: str, token: str, script: Script, data_dir: Path, config: SkillConfig, robot_id: str = ROBOT_ID
+) -> Run:
     """Run the controller and its manager through the script; record placements and moves."""
     robot = ScriptedRobot(cpu=CPU_CORES, ram=4096, bandwidth=LAN_MBITS, seed=7, script=script)
     settings = AgentSettings(
         master=ws_url,
-        robot=ROBOT_ID,
+        robot=robot_id,
         token=token,
         data_dir=data_dir,
         simulate=True,
@@ -295,8 +335,12 @@ async def run_scenario(ws_url: str, token: str, script: Script, data_dir: Path, 
         sample_interval=SAMPLE_INTERVAL,
         detect_ros_master=False,
         stop_components_on_exit=True,
+        # The runtime holds a component to its declared CPU with cgroups: a misdeclared one would be
+        # throttled to a tenth of its work rather than burn what it needs. Its robot enforces nothing,
+        # as one whose agent cannot write cgroups (the others burn exactly what they declare anyway).
+        runtime_options={"cgroups": Cgroups(robot_id, hierarchy=None)} if robot_id != ROBOT_ID else {},
     )
-    controller = RobotController(settings, say=lambda line: log(f"agent: {line}"))
+    controller = RobotController(settings, say=lambda line: log(f"agent {robot_id}: {line}"))
     task = asyncio.create_task(controller.run())
     run = Run()
     names = list(config.components)
@@ -315,19 +359,20 @@ async def run_scenario(ws_url: str, token: str, script: Script, data_dir: Path, 
             index = script.index(elapsed)
             if index != phase_index:
                 phase_index = index
-                log(f"t={elapsed:5.1f} s phase {index + 1}: {script.phases[index].name}")
+                log(f"{robot_id} t={elapsed:5.1f} s phase {index + 1}: {script.phases[index].name}")
             # A component between two places (or stopped) loads the robot no more: costed as in the cloud.
             placement = tuple(record.locations.get(name) or "cloud" for name in names)
             if last is not None:
                 for name, before, after in zip(names, last, placement, strict=True):
                     if before != after:
                         run.moves.append((elapsed, name, before, after))
-                        log(f"t={elapsed:5.1f} s {name}: {before} -> {after}")
+                        log(f"{robot_id} t={elapsed:5.1f} s {name}: {before} -> {after}")
             last = placement
             run.timeline.append((elapsed, placement))
             manager = record.supervisor.context.get("manager") if record.supervisor else None
             for name, decision in (manager.last if manager is not None else {}).items():
                 run.rewards.setdefault(name, {})[decision.at] = (elapsed, decision.estimated_reward)
+                run.decided_by[(name, decision.at)] = decision.decided_by
             next_at += TIMELINE_STEP
             await asyncio.sleep(max(0.0, next_at - loop.time()))
         manager = record.supervisor.context.get("manager") if record.supervisor else None
@@ -336,6 +381,7 @@ async def run_scenario(ws_url: str, token: str, script: Script, data_dir: Path, 
                 run.trained += decider.model.trained
             run.decisions = sum(d.model.samples_seen for d in manager.deciders.values())
             run.trusted = sum(1 for d in manager.last.values() if d.trusted)
+            run.robot_errors = {name: decider.errors("robot") for name, decider in manager.deciders.items()}
         await controller.stop_skill(SKILL_ID)
     finally:
         controller.stop()
@@ -410,6 +456,28 @@ def reward_noise(run: Run, script: Script) -> dict[str, float]:
     return noise
 
 
+async def run_all(
+    ws_url: str, tokens: dict[str, str], script: Script, data_dir: Path, scenarios: dict[str, SkillConfig]
+) -> dict[str, Run]:
+    """Run every scenario's robot at once, each through its own copy of the script."""
+    runs = await asyncio.gather(
+        *(
+            run_scenario(ws_url, tokens[robot_id], replace(script), data_dir / f"agent-{robot_id}", config, robot_id)
+            for robot_id, config in scenarios.items()
+        )
+    )
+    return dict(zip(scenarios, runs, strict=True))
+
+
+def over_oracle(run: Run, script: Script, costing: Costing) -> float:
+    """Return a run's cost over the hindsight oracle's in the changing phases."""
+    _, per_phase = integrate(run, script, costing)
+    changes = range(script.changing)
+    best = [min(costing.placements(), key=lambda p, ph=phase: costing.rate(p, ph)) for phase in script.phases]
+    oracle = sum(costing.rate(best[i], script.phases[i]) * script.phase_s for i in changes)
+    return sum(per_phase[i] for i in changes) / oracle
+
+
 def stop_quickly(daphne: Daphne) -> None:
     """Stop daphne, killing it after a few seconds: it can take 15 s to close its last sockets politely."""
     if daphne.process.poll() is None:
@@ -434,6 +502,12 @@ def main() -> None:
     parser.add_argument(
         "--cloud-mb", type=float, help="the sampler takes pointclouds this big (thesis: 30-40 MB) at 0.2 Hz"
     )
+    parser.add_argument(
+        "--no-misdeclared",
+        dest="misdeclared",
+        action="store_false",
+        help="skip the misdeclared scenario's two robots (run beside the main one by default)",
+    )
     parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
     parser.add_argument("--no-cloud-links", action="store_true", help="skip the robot-link bytes run (_cloudlinks.py)")
@@ -454,6 +528,9 @@ def main() -> None:
     script = Script([*changing, STABLE] if stable_s else changing, phase_s, stable_s=stable_s)
     load_before = os.getloadavg()
     log(f"machine load {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f} on {os.cpu_count()} cores")
+    # An agent imports torch once, at its first movable Skill; here that would eat the first phase
+    # (8 s under load, the managers' decisions waiting for it), so it is imported before the script.
+    _load_torch()
 
     data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-offloading-"))
     cloud = f"bench-offload-{os.getpid()}"
@@ -479,11 +556,17 @@ def main() -> None:
     from skills.services import add_skill
 
     config = skill_config(args.noise_margin)
-    Robot.objects.filter(id=ROBOT_ID).delete()
+    scenarios = {ROBOT_ID: config}
+    if args.misdeclared:
+        scenarios[ESTIMATE_ROBOT] = skill_config(args.noise_margin, misdeclared=True, learn=False)
+        scenarios[LEARNED_ROBOT] = skill_config(args.noise_margin, misdeclared=True)
     owner, _ = get_user_model().objects.get_or_create(username="offload-bench")
-    robot, token = create_robot(ROBOT_ID, owner)
-    update_robot_config(robot.id, ROBOT_CONFIG)
-    add_skill(robot, config.model_dump(mode="json"))
+    tokens = {}
+    for robot_id, scenario in scenarios.items():
+        Robot.objects.filter(id=robot_id).delete()
+        robot, tokens[robot_id] = create_robot(robot_id, owner)
+        update_robot_config(robot.id, ROBOT_CONFIG)
+        add_skill(robot, scenario.model_dump(mode="json"))
 
     daphne = Daphne(env, data_dir / "daphne.log")
     celery = CeleryWorker(env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log")
@@ -491,7 +574,8 @@ def main() -> None:
         daphne.wait()
         celery.wait()
         log(f"daphne pid {daphne.pid} on port {daphne.port}, Celery worker pid {celery.process.pid}")
-        run = asyncio.run(run_scenario(daphne.ws_url, token, script, data_dir / "agent", config))
+        runs = asyncio.run(run_all(daphne.ws_url, tokens, script, data_dir, scenarios))
+        run = runs[ROBOT_ID]
     except BaseException:
         log(f"daphne log tail:\n{daphne.log_tail()}")
         raise
@@ -567,6 +651,28 @@ def main() -> None:
         spread = ", ".join(f"{name} {sd:.2f}" for name, sd in reward_noise(run, script).items())
         print(f"stable phase: estimated reward standard deviation (cost units): {spread}")
     print(f"decision networks trained: {run.trained}/{len(names)}; last decisions by a trusted network: {run.trusted}")
+    print(f"main run: {100 * run.learned_share:.0f} % of the adaptive decisions taken by the network")
+    misdeclared: dict[str, float | None] = {"learned": None, "estimate": None}
+    learned_share = run.learned_share
+    if args.misdeclared:
+        # Costed with what the components really burn: the truthful config's declarations.
+        misdeclared = {
+            "estimate": over_oracle(runs[ESTIMATE_ROBOT], script, costing),
+            "learned": over_oracle(runs[LEARNED_ROBOT], script, costing),
+        }
+        learned_share = runs[LEARNED_ROBOT].learned_share
+        share = MISDECLARED_SHARE
+        print(f"misdeclared ({MISDECLARED} declares {share:g} of the CPU it burns), cost over the oracle:")
+        for label, key in (("estimate only", ESTIMATE_ROBOT), ("learning from outcomes", LEARNED_ROBOT)):
+            other = runs[key]
+            ratio = misdeclared["estimate" if key == ESTIMATE_ROBOT else "learned"]
+            print(
+                f"  {label:24} {ratio:.3f}  migrations {len(other.moves)}, "
+                f"{100 * other.learned_share:.0f} % of the decisions by the network"
+            )
+        network, estimate = runs[LEARNED_ROBOT].robot_errors.get(MISDECLARED, (None, None))
+        if network is not None and estimate is not None:
+            print(f"  {MISDECLARED}'s held-out error on the robot: network {network:.3g}, estimate {estimate:.3g}")
     print(f"machine load (1 min) {load_before[0]:.2f} before, {load_after[0]:.2f} after, on {os.cpu_count()} cores")
     # Issue 22: bytes on the robot's link with every movable component in the cloud, after cloud-side
     # routing over before (a ROS pipeline of its own on a real link; run after the scenario, never during it).
@@ -575,6 +681,9 @@ def main() -> None:
         json.dumps(
             {
                 "cost_over_oracle": round(adaptive / oracle, 4),
+                "cost_over_oracle_misdeclared": _round(misdeclared["learned"]),
+                "estimate_only_over_oracle_misdeclared": _round(misdeclared["estimate"]),
+                "learned_decisions_share": round(learned_share, 4),
                 "adapt_s": round(max(adapt_values), 2),
                 "flaps_per_10min": round(flaps_per_10min, 3),
                 "migrations": len(run.moves),
@@ -596,6 +705,10 @@ def main() -> None:
         ),
         flush=True,
     )
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(value, 4)
 
 
 if __name__ == "__main__":

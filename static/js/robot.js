@@ -374,6 +374,7 @@ function decisionFromPoint(point) {
     location: labels.location,
     target: labels.target,
     reason: labels.reason,
+    decidedBy: labels.decided_by,
   };
 }
 
@@ -389,7 +390,20 @@ function decisionFromEvent(data) {
     location: data.location,
     target: data.target,
     reason: data.error ? `${data.reason}; failed: ${data.error}` : `${data.reason}; took ${fmtNumber(data.duration_s, { digits: 2 })} s`,
+    decidedBy: data.decided_by,
+    networkError: data.network_error,
+    estimateError: data.estimate_error,
   };
+}
+
+// Who decided (a rule, the policy's estimate or the network that learnt from outcomes) and, when the
+// network was scored, its held-out error against the estimate's at the target: why it was trusted or not.
+function decidedBy(row) {
+  if (!row.decidedBy) return null;
+  const by = { rule: "by a rule", estimate: "by the estimate", network: "by the learned network" }[row.decidedBy] ?? `by ${row.decidedBy}`;
+  const scored = Number.isFinite(row.networkError) && Number.isFinite(row.estimateError);
+  const why = scored ? ` (error ${fmtNumber(row.networkError, { digits: 3 })} vs ${fmtNumber(row.estimateError, { digits: 3 })})` : "";
+  return el("span", { class: "sub", "data-decided-by": row.decidedBy }, by + why);
 }
 
 function decisionBadge(row) {
@@ -417,7 +431,7 @@ function renderDecisions() {
         el("td", { class: `num ${cheaper === "robot" ? "better" : ""}` }, fmtNumber(row.costRobot, { digits: 3 })),
         el("td", { class: `num ${cheaper === "cloud" ? "better" : ""}` }, fmtNumber(row.costCloud, { digits: 3 })),
         el("td", { class: "num" }, fmtNumber(row.reward, { digits: 3 })),
-        el("td", {}, decisionBadge(row)),
+        el("td", {}, decisionBadge(row), decidedBy(row)),
       );
     }),
   );

@@ -207,6 +207,7 @@ class SimulatedRobot:
             "cost_robot": str(cost_robot),
             "cost_cloud": str(cost_cloud),
             "policy": "performance",
+            "decided_by": "estimate",
         }
         return {"name": DECISION_METRIC, "value": reward, "labels": labels, **scope}
 

@@ -239,6 +239,9 @@ def test_the_robot_page_lists_the_latest_offloading_decisions(browser, simulated
         "trained": False,
         "samples_seen": 40,
         "inputs": {"cpu_available": 0.1, "location": "robot"},
+        "decided_by": "network",
+        "network_error": 0.04,
+        "estimate_error": 0.5,
         "decided_at": time.time(),
         "duration_s": 0.5,
     }
@@ -248,6 +251,8 @@ def test_the_robot_page_lists_the_latest_offloading_decisions(browser, simulated
     moved = page.locator('#decisions tbody tr[data-outcome="moved"]')
     expect(moved).to_contain_text("moved → cloud")
     expect(moved).to_contain_text("detector")
+    # Who decided, and why the network was trusted: its held-out error against the estimate's.
+    expect(moved.locator('[data-decided-by="network"]')).to_contain_text("by the learned network (error 0.04 vs 0.5)")
     page.locator("#decisions").scroll_into_view_if_needed()
     browser.screenshot("robot-decisions", full_page=False)
     # ... and is read back from the event log on the next visit, beside the decisions to stay.

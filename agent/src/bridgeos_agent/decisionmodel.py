@@ -1,4 +1,4 @@
-"""The decision network of a component: its inputs (:class:`Features`) and a batched torch MLP.
+"""The decision network of a component: its inputs (:class:`Features`) and a batched torch MLP that learns outcomes.
 
 Split from :mod:`bridgeos_agent.decision`, which decides with it (Algorithms 8 and 9). All models
 of one shape are evaluated together: one batched matmul per layer for inference and one batched
@@ -23,7 +23,7 @@ from bridgeos_agent.skillconfig import NeuralNetworkConfig
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["FEATURES", "DecisionModel", "Features", "Side", "predict_many", "train_many"]
+__all__ = ["FEATURES", "DecisionModel", "Features", "Side", "predict_many", "squash", "train_many", "unsquash"]
 
 Side = Literal["robot", "cloud"]
 OptimizerName = Literal["adam", "sgd"]
@@ -42,6 +42,9 @@ FEATURES: tuple[str, ...] = (
     "cost_cloud",
 )
 N_FEATURES = len(FEATURES)
+#: What the network learns, saved with it: a network saved by a version that learnt the estimated
+#: reward (before outcomes were learnt) means something else and is not loaded.
+TARGET = "outcome-residual"
 
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
@@ -95,8 +98,8 @@ class Features:
             "cost_cloud": self.cost_cloud,
         }
 
-    def vector(self) -> list[float]:
-        """Return the model input, in the order of FEATURES."""
+    def vector(self, scale: float = 1.0) -> list[float]:
+        """Return the model input, in the order of FEATURES, costs squashed (:func:`squash`) in units of ``scale``."""
         return [
             self.cpu_available,
             self.ram_available,
@@ -106,13 +109,31 @@ class Features:
             self.battery,
             1.0 if self.location == "robot" else 0.0,
             1.0 if self.location == "cloud" else 0.0,
-            self.cost_robot,
-            self.cost_cloud,
+            squash(self.cost_robot, scale),
+            squash(self.cost_cloud, scale),
         ]
 
 
+def squash(value: float, scale: float) -> float:
+    """Return a cost on the network's scale: linear within ``scale`` of zero, logarithmic beyond, sign kept.
+
+    A component that burns ten times what it declares costs about ten times the estimate on the robot,
+    in every condition: on this scale that is one constant offset, learnt from a few outcomes.
+    """
+    return math.copysign(math.log1p(abs(value) / scale), value)
+
+
+def unsquash(value: float, scale: float) -> float:
+    """Invert :func:`squash`."""
+    return math.copysign(scale * math.expm1(min(abs(value), 700.0)), value)
+
+
 class DecisionModel:
-    """Predict a component's migration reward with a small MLP trained online from a replay buffer."""
+    """Predict how far the policy's estimate of a location's cost is off, with a small MLP trained online.
+
+    Its input is the component's situation (:class:`Features`, ``location`` the location whose cost
+    is predicted); its output, the measured cost there minus the estimate, both squashed (:func:`squash`).
+    """
 
     def __init__(
         self,
@@ -158,7 +179,7 @@ class DecisionModel:
         return self.samples_seen >= self.config.trained_after
 
     def predict(self, features: Sequence[float]) -> float:
-        """Return the predicted migration reward for one feature vector."""
+        """Return the prediction for one feature vector (the estimate's error, in the decider's scale)."""
         return predict_many([self], [features])[0]
 
     def record(self, features: Sequence[float], reward: float) -> bool:
@@ -192,6 +213,7 @@ class DecisionModel:
         """Return everything needed to resume this model after a Skill restart."""
         torch = _load_torch()
         return {
+            "target": TARGET,
             "shape": [self.n_features, *self.config.hidden_layers, 1],
             "activation": self.config.activation,
             "optimizer": self.optimizer,
@@ -209,6 +231,8 @@ class DecisionModel:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a state saved by state_dict; raise ValueError if the shape or optimizer differs."""
         shape = [self.n_features, *self.config.hidden_layers, 1]
+        if state.get("target") != TARGET:
+            raise ValueError(f"saved network learnt {state.get('target', 'the estimated reward')!r}, not {TARGET!r}")
         if state["shape"] != shape or state["activation"] != self.config.activation:
             raise ValueError(f"saved network {state['shape']}/{state['activation']} does not match {shape}")
         if state["optimizer"] != self.optimizer or state["buffer"].numel() != len(self.buffer):
@@ -283,7 +307,7 @@ def _groups(models: Sequence[DecisionModel]) -> dict[tuple[Any, ...], list[int]]
 
 
 def predict_many(models: Sequence[DecisionModel], features: Sequence[Sequence[float]]) -> list[float]:
-    """Predict the migration reward of many components at once, one forward pass per model shape."""
+    """Predict for many components at once, one forward pass per model shape."""
     torch = _load_torch()
     out = [math.nan] * len(models)
     with torch.no_grad():

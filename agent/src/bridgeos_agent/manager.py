@@ -21,7 +21,17 @@ import time
 from typing import TYPE_CHECKING, Any, cast
 
 from bridgeos_agent.componentsapi import ComponentsAPI, MetricStore
-from bridgeos_agent.decision import Decider, Decision, DecisionInput, DecisionModel, Features, Side, decide_batch
+from bridgeos_agent.decision import (
+    Decider,
+    Decision,
+    DecisionInput,
+    DecisionModel,
+    Features,
+    Outcome,
+    Side,
+    decide_batch,
+)
+from bridgeos_agent.decisionmodel import _load_torch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Reporter
 from bridgeos_agent.policies import Metrics, PolicyCosts, PolicyEstimator
@@ -246,6 +256,9 @@ class SkillManager:
                 cost_robot=estimate.cost_robot,
                 cost_cloud=estimate.cost_cloud,
             )
+            outcome = self._outcome(
+                estimator, policy, config.ros, location, estimate, needs, measured, metrics, features, capacity
+            )
             wanted = self.recommendations.pop(name, None)
             costed.append(name)
             inputs.append(
@@ -257,9 +270,58 @@ class SkillManager:
                     mode=robot_config.offloading,
                     resources_ok=resources_ok,
                     recommendation=None if wanted is None else wanted != location,
+                    outcome=outcome,
                 )
             )
         return costed, inputs, costs
+
+    def _outcome(
+        self,
+        estimator: PolicyEstimator,
+        policy: str,
+        ros: bool,
+        location: Side,
+        estimate: PolicyCosts,
+        needs: Resources,
+        measured: Any,
+        metrics: Metrics,
+        features: Features,
+        capacity: Resources,
+    ) -> Outcome | None:
+        """Return what running where it runs cost a component, beside what the estimate says of it from elsewhere.
+
+        The cost where it runs is the estimate's own, from what was measured there. On the robot the
+        runtime measures its CPU and RAM: from the cloud the estimate would cost the robot with the
+        declared ones instead, and that difference is what the network learns. In the cloud nothing
+        more is measured than the estimate uses, so the outcome there is the estimate (error 0).
+        """
+        if location == "cloud":
+            return Outcome("cloud", estimate.cost_cloud, estimate.cost_cloud, features)
+        if measured is None:
+            return None  # no measurement yet (just moved here): nothing happened that the estimate did not assume
+        # The robot as the estimate sees it from the cloud: free what the component uses, take what it declares.
+        elsewhere = dataclasses.replace(
+            metrics,
+            cpu_free=max(0.0, metrics.cpu_free + measured.cpu - needs.cpu),
+            ram_free=max(0.0, metrics.ram_free + measured.ram - needs.ram),
+        )
+        try:
+            seen = estimator.cost(policy, "robot", needs, elsewhere, ros)
+        except ValueError:
+            return None
+        # Built directly, not by dataclasses.replace: half of 2000 components on the robot, every decision.
+        view = Features(
+            cpu_available=_share(metrics.cpu_free + measured.cpu, capacity.cpu),
+            ram_available=_share(metrics.ram_free + measured.ram, capacity.ram),
+            bandwidth_available=features.bandwidth_available,
+            latency=features.latency,
+            loss=features.loss,
+            battery=features.battery,
+            location="robot",
+            cost_robot=seen,
+            cost_cloud=estimate.cost_cloud,
+        )
+        return Outcome("robot", estimate.cost_robot, seen, view)
 
     async def step(self) -> list[Decision]:
         """Decide once for every movable component and carry out the moves."""
@@ -301,6 +363,7 @@ class SkillManager:
                         "cost_robot": f"{estimate.cost_robot:.6g}",
                         "cost_cloud": f"{estimate.cost_cloud:.6g}",
                         "policy": estimate.policy,
+                        "decided_by": decision.decided_by,
                         "reason": decision.reason[:256],
                     },
                 }
@@ -358,6 +421,11 @@ class SkillManager:
         cast("dict[str, str]", supervisor.context.setdefault("env", {}))["BRIDGEOS_MANAGER_URL"] = url
         supervisor.mark_ready("manager")
         try:
+            if any(c.location == "either" for c in self.record.config.components.values()):
+                # The first network built imports torch: seconds on a robot (8 s on a loaded 2-core
+                # machine), which in the first decision would freeze the agent's event loop, every
+                # Skill's included. Imported in a thread, only the decisions wait for it.
+                await asyncio.to_thread(_load_torch)
             while True:
                 await asyncio.sleep(self.record.config.manager.decision_interval)
                 self._share_usage()
@@ -416,6 +484,9 @@ def decision_event(
         "trained": decision.trained,
         "samples_seen": decision.samples_seen,
         "inputs": inputs,
+        "decided_by": decision.decided_by,
+        "network_error": _optional(decision.network_error),
+        "estimate_error": _optional(decision.estimate_error),
         "decided_at": decided_at,
         "duration_s": max(0.0, duration_s),
     }
@@ -430,6 +501,11 @@ def _finite(value: float) -> float:
     if math.isnan(value):
         return 0.0
     return max(-1.7e308, min(1.7e308, value))
+
+
+def _optional(value: float | None) -> float | None:
+    """Return a finite float or None, as the protocol's optional figures."""
+    return float(value) if value is not None and math.isfinite(value) else None
 
 
 def _share(free: float | None, capacity: float) -> float:

@@ -653,6 +653,11 @@ class OffloadingDecision(RobotScoped):
     inputs: Annotated[dict[LabelKey, FiniteFloat | LabelValue], Field(max_length=32)]
     decided_at: Timestamp
     duration_s: Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
+    # Who decided (a rule, the policy's estimate or the network that learnt outcomes) and why the network
+    # was or was not trusted: its and the estimate's mean held-out error at the target location.
+    decided_by: Literal["rule", "estimate", "network"] | None = None
+    network_error: FiniteFloat | None = None
+    estimate_error: FiniteFloat | None = None
 
 
 class LogEvent(RobotScoped):

@@ -168,6 +168,12 @@ class NeuralNetworkConfig(_Model):
         le=100_000,
         description="Decisions between two training steps while the network warms up (every one is recorded).",
     )
+    train_steps: int = Field(
+        default=1,
+        ge=1,
+        le=100,
+        description="Training steps each time training is due: more learn from fewer outcomes, at that cost.",
+    )
 
 
 class ManagerConfig(_Model):
