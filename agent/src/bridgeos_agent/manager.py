@@ -257,7 +257,16 @@ class SkillManager:
                 cost_cloud=estimate.cost_cloud,
             )
             outcome = self._outcome(
-                estimator, policy, config.ros, location, estimate, needs, measured, metrics, features, capacity
+                estimator,
+                policy,
+                bool(config.ros_version),
+                location,
+                estimate,
+                needs,
+                measured,
+                metrics,
+                features,
+                capacity,
             )
             wanted = self.recommendations.pop(name, None)
             costed.append(name)
