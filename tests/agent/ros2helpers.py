@@ -12,7 +12,7 @@ from bridgeos_agent.ros2graph import Ros2Graph, namespace_arguments
 NODES = str(Path(__file__).with_name("ros2nodes.py"))
 
 
-def test_graph() -> Ros2Graph:
+def loopback_graph() -> Ros2Graph:
     """Return the graph of this run: loopback only, the domain of ROS_DOMAIN_ID (44 by default)."""
     return Ros2Graph(domain_id=int(os.environ.get("ROS_DOMAIN_ID") or 44), discovery_range="LOCALHOST")
 

@@ -27,7 +27,7 @@ def talker(node, args) -> None:
     time.sleep(args.settle)
     start = time.monotonic()
     seq = 0
-    while args.count == 0 or seq < args.count:
+    while (args.count == 0 or seq < args.count) and not (args.duration and time.monotonic() - start > args.duration):
         seq += 1
         publisher.publish(String(data=f"{args.tag} {seq} {time.time():.6f}"))
         if args.rate:
@@ -92,6 +92,7 @@ def main() -> None:
     parser.add_argument("--depth", type=int, default=1000)
     parser.add_argument("--best-effort", action="store_true")
     parser.add_argument("--latched", action="store_true")
+    parser.add_argument("--duration", type=float, default=0.0)
     parser.add_argument("--wait", action="store_true")
     parser.add_argument("--settle", type=float, default=0.0)
     parser.add_argument("--linger", type=float, default=30.0)

@@ -302,7 +302,7 @@ class Ros2Routing(RouterBase):
         del self._topics[canonical]
         for where, subscription in topic.sources.values():
             if subscription is not None:
-                self._side(where).node.destroy_subscription(subscription)
+                self._side(where).relay.unsubscribe(subscription)
         if topic.canonical_pub is not None:
             self._side(None).node.destroy_publisher(topic.canonical_pub)
         for delivery in topic.deliveries.values():
@@ -336,12 +336,9 @@ class Ros2Routing(RouterBase):
                     self._r2_try_source(topic, name, source, side)
 
     def _r2_try_source(self, topic: Ros2Topic, name: str, source: list[Any], side: Any) -> None:
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile
-
-        where = source[0]
         infos = side.node.get_publishers_info_by_topic(name)
         own = side.node.get_name()
-        infos = [i for i in infos if i.node_name not in (own, own + "_services")]
+        infos = [i for i in infos if i.node_name not in (own, own + "_services", own + "_relay")]
         if not infos:
             return
         info = infos[0]
@@ -349,24 +346,37 @@ class Ros2Routing(RouterBase):
         if info.topic_type != wanted:
             self._route_error(topic.canonical, f"{name} is published as {info.topic_type}, the route says {wanted}")
             return
-        durable = info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        self._r2_subscribe(topic, name, source, info.qos_profile.reliability, info.qos_profile.durability)
+
+    def _r2_open(self, topic: Ros2Topic, reliability: Any, durability: Any) -> None:
+        """Open all of a topic's endpoints as for a publisher of this reliability and durability."""
+        for name, source in topic.sources.items():
+            if source[1] is None:
+                self._r2_subscribe(topic, name, source, reliability, durability)
+
+    def _r2_subscribe(self, topic: Ros2Topic, name: str, source: list[Any], reliability: Any, durability: Any) -> None:
+        """Subscribe one source with the QoS its publisher offers (the sinks too, for the first)."""
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile
+
+        where = source[0]
+        durable = durability == DurabilityPolicy.TRANSIENT_LOCAL
         qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=max(1, topic.route.store) if durable else VOLATILE_DEPTH,
-            reliability=info.qos_profile.reliability,
-            durability=info.qos_profile.durability,
+            reliability=reliability,
+            durability=durability,
         )
         if topic.qos is None:
             topic.qos = qos
             self._r2_make_sinks(topic)
-        if where is None and info.qos_profile.reliability != topic.qos.reliability:
-            qos.reliability = topic.qos.reliability
-        source[1] = side.node.create_subscription(
+        if not durable:
+            # The router's own reader keeps all: falling behind in a burst must not cost messages.
+            qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=reliability, durability=durability)
+        source[1] = self._side(where).relay.subscribe(
             topic.msg_class,
             name,
-            lambda data, msg_info, topic=topic, where=where: self._r2_relay(topic, where, data, msg_info),
             qos,
-            raw=True,
+            lambda data, msg_info, topic=topic, where=where: self._r2_relay(topic, where, data, msg_info),
         )
         if where is not None:
             topic.node_pub = name
