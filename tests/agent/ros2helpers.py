@@ -25,7 +25,9 @@ class Ros2Nodes:
         self.directory = directory
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 
-    def run(self, key: str, role: str, *args: str, namespace: str | None = None, graph: Ros2Graph | None = None) -> None:
+    def run(
+        self, key: str, role: str, *args: str, namespace: str | None = None, graph: Ros2Graph | None = None
+    ) -> None:
         env = {**os.environ, **(graph or self.graph).env(), "PYTHONUNBUFFERED": "1"}
         env.pop("ROS_DISCOVERY_SERVER", None) if graph is None else None
         command = [sys.executable, NODES, role, *args, *(namespace_arguments(namespace) if namespace else [])]

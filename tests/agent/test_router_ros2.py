@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import subprocess
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -80,68 +82,6 @@ async def make_router(tmp_path: Path) -> AsyncIterator[Callable[..., object]]:
         await router.close()
 
 
-async def test_the_active_talker_reaches_the_component_and_canonical_listeners_and_outside_publishers_too(
-    nodes, make_router
-):
-    router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
-    assert router.ros2_on and not router.ros_on
-    nodes.run("component", "listener", namespace=ns("listener", "robot"))
-    nodes.run("canonical", "listener", "--topic", "/chatter")
-    nodes.run("robot", "talker", "--tag", "robot", "--rate", "50", namespace=ns("talker", "robot"))
-    nodes.run("cloud", "talker", "--tag", "cloud", "--rate", "50", namespace=ns("talker", "cloud"))
-    assert await router.wait_ready("talker", "robot", 30)
-    assert await router.wait_ready("listener", "robot", 30)
-    for key in ("component", "canonical"):
-        await eventually(lambda key=key: len(nodes.messages(key)) >= 20, what=f"{key} hears the talker")
-        assert {tag for tag, _ in nodes.messages(key)} == {"robot"}
-    nodes.run("outside", "talker", "--tag", "outside", "--rate", "20", "--topic", "/chatter")
-    await eventually(lambda: any(tag == "outside" for tag, _ in nodes.messages("component")), what="the outside message at the component")
-    # The router never hears its own canonical publication back as an outside one.
-    assert {tag for tag, _ in nodes.messages("canonical")} <= {"robot", "outside"}
-    stats = router.statistics()["/chatter"]
-    assert stats["subscribers"]["listener"]["messages"] >= 20 and stats["dropped"] == 0
-
-
-async def test_switching_the_talker_under_a_1khz_stream_loses_and_duplicates_nothing(nodes, make_router):
-    router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
-    nodes.run("canonical", "listener", "--topic", "/chatter")
-    nodes.run("component", "listener", namespace=ns("listener", "robot"))
-    nodes.run("robot", "talker", "--tag", "robot", "--rate", "1000", "--wait", namespace=ns("talker", "robot"))
-    await eventually(lambda: len(nodes.messages("canonical")) >= 300, what="the robot stream")
-    nodes.run("cloud", "talker", "--tag", "cloud", "--rate", "1000", namespace=ns("talker", "cloud"))
-    assert await router.wait_ready("talker", "cloud", 30)
-    await router.switch("talker", "cloud")
-    switched_at = len(nodes.messages("canonical"))
-    await eventually(lambda: len(nodes.messages("canonical")) >= switched_at + 500, what="the cloud stream")
-    for key in ("canonical", "component"):
-        heard = nodes.messages(key)
-        tags = [tag for tag, _ in heard]
-        cut = tags.index("cloud")
-        assert set(tags[:cut]) == {"robot"} and set(tags[cut:]) == {"cloud"}, f"{key}: the streams interleave"
-        assert heard[0] == ("robot", 1) and contiguous([s for _, s in heard[:cut]]), f"{key}: robot stream"
-        assert contiguous([s for _, s in heard[cut:]]), f"{key}: the cloud stream lost or repeated messages"
-
-
-async def test_switching_the_listener_delivers_every_message_exactly_once(nodes, make_router):
-    router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
-    nodes.run("listener-robot", "listener", namespace=ns("listener", "robot"))
-    nodes.run("listener-cloud", "listener", namespace=ns("listener", "cloud"))
-    args = ("--tag", "t", "--rate", "1000", "--count", "3000", "--wait", "--settle", "1")
-    nodes.run("talker", "talker", *args, namespace=ns("talker", "robot"))
-    await eventually(lambda: router.statistics()["/chatter"]["messages"], what="the talker is routed")
-    assert await router.wait_ready("listener", "robot", 30)
-    assert await router.wait_ready("listener", "cloud", 30)
-    await eventually(lambda: len(nodes.messages("listener-robot")) >= 500, what="the robot listener hears")
-    await router.switch("listener", "cloud")
-    await eventually(
-        lambda: len(nodes.messages("listener-robot")) + len(nodes.messages("listener-cloud")) >= 3000,
-        what="every message delivered",
-    )
-    robot = [seq for _, seq in nodes.messages("listener-robot")]
-    cloud = [seq for _, seq in nodes.messages("listener-cloud")]
-    assert cloud and robot + cloud == list(range(1, 3001))
-
-
 async def test_a_transient_local_map_reaches_a_late_joiner_and_best_effort_stays_best_effort(nodes, make_router):
     routes = [
         {"name": "/map", "type": "nav_msgs/msg/OccupancyGrid", "publisher": "server", "subscribers": []},
@@ -150,10 +90,25 @@ async def test_a_transient_local_map_reaches_a_late_joiner_and_best_effort_stays
     ]
     router = await make_router(skill({"topics": routes}), talker="robot", listener="robot", server="robot")
     # One latched message, published long before anyone listens.
-    nodes.run("map", "talker", "--topic", "map_tag", "--latched", "--depth", "1", "--count", "1", "--rate", "0",
-              "--tag", "map", "--linger", "60", namespace=ns("server", "robot"))
-    nodes.run("scan", "talker", "--topic", "scan_tag", "--best-effort", "--rate", "50",
-              namespace=ns("talker", "robot"))
+    nodes.run(
+        "map",
+        "talker",
+        "--topic",
+        "map_tag",
+        "--latched",
+        "--depth",
+        "1",
+        "--count",
+        "1",
+        "--rate",
+        "0",
+        "--tag",
+        "map",
+        "--linger",
+        "60",
+        namespace=ns("server", "robot"),
+    )
+    nodes.run("scan", "talker", "--topic", "scan_tag", "--best-effort", "--rate", "50", namespace=ns("talker", "robot"))
     await eventually(lambda: router.statistics()["/map_tag"]["messages"] == 1, what="the map reaches the router")
     await asyncio.sleep(1.0)
     nodes.run("late", "listener", "--topic", "/map_tag", "--latched", "--depth", "1")
@@ -231,16 +186,6 @@ async def test_an_action_is_relayed_with_its_feedback_and_result(nodes, make_rou
     assert feedback, "no feedback came through the router"
 
 
-async def test_topics_are_added_and_removed_at_runtime(nodes, make_router):
-    router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
-    extra = {"name": "/scan", "type": "std_msgs/msg/String", "publisher": "listener", "subscribers": ["talker"]}
-    await router.apply(parse_skill_config(skill({"topics": [extra]})))
-    assert set(router.statistics()) == {"/scan"}
-    nodes.run("scan", "talker", "--topic", "scan", "--rate", "50", namespace=ns("listener", "robot"))
-    nodes.run("heard", "listener", "--topic", "scan", namespace=ns("talker", "robot"))
-    await eventually(lambda: len(nodes.messages("heard")) >= 5, what="the new topic is routed")
-
-
 async def test_bad_input_is_reported_with_the_topic_and_the_reason_and_starts_nothing_of_it(nodes, make_router):
     errors = []
     routes = [
@@ -270,7 +215,7 @@ async def test_bad_input_is_reported_with_the_topic_and_the_reason_and_starts_no
         # A reliable listener of a best-effort publisher: reported, not hung.
         nodes.run("be", "talker", "--topic", "qos", "--best-effort", namespace=ns("talker", "robot"))
         await eventually(lambda: router.statistics()["/qos"]["messages"], what="the best-effort stream is routed")
-        nodes.run("reliable", "listener", namespace=ns("listener", "robot"), *("--topic", "qos"))
+        nodes.run("reliable", "listener", "--topic", "qos", namespace=ns("listener", "robot"))
         await eventually(lambda: "/qos" in router.route_errors, what="the QoS mismatch")
         assert "QoS" in router.route_errors["/qos"]
         assert {name for name, _ in errors} == {"/unknown", "/missing", "/wrong", "/qos"}
@@ -278,22 +223,27 @@ async def test_bad_input_is_reported_with_the_topic_and_the_reason_and_starts_no
         await router.close()
 
 
-async def test_cloud_instances_are_reached_through_the_robots_discovery_server(nodes, make_router, tmp_path):
-    import subprocess
-
+@pytest.fixture
+def discovery_server() -> Iterator[str]:
+    """Run a Fast DDS discovery server on loopback (the cloud runs one per robot)."""
     port = free_port()
     argv, env = discovery_server_command("127.0.0.1", port)
-    import os
-
     server = subprocess.Popen(argv, env={**os.environ, **env}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        cloud = Ros2Graph(domain_id=loopback_graph().domain_id, discovery_server=f"127.0.0.1:{port}")
-        router = await make_router(skill({"topics": [CHATTER]}), cloud=cloud, talker="cloud", listener="robot")
-        assert set(router._r2_sides) == {"robot", "cloud"}
-        nodes.run("talker", "talker", "--tag", "c", "--rate", "50", namespace=ns("talker", "cloud"), graph=cloud)
-        nodes.run("listener", "listener", namespace=ns("listener", "robot"))
-        assert await router.wait_ready("talker", "cloud", 30)
-        await eventually(lambda: len(nodes.messages("listener")) >= 10, what="the cloud talker reaches the robot")
+        yield f"127.0.0.1:{port}"
     finally:
         server.kill()
         server.wait(10)
+
+
+async def test_cloud_instances_are_reached_through_the_robots_discovery_server(nodes, make_router, discovery_server):
+    # The cloud talker is a client of the discovery server only: the robot's graph cannot see it,
+    # so what the listener hears came through the router's "cloud" context.
+    cloud = Ros2Graph(domain_id=loopback_graph().domain_id, discovery_server=discovery_server)
+    router = await make_router(skill({"topics": [CHATTER]}), cloud=cloud, talker="cloud", listener="robot")
+    assert set(router._r2_sides) == {"robot", "cloud"}
+    nodes.run("talker", "talker", "--tag", "c", "--rate", "50", namespace=ns("talker", "cloud"), graph=cloud)
+    nodes.run("listener", "listener", namespace=ns("listener", "robot"))
+    assert await router.wait_ready("talker", "cloud", 30)
+    await eventually(lambda: len(nodes.messages("listener")) >= 10, what="the cloud talker reaches the robot")
+    assert {tag for tag, _ in nodes.messages("listener")} == {"c"}

@@ -7,6 +7,7 @@ import logging
 import os
 import re
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -146,6 +147,7 @@ class RelayLoop:
 
         rclpy_ = self._rclpy
         while not self._stop:
+            time.sleep(0.02)  # batch a burst of new subscriptions into one rebuild (2,000 topics at once)
             with self._lock:
                 entries = list(self._handlers.values())
                 self._changed = False
