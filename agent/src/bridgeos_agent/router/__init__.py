@@ -10,6 +10,13 @@ forwards message bytes without decoding them, keeps one bounded queue per subscr
 connection so a slow peer or a big topic never delays another, keeps the last N messages
 of marked topics for new instances, counts everything for the Skill Manager and publishes
 ``rosgraph_msgs/TopicStatistics`` on ``/statistics``.
+
+Routes of ROS 2 components (``"ros": 2``) go through rclpy instead (``router.ros2``, imported
+only when such a route exists): serialized messages mirroring the publisher's QoS, services,
+actions as their hidden services and topics, the robot's graph and the cloud's (a client of
+the robot's discovery server, given by ``SkillRouter.set_ros2_graphs``), and per-topic
+``diagnostic_msgs/DiagnosticArray`` on the ROS 2 ``/statistics``. Routes that cannot run
+(bad types, unmatched QoS) land in ``route_errors`` and ``on_route_error``.
 """
 
 from __future__ import annotations
