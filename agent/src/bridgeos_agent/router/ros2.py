@@ -248,6 +248,9 @@ class Ros2Routing(RouterBase):
         self._r2_services.clear()
         sides, self._r2_sides = self._r2_sides, {}
         for side in sides.values():
+            # Every relay stops before any graph goes: a cloud message must not meet a destroyed robot publisher.
+            await asyncio.to_thread(side.relay.close)
+        for side in sides.values():
             await asyncio.to_thread(side.close)
 
     async def _r2_apply(self, old: SkillConfig, new: SkillConfig) -> None:
