@@ -307,17 +307,21 @@ class Ros2Routing(RouterBase):
             if subscription is not None:
                 self._side(where).relay.unsubscribe(subscription)
         if topic.canonical_pub is not None:
-            self._side(None).node.destroy_publisher(topic.canonical_pub)
+            self._side(None).relay_node.destroy_publisher(topic.canonical_pub)
         for delivery in topic.deliveries.values():
             for where in ("robot", "cloud"):
                 publisher = getattr(delivery, where)
                 if publisher is not None:
-                    self._side(where).node.destroy_publisher(publisher)
+                    self._side(where).relay_node.destroy_publisher(publisher)
 
     async def _r2_discover_loop(self) -> None:
+        passes = 0
         while True:
+            passes += 1
             try:
                 self._r2_discover()
+                if passes % 20 == 0:
+                    self._r2_check_qos()
             except Exception:  # one bad graph answer must not end routing
                 logger.exception("skill %s: ROS 2 discovery pass failed", self.skill)
             await asyncio.sleep(0.05)
@@ -387,27 +391,44 @@ class Ros2Routing(RouterBase):
     def _r2_make_sinks(self, topic: Ros2Topic) -> None:
         from rclpy.event_handler import PublisherEventCallbacks
 
-        def events(name: str) -> Any:
-            def incompatible(event: Any) -> None:
-                self._route_error(
-                    topic.canonical,
-                    f"a subscriber of {name} asks for a QoS the publisher does not offer "
-                    f"(policy {event.last_policy_kind}); it gets nothing",
-                )
-
-            return PublisherEventCallbacks(incompatible_qos=incompatible)
-
-        robot = self._side(None).node
-        topic.canonical_pub = robot.create_publisher(
-            topic.msg_class, topic.canonical, topic.qos, event_callbacks=events(topic.canonical)
-        )
+        # On the relay's node, which no executor spins: an executor would walk every publisher's
+        # event handlers each time an endpoint is added (quadratic at thousands of topics).
+        quiet = PublisherEventCallbacks(use_default_callbacks=False)
+        robot = self._side(None).relay_node
+        topic.canonical_pub = robot.create_publisher(topic.msg_class, topic.canonical, topic.qos, event_callbacks=quiet)
         for component, delivery in topic.deliveries.items():
             for where in locations(self.config.components[component].location):
                 name = instance_name(topic.route.name, self.skill, component, where)
-                publisher = self._side(where).node.create_publisher(
-                    topic.msg_class, name, topic.qos, event_callbacks=events(name)
+                publisher = self._side(where).relay_node.create_publisher(
+                    topic.msg_class, name, topic.qos, event_callbacks=quiet
                 )
                 setattr(delivery, where, publisher)
+
+    def _r2_check_qos(self) -> None:
+        """Report subscribers that ask for a QoS the router's publication (the publisher's) does not offer."""
+        from rclpy.qos import QoSCompatibility, qos_check_compatible
+
+        for topic in list(self._topics.values()):
+            if not isinstance(topic, Ros2Topic) or topic.qos is None:
+                continue
+            sinks: list[tuple[Any, Any]] = [(None, topic.canonical_pub)]
+            for delivery in topic.deliveries.values():
+                sinks += [(where, getattr(delivery, where)) for where in ("robot", "cloud")]
+            for where, publisher in sinks:
+                if publisher is None:
+                    continue
+                node = self._side(where).relay_node
+                name = publisher.topic_name
+                if publisher.get_subscription_count() >= node.count_subscribers(name):
+                    continue  # every subscriber matched
+                for info in node.get_subscriptions_info_by_topic(name):
+                    compatibility, reason = qos_check_compatible(topic.qos, info.qos_profile)
+                    if compatibility == QoSCompatibility.ERROR:
+                        self._route_error(
+                            topic.canonical,
+                            f"a subscriber of {name} asks for a QoS the publisher does not offer ({reason}); "
+                            "it gets nothing",
+                        )
 
     def _r2_relay(self, topic: Ros2Topic, source: Where | None, data: bytes, info: dict[str, Any]) -> None:
         """Relay one serialized message: the ROS 2 hot path (an executor thread)."""

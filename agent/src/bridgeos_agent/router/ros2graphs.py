@@ -50,7 +50,11 @@ class GraphSide:
                 name = re.sub(r"[^A-Za-z0-9_]", "_", node_name)
                 # Topics on one node and executor thread; services on another with a pool, so a
                 # long action result never holds up the topics' hot path.
-                light: dict[str, Any] = {"namespace": namespace, "context": self.context, "start_parameter_services": False}
+                light: dict[str, Any] = {
+                    "namespace": namespace,
+                    "context": self.context,
+                    "start_parameter_services": False,
+                }
                 self.node = rclpy.create_node(name, **light)
                 self.service_node = rclpy.create_node(name + "_services", **light)
                 # The relay's subscriptions: taken by a loop of our own, not rclpy's executor (5-10x faster).
@@ -120,7 +124,10 @@ class RelayLoop:
 
     def subscribe(self, msg_class: type, name: str, qos: Any, handler: Callable[[bytes, dict[str, Any]], None]) -> Any:
         """Subscribe ``name`` raw; ``handler(data, info)`` runs in the relay thread for each message."""
-        subscription = self.node.create_subscription(msg_class, name, _never, qos, raw=True)
+        from rclpy.event_handler import SubscriptionEventCallbacks
+
+        quiet = SubscriptionEventCallbacks(use_default_callbacks=False)
+        subscription = self.node.create_subscription(msg_class, name, _never, qos, raw=True, event_callbacks=quiet)
         with self._lock:
             self._handlers[subscription.handle.pointer] = (subscription, handler)
             self._changed = True
