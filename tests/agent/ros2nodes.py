@@ -89,7 +89,7 @@ def main() -> None:
     parser.add_argument("--tag", default="t")
     parser.add_argument("--rate", type=float, default=10.0)
     parser.add_argument("--count", type=int, default=0)
-    parser.add_argument("--depth", type=int, default=1000)
+    parser.add_argument("--depth", type=int, default=10000)
     parser.add_argument("--best-effort", action="store_true")
     parser.add_argument("--latched", action="store_true")
     parser.add_argument("--duration", type=float, default=0.0)

@@ -3,7 +3,7 @@
 A topic's router endpoints are made once its first publisher is seen: DDS discovery tells the
 publisher's reliability and durability (not its history), and the router mirrors them, so a
 best-effort stream stays best-effort and a transient-local ``/map`` reaches late joiners (the
-router keeps ``store`` messages, at least 1, for them; volatile topics keep 1000 to ride out bursts).
+router keeps ``store`` messages, at least 1, for them; volatile topics keep 5000 to ride out bursts).
 Services are served on the canonical name and each call goes to the server's active instance;
 an action is relayed as its hidden services (``<name>/_action/send_goal``, ``get_result``,
 ``cancel_goal``) and topics (``<name>/_action/feedback``, ``status``). Cloud instances are
@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 # rcl_action's hidden names under an action's name.
 ACTION_SERVICES = ("_action/send_goal", "_action/cancel_goal", "_action/get_result")
 ACTION_TOPICS = ("_action/feedback", "_action/status")
-VOLATILE_DEPTH = 1000
+VOLATILE_DEPTH = 5000
 CALL_TIMEOUT = 30.0
 RESULT_TIMEOUT = 3600.0  # get_result answers only when the goal ends
 
