@@ -257,7 +257,7 @@ async def main(args: argparse.Namespace) -> dict:
     with tempfile.TemporaryDirectory(prefix="router-ros2-") as tmp:
         directory = Path(tmp)
         if args.quick:
-            matrix, seconds, topics = [(1, 0), (10, 100)], 2.0, 200
+            matrix, seconds, topics = [(1, 0), (10, 100)], 1.5, 200
         else:
             matrix = [(1, 100), (1, 1000), (10, 100), (1, 0), (10, 0)]
             seconds, topics = 4.0, 2000
