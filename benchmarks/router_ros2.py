@@ -184,6 +184,13 @@ async def switch_run(directory: Path, seconds: float) -> dict:
     router = await new_router(skill_config(1, subscriber=False))
     try:
         procs.run("listener", "listener", "--topic", "/bench0/data")
+        # Open the topic at once (as ROS 1's router advertises it) and let the listener match first,
+        # so every message from the first on can be counted, as benchmarks/router.py's test does.
+        from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+        topic = router._topics["/bench0/data"]
+        router._r2_open(topic, ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE)  # type: ignore[arg-type]
+        await until(lambda: topic.canonical_pub.get_subscription_count() > 0, 30)  # type: ignore[union-attr]
         procs.run(
             "robot", "talker", "--topic", "bench0/data", "--tag", "robot", "--rate", "1000", "--wait", namespace=PUB_NS
         )
