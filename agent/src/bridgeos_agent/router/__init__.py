@@ -17,6 +17,12 @@ so their bytes do not cross the robot's link. The robot's router hands those pai
 takes them back at an exact cut point (one relay per pair at any moment, nothing lost or
 repeated), stops receiving cloud streams nobody on the robot needs, adds the relay's counts to
 its own, and relays everything itself (said once in its log) when no relay answers.
+Routes of ROS 2 components (``"ros": 2``) go through rclpy instead (``router.ros2``, imported
+only when such a route exists): serialized messages mirroring the publisher's QoS, services,
+actions as their hidden services and topics, the robot's graph and the cloud's (a client of
+the robot's discovery server, given by ``SkillRouter.set_ros2_graphs``), and per-topic
+``diagnostic_msgs/DiagnosticArray`` on the ROS 2 ``/statistics``. Routes that cannot run
+(bad types, unmatched QoS) land in ``route_errors`` and ``on_route_error``.
 """
 
 from __future__ import annotations
