@@ -35,6 +35,8 @@ def ros_env(master_uri: str, ros_home: Path, namespace: str | None = None) -> di
         "ROS_HOME": str(ros_home),
         "PYTHONUNBUFFERED": "1",
     }
+    if os.environ.get("PYTHONPATH"):
+        env["PYTHONPATH"] = os.environ["PYTHONPATH"]  # the nodes run the code under test (a worktree's)
     if namespace:
         env["ROS_NAMESPACE"] = namespace
     return env
