@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, TypeVar, cast
 from bridgeos_agent.rosnames import canonical_name, instance_name
 from bridgeos_agent.rosnode import MasterError, RosNode
 from bridgeos_agent.router.http import HttpRouting
+from bridgeos_agent.router.ros2 import Ros2Routing
 from bridgeos_agent.router.services import ServiceRouting
 from bridgeos_agent.router.settings import LOCATIONS, RouterSettings, Where, locations, router_settings_from_env
 from bridgeos_agent.router.statistics import STATISTICS_TOPIC, RouterStatistics
@@ -32,8 +33,8 @@ logger = logging.getLogger(__name__)
 R = TypeVar("R", TopicRoute, ServiceRoute)
 
 
-class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
-    """Route one Skill's ROS topics, ROS services and HTTP requests to its active instances."""
+class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics, Ros2Routing):
+    """Route one Skill's ROS 1 and ROS 2 topics, services and actions and HTTP requests to its active instances."""
 
     def __init__(
         self,
@@ -73,13 +74,21 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
         self._tasks: set[asyncio.Task[None]] = set()
         self._ros_warned = False
         self._started = clock()
+        self._statistics_on = False
+        self._r2_init()
 
     # ------------------------------------------------------------------ life cycle
 
     @property
     def ros_routes(self) -> bool:
-        """Tell whether the Skill has any ROS topic or service to route."""
-        return bool(self.config.router.topics or self.config.router.services)
+        """Tell whether the Skill has any ROS 1 topic or service to route."""
+        return bool(self._ros1_topics(self.config) or self._ros1_services(self.config))
+
+    def _ros1_topics(self, config: SkillConfig) -> list[TopicRoute]:
+        return [t for t in config.router.topics if self._version(config, t.publisher) != 2]
+
+    def _ros1_services(self, config: SkillConfig) -> list[ServiceRoute]:
+        return [s for s in config.router.services if self._version(config, s.server) != 2]
 
     @property
     def ros_on(self) -> bool:
@@ -87,11 +96,13 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
         return self.node is not None
 
     async def start(self) -> None:
-        """Start HTTP routing (if any routes) and ROS routing (if any routes and a master)."""
+        """Start HTTP routing (if any routes), ROS 1 routing (if any routes and a master) and ROS 2's."""
         if self.config.router.http:
             await self._start_http()
         if self.ros_routes:
             await self.enable_ros(self.ros_master)
+        if self.ros2_routes:
+            await self.enable_ros2()
 
     async def enable_ros(self, master: str | None) -> bool:
         """Start ROS routing against ``master``; say once, clearly, when it cannot run."""
@@ -117,14 +128,14 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
         self._statistics = node.advertise(STATISTICS_TOPIC, TOPIC_STATISTICS_TYPE)
         self._statistics.md5sum = TOPIC_STATISTICS_MD5
         self._statistics.definition = TOPIC_STATISTICS_DEFINITION
-        for route in self.config.router.topics:
+        for route in self._ros1_topics(self.config):
             self._add_topic(route)
-        for service in self.config.router.services:
+        for service in self._ros1_services(self.config):
             self._add_service(service)
         errors = await node.settle()
         if errors:
             logger.warning("skill %s: %d ROS registration(s) failed, e.g. %s", self.skill, len(errors), errors[0])
-        self._spawn(self._statistics_loop())
+        self._start_statistics()
         logger.info(
             "skill %s: routing %d topic(s) and %d service(s) through %s",
             self.skill,
@@ -133,6 +144,12 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
             master,
         )
         return True
+
+    def _start_statistics(self) -> None:
+        """Start the one statistics loop (ROS 1 and ROS 2 topics share it)."""
+        if not self._statistics_on:
+            self._statistics_on = True
+            self._spawn(self._statistics_loop())
 
     def _ros_off(self, reason: str) -> None:
         self.ros_off_reason = reason
@@ -148,6 +165,7 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
         if self.node is not None:
             node, self.node = self.node, None
             await node.close()
+        await self._r2_close()
         await self._stop_http()
 
     def _spawn(self, coroutine: Any) -> None:
@@ -225,6 +243,8 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
                     name = instance_name(service.route.name, self.skill, component, location)
                     if await node.lookup_service(name) is None:
                         return False
+        if not self._r2_ready(component, location):
+            return False
         for http in self._http:
             if http.component == component and not await self._http_answers(http, location):
                 return False
@@ -234,8 +254,9 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
 
     async def apply(self, config: SkillConfig) -> None:
         """Take a new Skill config: add, change and remove routes while the router runs."""
-        old = self.config.router
+        old_config = self.config
         self.config = config
+        await self._r2_apply(old_config, config)
         if config.router.http:
             await self._start_http()
         else:
@@ -244,12 +265,12 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics):
             if self.ros_routes:
                 await self.enable_ros(self.ros_master)
             return
-        gone, new = _changes(old.topics, config.router.topics)
+        gone, new = _changes(self._ros1_topics(old_config), self._ros1_topics(config))
         for name in gone:
             self._remove_topic(name)
         for route in new:
             self._add_topic(route)
-        gone, new_services = _changes(old.services, config.router.services)
+        gone, new_services = _changes(self._ros1_services(old_config), self._ros1_services(config))
         for name in gone:
             self._remove_service(name)
         for service in new_services:

@@ -144,6 +144,14 @@ class RouterBase:
     _runner: web.AppRunner | None
     _session: aiohttp.ClientSession | None
     _started: float
+    _r2_services: dict[str, Any]  # router.ros2
+
+    def _r2_publish_statistics(self, windows: list[Any]) -> None:
+        """Publish the ROS 2 topics' closed statistics windows (router.ros2 does)."""
+
+    def r2_statistics(self) -> dict[str, dict[str, Any]]:
+        """Return the ROS 2 services' totals (router.ros2 does)."""
+        return {}
 
     def _enter(self, key: tuple[str, str]) -> None:
         """Count a request or call on its way to one instance."""

@@ -32,17 +32,21 @@ class RouterStatistics(RouterBase):
         publication = self._statistics
         listening = publication is not None and publication.connections
         frames = []
+        ros2 = []
         for topic in self._topics.values():
             span = now - topic.w_start
             topic.last_rate = topic.w_messages / span if span > 0 else 0.0
             topic.last_age = topic.w_age_sum / topic.w_age_n if topic.w_age_n else None
-            if listening and topic.w_messages:
+            if topic.w_messages and getattr(topic, "msg_class", None) is not None:
+                ros2.append(self._window(topic, now, wall))  # a ROS 2 topic (router.ros2)
+            elif listening and topic.w_messages:
                 frames.append(frame(self._window(topic, now, wall).serialize()))
             topic._reset_window(now)
             topic.w_last = 0.0
         if frames and publication is not None:
             publication.send(b"".join(frames), len(frames))
-        return len(frames)
+        self._r2_publish_statistics(ros2)
+        return len(frames) + len(ros2)
 
     def _window(self, topic: RoutedTopic, now: float, wall: float) -> TopicStatistics:
         count, total, squares = topic.w_period_n, topic.w_period_sum, topic.w_period_sq
@@ -96,6 +100,7 @@ class RouterStatistics(RouterBase):
                 "bytes": service.bytes,
                 "errors": service.errors,
             }
+        result.update(self.r2_statistics())
         return result
 
     def _totals(self, component: str) -> tuple[int, int, int, int]:
@@ -118,6 +123,10 @@ class RouterStatistics(RouterBase):
                 robot += service.bytes
                 messages += service.calls
                 dropped += service.errors
+        for service in self._r2_services.values():
+            if service.route.server == component:
+                messages += service.calls
+                dropped += service.errors
         counts = self._http_counts.get(component)
         if counts is not None:
             messages += counts[0]
@@ -131,6 +140,7 @@ class RouterStatistics(RouterBase):
         return (
             any(t.publisher == component or component in t.subscribers for t in router.topics)
             or any(s.server == component for s in router.services)
+            or any(a.server == component for a in router.actions)
             or any(h.component == component for h in router.http)
         )
 
