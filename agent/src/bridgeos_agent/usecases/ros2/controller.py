@@ -11,7 +11,7 @@ from typing import Any
 
 from bridgeos_agent.usecases import controller
 from bridgeos_agent.usecases.motion import Follower
-from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, start
+from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, start, subscribe_counted
 from bridgeos_agent.usecases.rosio import LossCounter, Metrics, pose_of
 
 
@@ -53,7 +53,7 @@ def main(argv: list[str]) -> int:
         if args.loops and state["tours"] >= args.loops:
             print(f"[controller] done: {state['tours']} tours", flush=True)
 
-    node.create_subscription(Odometry, "odom", on_odom, reliable(20))
+    subscribe_counted(node, Odometry, "odom", on_odom, reliable(20))
     node.create_timer(0.1, tick)
     print(f"[controller] route of {len(args.route)} waypoints at {args.speed} m/s", flush=True)
     return spin(node, metrics)

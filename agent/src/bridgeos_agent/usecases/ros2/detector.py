@@ -11,7 +11,7 @@ from typing import Any
 
 from bridgeos_agent.usecases import detector
 from bridgeos_agent.usecases.detection import DetectorSettings, detect_people
-from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, stamp_ns, start
+from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, stamp_ns, start, subscribe_counted
 from bridgeos_agent.usecases.rosio import LossCounter, Metrics, cloud_xyz
 
 
@@ -53,5 +53,5 @@ def main(argv: list[str]) -> int:
 
     if args.http_port:
         detector.serve(args.http_port, latest)
-    node.create_subscription(PointCloud2, "pointcloud_sampled", on_cloud, reliable(1))
+    subscribe_counted(node, PointCloud2, "pointcloud_sampled", on_cloud, reliable(1))
     return spin(node, metrics)

@@ -13,7 +13,16 @@ import numpy as np
 from bridgeos_agent.usecases import mapping
 from bridgeos_agent.usecases.motion import Pose
 from bridgeos_agent.usecases.occupancy import LogOddsMap, ScanPairing
-from bridgeos_agent.usecases.ros2.node import latched, node_args, reliable, seq, spin, stamp_ns, start
+from bridgeos_agent.usecases.ros2.node import (
+    latched,
+    node_args,
+    reliable,
+    seq,
+    spin,
+    stamp_ns,
+    start,
+    subscribe_counted,
+)
 from bridgeos_agent.usecases.rosio import LossCounter, Metrics, grid_message, pose_of
 
 
@@ -54,8 +63,8 @@ def main(argv: list[str]) -> int:
         metrics.report("message_loss_pct", odom_loss.loss_pct, topic="odom")
         metrics.report("scans_mapped", float(built.scans), unpaired=str(pairing.unpaired))
 
-    node.create_subscription(LaserScan, "scan", on_scan, reliable(20))
-    node.create_subscription(Odometry, "odom", on_odom, reliable(100))
+    subscribe_counted(node, LaserScan, "scan", on_scan, reliable(20))
+    subscribe_counted(node, Odometry, "odom", on_odom, reliable(100))
     node.create_timer(args.period, publish)
     node.create_timer(args.report_period, report)
     print(f"[mapping] {grid.width}x{grid.height} cells of {args.resolution} m", flush=True)

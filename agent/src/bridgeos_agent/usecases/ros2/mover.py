@@ -11,7 +11,7 @@ import time
 from typing import Any
 
 from bridgeos_agent.usecases import mover
-from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, start
+from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, start, subscribe_counted
 from bridgeos_agent.usecases.rosio import LossCounter, Metrics
 
 
@@ -58,7 +58,7 @@ def main(argv: list[str]) -> int:
             publisher.publish(state["goal"])
             state["sent"] = time.monotonic()
 
-    node.create_subscription(PoseStamped, "pose", on_pose, reliable(10))
+    subscribe_counted(node, PoseStamped, "pose", on_pose, reliable(10))
     node.create_timer(0.1, tick)
     print(f"[mover] tour of {len(args.goals)} goals", flush=True)
     return spin(node, metrics)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import os
-from typing import Any
+from collections.abc import Callable
+from typing import Any, cast
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -14,7 +15,7 @@ from rclpy.utilities import remove_ros_args
 from bridgeos_agent.usecases.__main__ import default_namespace
 from bridgeos_agent.usecases.rosio import Metrics
 
-__all__ = ["latched", "node_args", "reliable", "seq", "spin", "stamp_ns", "start"]
+__all__ = ["latched", "node_args", "reliable", "seq", "spin", "stamp_ns", "start", "subscribe_counted"]
 
 
 def node_args(argv: list[str]) -> list[str]:
@@ -56,6 +57,14 @@ def stamp_ns(stamp: Any) -> int:
 def seq(info: Any) -> int:
     """Return a message's publication sequence number (ROS 2's headers have no seq: the middleware counts)."""
     return int(info["publication_sequence_number"])
+
+
+def subscribe_counted(
+    node: Node, msg_type: type, topic: str, callback: Callable[[Any, Any], None], qos: QoSProfile
+) -> Any:
+    """Subscribe with a callback that also gets the message's info (its publication sequence number)."""
+    # rclpy passes the MessageInfo to a callback of two parameters; its annotation only knows one.
+    return node.create_subscription(msg_type, topic, cast(Callable[[Any], None], callback), qos)
 
 
 def spin(node: Node, metrics: Metrics | None = None) -> int:

@@ -6,7 +6,7 @@ from typing import Any
 
 from bridgeos_agent.usecases import odometry
 from bridgeos_agent.usecases.motion import WheelOdometry
-from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, stamp_ns, start
+from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, stamp_ns, start, subscribe_counted
 from bridgeos_agent.usecases.rosio import LossCounter, Metrics, quaternion
 
 
@@ -36,6 +36,6 @@ def main(argv: list[str]) -> int:
         if loss.received % 200 == 0:
             metrics.report("message_loss_pct", loss.loss_pct, topic="wheels")
 
-    node.create_subscription(TwistStamped, "wheels", on_wheels, reliable(100))
+    subscribe_counted(node, TwistStamped, "wheels", on_wheels, reliable(100))
     print(f"[odometry] starting at {args.start}", flush=True)
     return spin(node, metrics)

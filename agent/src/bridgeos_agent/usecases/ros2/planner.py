@@ -10,7 +10,16 @@ from typing import Any
 
 from bridgeos_agent.usecases import planner as ros1_planner
 from bridgeos_agent.usecases.planning import GoalPlanner
-from bridgeos_agent.usecases.ros2.node import latched, node_args, reliable, seq, spin, stamp_ns, start
+from bridgeos_agent.usecases.ros2.node import (
+    latched,
+    node_args,
+    reliable,
+    seq,
+    spin,
+    stamp_ns,
+    start,
+    subscribe_counted,
+)
 from bridgeos_agent.usecases.rosio import LossCounter, Metrics, grid_from_message
 from bridgeos_agent.usecases.world import Grid
 
@@ -66,7 +75,7 @@ def main(argv: list[str]) -> int:
         plan()
 
     node.create_subscription(OccupancyGrid, "map", on_map, latched())
-    node.create_subscription(PoseStamped, "pose", on_pose, reliable(10))
+    subscribe_counted(node, PoseStamped, "pose", on_pose, reliable(10))
     node.create_subscription(PoseStamped, "goal", on_goal, reliable(10))
     print("[planner] waiting for map, pose and goals", flush=True)
     return spin(node, metrics)

@@ -7,7 +7,7 @@ from typing import Any
 
 from bridgeos_agent.usecases import sampler
 from bridgeos_agent.usecases.detection import voxel_sample
-from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, start
+from bridgeos_agent.usecases.ros2.node import node_args, reliable, seq, spin, start, subscribe_counted
 from bridgeos_agent.usecases.rosio import XYZ_DTYPE, LossCounter, Metrics, cloud_message, cloud_xyz
 
 
@@ -34,6 +34,6 @@ def main(argv: list[str]) -> int:
             metrics.report("message_loss_pct", loss.loss_pct, topic="pointcloud")
 
     # Depth 1: a sampler that falls behind drops stale clouds, as ROS 1's queue_size=1 does.
-    node.create_subscription(PointCloud2, "pointcloud", on_cloud, reliable(1))
+    subscribe_counted(node, PointCloud2, "pointcloud", on_cloud, reliable(1))
     print(f"[sampler] voxel {args.voxel} m", flush=True)
     return spin(node, metrics)
