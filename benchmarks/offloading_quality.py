@@ -37,6 +37,11 @@ networks took. ``--no-misdeclared`` runs the main robot alone.
 
     .venv/bin/python benchmarks/offloading_quality.py --quick     # 4 phases of 8 s, then 14 s stable
     .venv/bin/python benchmarks/offloading_quality.py             # 8 phases of 60 s, then 300 s stable
+    .venv/bin/python benchmarks/offloading_quality.py --quick --ros 2   # the components as ROS 2 nodes
+
+With ``--ros 2`` each component is a ROS 2 node (``"ros": 2``, rclpy from the agent's venv) burning
+the same CPU in its timer and publishing its load on ``load``, in a graph of its own
+(``--ros-domain``, discovery on loopback): the same decisions, on ROS 2 components.
 
 The last line is one JSON object with the figures.
 """
@@ -68,6 +73,7 @@ from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Sample, SimulatedRobot
 from bridgeos_agent.policies import Metrics, PolicyEstimator
 from bridgeos_agent.robotconfig import parse_robot_config
+from bridgeos_agent.ros2graph import rclpy_missing
 from bridgeos_agent.runtime.cgroups import Cgroups
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 
@@ -139,6 +145,30 @@ while True:
     while time.process_time() - cpu < share * period:
         pass
     time.sleep(max(0.0, period - (time.perf_counter() - started)))
+"""
+# The same burner as a ROS 2 node: its timer burns the share, in the namespace the agent gives it.
+BURNER_ROS2 = """
+import os, sys, time
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from std_msgs.msg import Float32
+share, period = float(sys.argv[1]), 0.05
+rclpy.init()
+node = rclpy.create_node("burner", namespace=os.environ.get("ROS_NAMESPACE") or "")
+load = node.create_publisher(Float32, "load", 10)
+def burn():
+    cpu = time.process_time()
+    while time.process_time() - cpu < share * period:
+        pass
+    load.publish(Float32(data=share))
+node.create_timer(period, burn)
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+except Exception:
+    if rclpy.ok():
+        raise  # a publish racing the shutdown a signal began is no failure
 """
 
 
@@ -222,19 +252,28 @@ class ScriptedRobot(SimulatedRobot):
         return sample
 
 
-def skill_config(noise_margin: float | None = None, *, misdeclared: bool = False, learn: bool = True) -> SkillConfig:
-    """Return the benchmark's Skill: four movable burners under the delay policy (MISDECLARED's CPU understated)."""
+def skill_config(
+    noise_margin: float | None = None,
+    ros: int = 0,
+    ros_domain: int = 0,
+    *,
+    misdeclared: bool = False,
+    learn: bool = True,
+) -> SkillConfig:
+    """Return the benchmark's Skill: four movable burners (ROS 2 nodes with ros=2; MISDECLARED's CPU understated)."""
     components = {}
+    # ROS 2 burners' graph: the benchmark's own domain, discovery kept on loopback.
+    graph = {"ROS_DOMAIN_ID": str(ros_domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"} if ros == 2 else {}
     for name, usage in COMPONENTS.items():
-        command = [sys.executable, "-c", BURNER, str(usage["cpu"])]
+        command = [sys.executable, "-c", BURNER_ROS2 if ros == 2 else BURNER, str(usage["cpu"])]
         declared = usage["cpu"] * (MISDECLARED_SHARE if misdeclared and name == MISDECLARED else 1.0)
         components[name] = {
             "name": name.title(),
             "location": "either",
-            "ros": False,
+            "ros": 2 if ros == 2 else False,
             "resources": {"cpu": declared, "ram": 32, "bandwidth": usage["bandwidth"]},
-            "robot": {"command": command},
-            "cloud": {"command": command},
+            "robot": {"command": command, "env": graph},
+            "cloud": {"command": command, "env": graph},
         }
     return parse_skill_config(
         {
@@ -508,6 +547,16 @@ def main() -> None:
         action="store_false",
         help="skip the misdeclared scenario's two robots (run beside the main one by default)",
     )
+    parser.add_argument(
+        "--ros",
+        type=int,
+        default=0,
+        choices=(0, 2),
+        help="2: the components are ROS 2 nodes (default: plain processes)",
+    )
+    parser.add_argument(
+        "--ros-domain", type=int, default=int(os.environ.get("ROS_DOMAIN_ID") or 0), help="ROS_DOMAIN_ID (--ros 2)"
+    )
     parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
     parser.add_argument("--no-cloud-links", action="store_true", help="skip the robot-link bytes run (_cloudlinks.py)")
@@ -521,6 +570,10 @@ def main() -> None:
     phase_s = args.phase_s or (8.0 if args.quick else 60.0)
     if phase_s < 2 * DECISION_INTERVAL:
         parser.error(f"--phase-s must be at least {2 * DECISION_INTERVAL} s")
+    if args.ros == 2 and rclpy_missing():
+        parser.error(f"--ros 2 needs rclpy: {rclpy_missing()}")
+    if not 0 <= args.ros_domain <= 232:
+        parser.error("--ros-domain is 0-232")
     stable_s = args.stable_s if args.stable_s is not None else (14.0 if args.quick else 300.0)
     if stable_s and stable_s <= SETTLE_S:
         parser.error(f"--stable-s must be 0 or more than {SETTLE_S} s (its first {SETTLE_S} s are adaptation)")
@@ -555,11 +608,13 @@ def main() -> None:
     from robots.services import create_robot, update_robot_config
     from skills.services import add_skill
 
-    config = skill_config(args.noise_margin)
+    config = skill_config(args.noise_margin, args.ros, args.ros_domain)
     scenarios = {ROBOT_ID: config}
     if args.misdeclared:
-        scenarios[ESTIMATE_ROBOT] = skill_config(args.noise_margin, misdeclared=True, learn=False)
-        scenarios[LEARNED_ROBOT] = skill_config(args.noise_margin, misdeclared=True)
+        scenarios[ESTIMATE_ROBOT] = skill_config(
+            args.noise_margin, args.ros, args.ros_domain, misdeclared=True, learn=False
+        )
+        scenarios[LEARNED_ROBOT] = skill_config(args.noise_margin, args.ros, args.ros_domain, misdeclared=True)
     owner, _ = get_user_model().objects.get_or_create(username="offload-bench")
     tokens = {}
     for robot_id, scenario in scenarios.items():
@@ -701,6 +756,7 @@ def main() -> None:
                 "phase_s": phase_s,
                 "load_1min": round(load_after[0], 2),
                 "robot_link_bytes_all_cloud_over_before": link_ratio,
+                "ros": args.ros,
             }
         ),
         flush=True,

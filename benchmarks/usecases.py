@@ -21,10 +21,13 @@ RAM and radio times their hourly consumption, constants below). Performance per 
 Per Skill the best combination is the one with the lowest estimated power among those whose
 performance is at most 10 % worse than all on the robot and whose messages arrive (loss under
 5 %); its changes against all on the robot are the Table 5.2 equivalent. Needs root (network
-namespaces, tc, cgroups) and ROS 1.
+namespaces, tc, cgroups) and ROS 1, or with ``--ros 2`` the Skills' ROS 2 twins (``*_ros2`` samples,
+rclpy nodes from the agent's venv): a Fast DDS discovery server on the robot stands in for the master,
+every node finds the others through it (unicast only, across the shaped link) over UDP.
 
     .venv/bin/python benchmarks/usecases.py --quick   # all-robot and all-cloud per Skill, short windows
     .venv/bin/python benchmarks/usecases.py           # every combination (16), 30 s windows
+    .venv/bin/python benchmarks/usecases.py --quick --ros 2
 
 With ``--cloud-mb 35`` people detection also runs with the thesis's 30-40 MB clouds (§5.3.1), its
 topics relayed by the real Skill Router (TCPROS, on the robot, inside the robot's cgroup) as in
@@ -62,11 +65,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _netshape
 from _common import ROOT, free_port, log
 
+from bridgeos_agent.ros2graph import discovery_server_command, rclpy_missing
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.skillconfig import SkillConfig, load_sample_skill_config
 
 ROS_PYTHON = "/usr/bin/python3"
 USECASE = shutil.which("bridgeos-usecase") or str(Path(sys.executable).parent / "bridgeos-usecase")
+# The ROS 2 nodes run in this venv's Python: its script when installed, else the module.
+_USECASE2 = Path(sys.executable).parent / "bridgeos-usecase2"
+USECASE2 = [str(_USECASE2)] if _USECASE2.exists() else [sys.executable, "-m", "bridgeos_agent.usecases.ros2"]
 HARDWARE = {"sim"}  # the simulated robot stands in for drivers and motors: not a Skill's workload
 CGROUP = f"bosuc-robot-{os.getpid()}"  # one per run: two runs never share a cap or its accounting
 PAGE = os.sysconf("SC_PAGE_SIZE")
@@ -288,6 +295,8 @@ class Run:
         cgroup: RobotCgroup,
         home: Path,
         spec: SkillRun | None = None,
+        ros: int = 1,
+        domain_id: int = 0,
     ) -> None:
         self.skill, self.config, self.where, self.link, self.cgroup, self.home = (
             skill,
@@ -298,8 +307,10 @@ class Run:
             home,
         )
         self.spec = spec or SKILLS[skill]
+        self.ros, self.domain_id = ros, domain_id
         self.processes: dict[str, Process] = {}
         self.master_uri = f"http://{link.host_ip}:{free_port()}"
+        self.discovery = f"{link.host_ip}:{free_port()}"
         self.started = 0.0
 
     def env(self, location: str, component: str) -> dict[str, str]:
@@ -318,6 +329,15 @@ class Run:
             env["PYTHONPATH"] = os.environ["PYTHONPATH"]  # a worktree's agent, when the run uses one
         if self.spec.routed and component in self.config.components:
             env["ROS_NAMESPACE"] = instance_namespace(self.config.skill_id, component, location)  # type: ignore[arg-type]
+        if self.ros == 2:
+            env |= {
+                "ROS_DOMAIN_ID": str(self.domain_id),
+                "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+                "ROS_DISCOVERY_SERVER": self.discovery,
+                "ROS_LOG_DIR": str(self.home / "ros2-logs"),
+                # UDP only: shared memory would carry a "cloud" node's data around the shaped link.
+                "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4",
+            }
         return env
 
     def spawn(self, name: str, command: list[str], env: dict[str, str]) -> None:
@@ -329,13 +349,10 @@ class Run:
         self.processes[name] = process
 
     def start(self) -> None:
-        port = self.master_uri.rsplit(":", 1)[1]
-        self.spawn("rosmaster", [ROS_PYTHON, "/usr/bin/rosmaster", "--core", "-p", port], self.env("robot", "master"))
-        deadline = time.monotonic() + 20
-        while not _answers(self.link.host_ip, int(port)):
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"rosmaster did not answer: {self.tail('rosmaster')}")
-            time.sleep(0.05)
+        if self.ros == 2:
+            self.start_discovery_server()
+        else:
+            self.start_master()
         self.started = time.monotonic()
         if self.spec.routed:
             placement = json.dumps(self.where)
@@ -345,7 +362,8 @@ class Run:
             location = self.where[component]
             container = spec.robot if location == "robot" else spec.cloud
             assert container is not None, f"{component} has no {location} container"
-            command = [USECASE if part == "bridgeos-usecase" else part for part in container.command]
+            program = {"bridgeos-usecase": [USECASE], "bridgeos-usecase2": USECASE2}
+            command = [piece for part in container.command for piece in program.get(part, [part])]
             command += self.spec.extra_args.get(component, [])
             if component in HARDWARE:
                 pass
@@ -354,6 +372,26 @@ class Run:
             else:
                 command = [*self.link.exec_prefix, "taskset", "-c", "1", *command]
             self.spawn(component, command, self.env(location, component))
+
+    def start_master(self) -> None:
+        port = self.master_uri.rsplit(":", 1)[1]
+        self.spawn("rosmaster", [ROS_PYTHON, "/usr/bin/rosmaster", "--core", "-p", port], self.env("robot", "master"))
+        deadline = time.monotonic() + 20
+        while not _answers(self.link.host_ip, int(port)):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"rosmaster did not answer: {self.tail('rosmaster')}")
+            time.sleep(0.05)
+
+    def start_discovery_server(self) -> None:
+        host, port = self.discovery.rsplit(":", 1)
+        argv, extra = discovery_server_command(host, int(port))
+        self.spawn("discovery", argv, {**self.env("robot", "discovery"), **extra})
+        deadline = time.monotonic() + 20
+        while not any("Server Addresses" in line for _, line in list(self.processes["discovery"].lines)):
+            self.check_alive()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the discovery server did not start: {self.tail('discovery')}")
+            time.sleep(0.05)
 
     def tail(self, name: str, lines: int = 15) -> str:
         return "\n".join(line for _, line in self.processes[name].lines[-lines:])
@@ -586,6 +624,10 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="detections each --cloud-mb window waits for (default 6, quick 1)",
     )
+    parser.add_argument("--ros", type=int, default=1, choices=(1, 2), help="run the Skills' ROS 1 or ROS 2 nodes")
+    parser.add_argument(
+        "--ros-domain", type=int, default=int(os.environ.get("ROS_DOMAIN_ID") or 0), help="ROS_DOMAIN_ID (--ros 2)"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / ".data" / "bench" / "usecases.md", help="matrix table")
     args = parser.parse_args(argv)
     skills = [s for s in args.skills.split(",") if s]
@@ -600,31 +642,36 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--robot-cpu is between 0.1 and 2 cores")
     if os.geteuid() != 0:
         parser.error("needs root: network namespaces, tc and cgroups")
-    if not Path("/usr/bin/rosmaster").exists() or not Path(USECASE).exists():
+    if args.ros == 1 and (not Path("/usr/bin/rosmaster").exists() or not Path(USECASE).exists()):
         parser.error("needs ROS 1 (scripts/services.sh ros) and the agent installed (make install)")
+    if args.ros == 2 and rclpy_missing():
+        parser.error(f"--ros 2 needs rclpy: {rclpy_missing()}")
+    if not 0 <= args.ros_domain <= 232:
+        parser.error("--ros-domain is 0-232")
     window = args.window or (3.0 if args.quick else 30.0)
     warmup = args.warmup if args.warmup is not None else (1.0 if args.quick else 8.0)
     conditions = _netshape.conditions_for(args.preset)
     link_mbit = conditions.up_mbit + conditions.down_mbit
     log(
-        f"link {args.preset} ({conditions.as_dict()}), robot CPU {args.robot_cpu} core, window {window:.0f} s, "
-        f"warm-up {warmup:.1f} s"
+        f"ROS {args.ros}, link {args.preset} ({conditions.as_dict()}), robot CPU {args.robot_cpu} core, "
+        f"window {window:.0f} s, warm-up {warmup:.1f} s"
     )
 
     results: dict[str, list[Measurement]] = {}
     tables = [
-        f"Link `{args.preset}` {conditions.as_dict()}; robot CPU {args.robot_cpu} core; window {window:.0f} s; "
+        f"ROS {args.ros}. Link `{args.preset}` {conditions.as_dict()}; robot CPU {args.robot_cpu} core; "
+        f"window {window:.0f} s; "
         f"power constants (W at full use) {ENERGY_W}, robot RAM {ROBOT_RAM_MIB:.0f} MiB."
     ]
     with robot_and_cloud(args.preset, args.robot_cpu) as (link, cgroup), tempfile.TemporaryDirectory() as tmp:
         for skill in skills:
-            config = load_sample_skill_config(SKILLS[skill].sample)
+            config = load_sample_skill_config(SKILLS[skill].sample + ("_ros2" if args.ros == 2 else ""))
             combos = placements(config)
             if args.quick:
                 combos = [combos[0], combos[-1]]
             results[skill] = []
             for index, where in enumerate(combos, 1):
-                run = Run(skill, config, where, link, cgroup, Path(tmp))
+                run = Run(skill, config, where, link, cgroup, Path(tmp), ros=args.ros, domain_id=args.ros_domain)
                 log(f"{skill} {index}/{len(combos)}: " + ", ".join(f"{c}@{w}" for c, w in where.items()))
                 try:
                     row = measure(run, warmup, window, link_mbit, args.robot_cpu, patience=60)
@@ -641,7 +688,12 @@ def main(argv: list[str] | None = None) -> int:
             tables.append(big_table(big, args.cloud_mb, args.cloud_rate))
             log("\n" + tables[-1])
 
-    figures: dict[str, object] = {"preset": args.preset, "robot_cpu": args.robot_cpu, "combinations": 0}
+    figures: dict[str, object] = {
+        "preset": args.preset,
+        "robot_cpu": args.robot_cpu,
+        "combinations": 0,
+        "ros": args.ros,
+    }
     losses, inits = [], []
     for skill, rows in results.items():
         figures["combinations"] = int(figures["combinations"]) + len(rows)  # type: ignore[call-overload]

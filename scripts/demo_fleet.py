@@ -35,6 +35,16 @@ def ros_ready() -> str | None:
     return None
 
 
+def ros2_ready() -> str | None:
+    """Return why the ROS 2 use-case Skills cannot run here (no rclpy in the agent's venv), or None."""
+    probe = subprocess.run(
+        [str(BIN / "python"), "-c", "import rclpy, sensor_msgs.msg, nav_msgs.msg"], capture_output=True
+    )
+    if probe.returncode != 0:
+        return "no rclpy in the agent's venv (make install)"
+    return None
+
+
 def free_ports(count: int) -> list[int]:
     """Return ports nobody listens on right now, all different."""
     sockets = [socket.socket() for _ in range(count)]
@@ -56,10 +66,14 @@ def main() -> int:
     why_not = ros_ready() if os.environ.get("BRIDGEOS_DEMO_USECASES", "1") != "0" else "BRIDGEOS_DEMO_USECASES=0"
     if why_not:
         print(f"== demo fleet: use-case Skills off: {why_not}", flush=True)
+    why_not2 = ros2_ready() if os.environ.get("BRIDGEOS_DEMO_USECASES", "1") != "0" else "BRIDGEOS_DEMO_USECASES=0"
+    if why_not2:
+        print(f"== demo fleet: ROS 2 use-case Skills off: {why_not2}", flush=True)
     fleet = json.loads(
         subprocess.run(
             [str(BIN / "python"), "manage.py", "demo_fleet", "--count", str(count), "--owner", owner]
-            + ([] if why_not else ["--usecases"]),
+            + ([] if why_not else ["--usecases"])
+            + ([] if why_not2 else ["--usecases2"]),
             cwd=ROOT,
             check=True,
             capture_output=True,
@@ -79,9 +93,14 @@ def main() -> int:
     )
     targets = [f"127.0.0.1:{port}" for port in ports]
     (data_root / "prometheus-targets.json").write_text(json.dumps([{"targets": targets}]))
-    for robot, metrics_address in zip(fleet["robots"], targets, strict=True):
+    domain_base = int(os.environ.get("BRIDGEOS_DEMO_ROS_DOMAIN", "100"))
+    for number, (robot, metrics_address) in enumerate(zip(fleet["robots"], targets, strict=True)):
         log = (data_root / f"{robot['id']}.log").open("ab")
         env = {**os.environ, "BRIDGEOS_TOKEN": robot["token"]}  # through the env: not visible in `ps`
+        # Each demo robot's ROS 2 graph: a domain of its own, kept on this host (they all share it).
+        env.setdefault("ROS_DOMAIN_ID", str((domain_base + number) % 233))
+        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
         agents.append(
             subprocess.Popen(
                 [

@@ -13,9 +13,10 @@ import re
 import signal
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -35,6 +36,8 @@ def ros_env(master_uri: str, ros_home: Path, namespace: str | None = None) -> di
         "ROS_HOME": str(ros_home),
         "PYTHONUNBUFFERED": "1",
     }
+    if os.environ.get("PYTHONPATH"):
+        env["PYTHONPATH"] = os.environ["PYTHONPATH"]  # the nodes run the code under test (a worktree's)
     if namespace:
         env["ROS_NAMESPACE"] = namespace
     return env
@@ -162,3 +165,31 @@ def nodes(ros_master: RosMaster, tmp_path: Path) -> Iterator[Nodes]:
         yield runner
     finally:
         runner.stop_all()
+
+
+@pytest.fixture
+def ros2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[Any, Callable[[str], Any]]]:
+    """Give a test a ROS 2 node launcher and listeners in the test graph; stop everything when it ends."""
+    from bridgeos_agent.ros2graph import rclpy_missing
+    from tests.usecases.ros2help import GRAPH_ENV, Listener, Ros2Nodes
+
+    missing = rclpy_missing()
+    if missing:
+        pytest.fail(f"ROS 2 is not installed here: {missing} (make install)", pytrace=False)
+    for key, value in GRAPH_ENV.items():
+        monkeypatch.setenv(key, value)  # an in-process participant reads them when its node is made
+    monkeypatch.delenv("ROS_DISCOVERY_SERVER", raising=False)
+    (tmp_path / "ros").mkdir(exist_ok=True)
+    nodes = Ros2Nodes(tmp_path)
+    listeners: list[Listener] = []
+
+    def listener(namespace: str) -> Listener:
+        listeners.append(Listener(namespace, nodes))
+        return listeners[-1]
+
+    try:
+        yield nodes, listener
+    finally:
+        nodes.stop_all()
+        for made in listeners:
+            made.close()

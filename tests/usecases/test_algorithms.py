@@ -11,9 +11,10 @@ import pytest
 from bridgeos_agent.usecases.__main__ import default_namespace
 from bridgeos_agent.usecases.camera import POINT_DTYPE, default_scene, parse_people, render, size_for_megabytes
 from bridgeos_agent.usecases.detection import detect_people, voxel_sample
-from bridgeos_agent.usecases.motion import Follower, Pose, integrate
-from bridgeos_agent.usecases.occupancy import LogOddsMap, map_agreement
-from bridgeos_agent.usecases.planning import astar, plan_path, segment_free
+from bridgeos_agent.usecases.motion import Follower, Pose, WheelOdometry, integrate
+from bridgeos_agent.usecases.occupancy import LogOddsMap, ScanPairing, map_agreement
+from bridgeos_agent.usecases.planning import GoalPlanner, astar, plan_path, segment_free
+from bridgeos_agent.usecases.sim import SimBody
 from bridgeos_agent.usecases.world import WORLDS, cast_rays, get_world, inflate
 
 
@@ -115,3 +116,58 @@ def test_nodes_without_a_router_namespace_keep_robots_and_skills_apart() -> None
     )
     assert default_namespace({"ROS_NAMESPACE": "/given", "BRIDGEOS_SKILL": "x"}) is None
     assert default_namespace({}) is None
+
+
+def test_scan_pairing_folds_each_scan_with_the_pose_of_its_stamp_and_gives_up_on_lost_ones() -> None:
+    folded: list[tuple[str, Pose]] = []
+    pairing: ScanPairing[str] = ScanPairing(lambda scan, pose: folded.append((scan, pose)))
+    pairing.scan(1_000, "early")  # its pose comes later
+    assert folded == []
+    pairing.pose(1_000, Pose(1.0, 2.0, 0.0))
+    assert folded == [("early", Pose(1.0, 2.0, 0.0))]
+    pairing.scan(2_000, "lost")  # its odometry never comes
+    pairing.scan(3_000, "late")
+    pairing.pose(3_000, Pose(3.0, 0.0, 0.0))
+    assert [s for s, _ in folded] == ["early"]  # scans fold in order: "late" waits behind "lost"
+    pairing.pose(2_000 + 2_000_000_001, Pose(9.0, 9.0, 0.0))  # two seconds on: "lost" is dropped
+    assert [s for s, _ in folded] == ["early", "late"] and pairing.unpaired == 1
+
+
+def test_goal_planner_plans_once_per_goal_and_waits_for_map_pose_and_goal() -> None:
+    world = get_world("room")
+    planner = GoalPlanner(0.25)
+    assert planner.plan() is None
+    planner.set_goal(7, *world.goals[0])
+    assert planner.set_position(*world.start[:2]) is True  # a goal waits for its first plan
+    assert planner.plan() is None  # no map yet
+    planner.set_map(np.where(world.occupancy(0.1), 100, 0).astype(np.int8), world.grid(0.1))
+    first = planner.plan()
+    assert first is not None and first.fresh and first.points is not None and first.points[-1] == world.goals[0]
+    again = planner.plan()
+    assert again is not None and not again.fresh and again.points == first.points
+    assert planner.set_position(1.2, 1.0) is False  # planned already: a new pose alone plans nothing
+
+
+def test_wheel_odometry_integrates_steps_between_stamps() -> None:
+    odometry = WheelOdometry(Pose(0.0, 0.0, 0.0))
+    assert odometry.update(1_000_000_000, 1.0, 0.0) == Pose(0.0, 0.0, 0.0)  # the first stamp starts the clock
+    assert odometry.update(1_500_000_000, 1.0, 0.0) == Pose(0.5, 0.0, 0.0)
+    assert odometry.update(1_400_000_000, 1.0, 0.0) == Pose(0.5, 0.0, 0.0)  # a stamp back in time moves nothing
+
+
+def test_the_simulated_body_obeys_commands_stops_at_walls_and_sees_them() -> None:
+    world = get_world("room")
+    body = SimBody(world, Pose(*world.start), speed=1.0, beams=36, max_range=6.0)
+    body.command(1.0, 0.0, now=0.0)
+    assert body.step(0.1, now=0.05) == (1.0, 0.0) and body.pose.x > world.start[0]
+    assert body.step(0.1, now=1.0) == (0.0, 0.0)  # the command timed out
+    body.command(-1.0, 0.0, now=2.0)
+    for step in range(40):
+        body.step(0.1, now=2.0 + step * 0.01)
+    assert body.collisions > 0 and body.free(body.pose)  # it backed into the wall and stopped there
+    ranges = body.scan()
+    assert ranges.shape == (36,) and np.nanmin(ranges) < 0.5
+    body.follow(5, [(body.pose.x + 1.0, body.pose.y)])
+    assert body.follower is not None
+    body.follow(5, [])  # the same plan's stamp again: kept
+    assert body.follower is not None

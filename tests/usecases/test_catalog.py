@@ -40,6 +40,31 @@ def test_each_use_case_is_placed_as_table_5_1_allows_and_its_commands_parse(samp
     assert routed == set(config.components), "every component is wired through the router's topics"
 
 
+@pytest.mark.parametrize("sample", sorted(TABLE_5_1))
+def test_each_ros2_use_case_is_its_ros1_twin_on_ros2_nodes(sample: str) -> None:
+    """Same components, places, resources, arguments and topics; ROS 2 nodes, types, image and script."""
+    ros1, ros2 = load_sample_skill_config(sample), load_sample_skill_config(f"{sample}_ros2")
+    assert ros2.skill_id == f"{ros1.skill_id}-ros2" and ros2.skill != ros1.skill
+    assert set(ros2.components) == set(ros1.components)
+    for cid, component in ros2.components.items():
+        twin = ros1.components[cid]
+        assert component.ros_version == 2 and twin.ros_version == 1
+        assert (component.location, component.resources) == (twin.location, twin.resources)
+        for where in ("robot", "cloud"):
+            spec, twin_spec = component.launch_spec(where), twin.launch_spec(where)
+            assert (spec is None) == (twin_spec is None), (cid, where)
+            if spec is None or twin_spec is None:
+                continue
+            assert spec.image == "bridgeos/ros2:jazzy", cid
+            program, node, *args = spec.command
+            assert program == "bridgeos-usecase2" and [node, *args] == twin_spec.command[1:], spec.command
+            importlib.import_module(f"bridgeos_agent.usecases.{NODES[node]}").parse_args(args)
+    for topic, twin in zip(ros2.router.topics, ros1.router.topics, strict=True):
+        package, kind, name = topic.type.split("/")
+        assert kind == "msg" and twin.type == f"{package}/{name}", topic.type
+        assert (topic.name, topic.publisher, topic.subscribers) == (twin.name, twin.publisher, twin.subscribers)
+
+
 def test_a_node_refuses_bad_arguments_with_a_clear_message(capsys: pytest.CaptureFixture[str]) -> None:
     sim = importlib.import_module("bridgeos_agent.usecases.sim")
     with pytest.raises(SystemExit):
@@ -65,3 +90,15 @@ def test_the_demo_fleet_puts_the_use_cases_in_the_catalog_and_on_its_robots() ->
     assert [robot["skills"][1] for robot in fleet["robots"]] == ["people-detection", "navigation", "mapping"]
     assert SkillTemplate.objects.filter(name="Autonomous mapping").count() == 1
     assert Skill.objects.get(robot_id="demo-2", skill_id="navigation").components.count() == 4
+    ros2_names = {"People detection (ROS 2)", "Autonomous navigation (ROS 2)", "Autonomous mapping (ROS 2)"}
+    assert ros2_names <= set(SkillTemplate.objects.values_list("name", flat=True))
+
+    both = demo("--usecases", "--usecases2")
+    assert [robot["skills"][1:] for robot in both["robots"]] == [
+        ["people-detection", "people-detection-ros2"],
+        ["navigation", "navigation-ros2"],
+        ["mapping", "mapping-ros2"],
+    ]
+    assert SkillTemplate.objects.filter(name="Autonomous mapping (ROS 2)").count() == 1
+    skill = Skill.objects.get(robot_id="demo-3", skill_id="mapping-ros2")
+    assert skill.config["components"]["mapping"]["ros"] == 2

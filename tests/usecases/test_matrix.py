@@ -39,10 +39,11 @@ def row(performance: float | None, power: float, loss: float = 0.0, **placement:
         ("mapping", 8, {"sim": "robot"}),
     ],
 )
+@pytest.mark.parametrize("ros", ["", "_ros2"])
 def test_every_combination_the_config_allows_all_on_the_robot_first(
-    sample: str, count: int, fixed: dict[str, str]
+    sample: str, count: int, fixed: dict[str, str], ros: str
 ) -> None:
-    config = load_sample_skill_config(sample)
+    config = load_sample_skill_config(sample + ros)
     combos = placements(config)
     assert len(combos) == count
     assert len({tuple(sorted(c.items())) for c in combos}) == count
@@ -99,17 +100,20 @@ def test_bad_thesis_sized_options_are_refused_clearly(bad: list[str], capsys: py
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="network namespaces and cgroups need root")
-def test_a_short_real_run_prints_the_table_5_2_figures(tmp_path: Path) -> None:
+@pytest.mark.parametrize("ros", ["1", "2"])
+def test_a_short_real_run_prints_the_table_5_2_figures(tmp_path: Path, ros: str) -> None:
     out = tmp_path / "matrix.md"
+    domain = os.environ.get("BRIDGEOS_TEST_ROS2_DOMAIN", "46")  # --ros 2: a DDS domain of the tests' own
+    bench = [sys.executable, str(ROOT / "benchmarks" / "usecases.py"), "--quick", "--skills", "mapping"]
     done = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "usecases.py"), "--quick", "--skills", "mapping", "--out", str(out)],
+        [*bench, "--out", str(out), "--ros", ros, "--ros-domain", domain],
         capture_output=True,
         text=True,
         timeout=240,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     figures = json.loads(done.stdout.strip().splitlines()[-1])
-    assert figures["combinations"] == 2
+    assert figures["combinations"] == 2 and figures["ros"] == int(ros)
     assert figures["mapping_best"] in ("all on robot", "cloud: controller, mapping, odometry")
     for key in ("performance", "cpu", "ram", "network", "power"):
         assert isinstance(figures[f"mapping_{key}_pct"], (int, float))

@@ -22,10 +22,28 @@ USE_CASES = {
     "navigation.json": ("Drives a simulated robot to goals with a cloud path planner (thesis §5.3).", ["nav", "ros"]),
     "mapping.json": ("Maps a room from a simulated robot's laser and odometry (thesis §5.3).", ["mapping", "ros"]),
 }
+# The same use cases as ROS 2 nodes (rclpy): in the catalog always; on demo robots with --usecases2.
+USE_CASES_ROS2 = {
+    "people_detection_ros2.json": ("People detection as ROS 2 nodes (rclpy, Jazzy).", ["vision", "ros2"]),
+    "navigation_ros2.json": ("Autonomous navigation as ROS 2 nodes (rclpy, Jazzy).", ["nav", "ros2"]),
+    "mapping_ros2.json": ("Autonomous mapping as ROS 2 nodes (rclpy, Jazzy).", ["mapping", "ros2"]),
+}
 
 
 def sample(name: str) -> dict[str, Any]:
     return json.loads(resources.files("bridgeos_agent").joinpath("samples", name).read_text())
+
+
+def catalog(samples: dict[str, tuple[str, list[str]]]) -> list[dict[str, Any]]:
+    """Put sample Skills in the catalog (refreshed, never duplicated); return their configs."""
+    configs = []
+    for name, (description, tags) in samples.items():
+        config = sample(name)
+        SkillTemplate.objects.update_or_create(
+            name=config["skill"], defaults={"config": config, "description": description, "tags": tags}
+        )
+        configs.append(config)
+    return configs
 
 
 class Command(BaseCommand):
@@ -37,6 +55,9 @@ class Command(BaseCommand):
         parser.add_argument(
             "--usecases", action="store_true", help="Also give each robot a use-case Skill (needs ROS)."
         )
+        parser.add_argument(
+            "--usecases2", action="store_true", help="Also give each robot a ROS 2 use-case Skill (needs rclpy)."
+        )
 
     def handle(self, *args: Any, **options: Any) -> None:
         if not 0 <= options["count"] <= 500:
@@ -45,13 +66,8 @@ class Command(BaseCommand):
         if owner is None:
             raise CommandError(f"No user named {options['owner']!r}.")
         config = sample(SAMPLE)
-        use_cases = []
-        for name, (description, tags) in USE_CASES.items():
-            use_case = sample(name)
-            SkillTemplate.objects.update_or_create(
-                name=use_case["skill"], defaults={"config": use_case, "description": description, "tags": tags}
-            )
-            use_cases.append(use_case)
+        use_cases = catalog(USE_CASES)
+        use_cases_ros2 = catalog(USE_CASES_ROS2)
         robots = []
         for n in range(1, options["count"] + 1):
             robot_id = f"demo-{n}"
@@ -62,6 +78,7 @@ class Command(BaseCommand):
                 # Tokens are stored hashed: a restarted demo gets fresh ones.
                 token = rotate_token(robot)
             skills = [config] + ([use_cases[(n - 1) % len(use_cases)]] if options["usecases"] else [])
+            skills += [use_cases_ros2[(n - 1) % len(use_cases_ros2)]] if options["usecases2"] else []
             for skill in skills:
                 existing = Skill.objects.filter(robot=robot, skill_id=skill["skill_id"]).first()
                 if existing is None:

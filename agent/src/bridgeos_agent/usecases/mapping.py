@@ -8,7 +8,6 @@ it), folds it into the grid and publishes nav_msgs/OccupancyGrid on ``map`` ever
 from __future__ import annotations
 
 import argparse
-import collections
 import threading
 
 from bridgeos_agent.usecases.motion import Pose
@@ -39,7 +38,7 @@ def main(argv: list[str]) -> int:
     from sensor_msgs.msg import LaserScan
     from std_msgs.msg import Header
 
-    from bridgeos_agent.usecases.occupancy import LogOddsMap
+    from bridgeos_agent.usecases.occupancy import LogOddsMap, ScanPairing
     from bridgeos_agent.usecases.rosio import LossCounter, Metrics, grid_message, pose_of
 
     rospy.init_node("mapping")
@@ -47,46 +46,26 @@ def main(argv: list[str]) -> int:
     scans_loss, odom_loss = LossCounter(), LossCounter()
     grid = args.world.grid(args.resolution)
     built = LogOddsMap(grid)
-    poses: collections.OrderedDict[int, Pose] = collections.OrderedDict()
-    waiting: collections.deque[LaserScan] = collections.deque()
-    unpaired = 0
-    publisher = rospy.Publisher("map", OccupancyGrid, queue_size=1, latch=True)
-    # rospy runs each subscription's callbacks on a thread of its own.
-    lock = threading.Lock()
 
     def fold(scan: LaserScan, pose: Pose) -> None:
         n = len(scan.ranges)
         angles = scan.angle_min + np.arange(n) * scan.angle_increment
         built.integrate(pose, angles, np.asarray(scan.ranges, dtype=np.float64), scan.range_max)
 
-    def drain() -> None:
-        nonlocal unpaired
-        while waiting:
-            scan = waiting[0]
-            pose = poses.get(scan.header.stamp.to_nsec())
-            if pose is not None:
-                fold(waiting.popleft(), pose)
-            elif poses and next(reversed(poses)) > scan.header.stamp.to_nsec() + 2_000_000_000:
-                waiting.popleft()  # its odometry never came (lost): two seconds is long enough
-                unpaired += 1
-            else:
-                break
+    pairing: ScanPairing[LaserScan] = ScanPairing(fold)
+    publisher = rospy.Publisher("map", OccupancyGrid, queue_size=1, latch=True)
+    # rospy runs each subscription's callbacks on a thread of its own.
+    lock = threading.Lock()
 
     def on_scan(scan: LaserScan) -> None:
         with lock:
             scans_loss.update(scan.header.seq)
-            waiting.append(scan)
-            while len(waiting) > 100:
-                waiting.popleft()
-            drain()
+            pairing.scan(scan.header.stamp.to_nsec(), scan)
 
     def on_odom(message: Odometry) -> None:
         with lock:
             odom_loss.update(message.header.seq)
-            poses[message.header.stamp.to_nsec()] = pose_of(message.pose.pose)
-            while len(poses) > 400:
-                poses.popitem(last=False)
-            drain()
+            pairing.pose(message.header.stamp.to_nsec(), pose_of(message.pose.pose))
 
     def publish(_event: object) -> None:
         header = Header(stamp=rospy.Time.now(), frame_id="map")
@@ -97,7 +76,7 @@ def main(argv: list[str]) -> int:
     def report(_event: object) -> None:
         metrics.report("message_loss_pct", scans_loss.loss_pct, topic="scan")
         metrics.report("message_loss_pct", odom_loss.loss_pct, topic="odom")
-        metrics.report("scans_mapped", float(built.scans), unpaired=str(unpaired))
+        metrics.report("scans_mapped", float(built.scans), unpaired=str(pairing.unpaired))
 
     rospy.Subscriber("scan", LaserScan, on_scan, queue_size=20)
     rospy.Subscriber("odom", Odometry, on_odom, queue_size=100)

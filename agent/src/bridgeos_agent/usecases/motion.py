@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["Follower", "Pose", "integrate", "wrap_angle"]
+__all__ = ["Follower", "Pose", "WheelOdometry", "integrate", "wrap_angle"]
 
 
 @dataclass(frozen=True)
@@ -72,3 +72,20 @@ class Follower:
         if self.index == last:
             speed = min(speed, max(0.1, distance))  # slow down onto the goal
         return speed, turn
+
+
+@dataclass
+class WheelOdometry:
+    """Integrate wheel speeds, each for the step ending at its stamp, into a pose (a lost step is drift)."""
+
+    pose: Pose
+    stamp_ns: int | None = None
+
+    def update(self, stamp_ns: int, v: float, w: float) -> Pose:
+        """Account for the wheels having turned at (v, w) until stamp_ns; return the pose then."""
+        if self.stamp_ns is not None:
+            dt = (stamp_ns - self.stamp_ns) / 1e9
+            if dt > 0:
+                self.pose = integrate(self.pose, v, w, dt)
+        self.stamp_ns = stamp_ns
+        return self.pose

@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import collections
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 
 from bridgeos_agent.usecases.motion import Pose
 from bridgeos_agent.usecases.world import Grid
 
-__all__ = ["LogOddsMap", "map_agreement", "to_occupancy_values"]
+__all__ = ["LogOddsMap", "ScanPairing", "map_agreement", "to_occupancy_values"]
+
+Scan = TypeVar("Scan")
 
 
 @dataclass
@@ -59,6 +64,50 @@ class LogOddsMap:
     def occupancy(self) -> np.ndarray:
         """Return the map as ROS occupancy values: -1 unknown, else 0-100 percent occupied."""
         return to_occupancy_values(self.logodds)
+
+
+class ScanPairing(Generic[Scan]):
+    """Pair each scan with the odometry pose of the same stamp, waiting a moment for it, and fold the pairs."""
+
+    def __init__(
+        self,
+        fold: Callable[[Scan, Pose], None],
+        max_waiting: int = 100,
+        max_poses: int = 400,
+        patience_ns: int = 2_000_000_000,
+    ) -> None:
+        self.fold = fold
+        self.max_waiting, self.max_poses, self.patience_ns = max_waiting, max_poses, patience_ns
+        self.poses: collections.OrderedDict[int, Pose] = collections.OrderedDict()
+        self.waiting: collections.deque[tuple[int, Scan]] = collections.deque()
+        self.unpaired = 0
+
+    def scan(self, stamp_ns: int, scan: Scan) -> None:
+        """Take a scan; it is folded once its pose is known."""
+        self.waiting.append((stamp_ns, scan))
+        while len(self.waiting) > self.max_waiting:
+            self.waiting.popleft()
+        self._drain()
+
+    def pose(self, stamp_ns: int, pose: Pose) -> None:
+        """Take the odometry pose at a stamp."""
+        self.poses[stamp_ns] = pose
+        while len(self.poses) > self.max_poses:
+            self.poses.popitem(last=False)
+        self._drain()
+
+    def _drain(self) -> None:
+        while self.waiting:
+            stamp, scan = self.waiting[0]
+            pose = self.poses.get(stamp)
+            if pose is not None:
+                self.waiting.popleft()
+                self.fold(scan, pose)
+            elif self.poses and next(reversed(self.poses)) > stamp + self.patience_ns:
+                self.waiting.popleft()  # its odometry never came (lost): two seconds is long enough
+                self.unpaired += 1
+            else:
+                break
 
 
 def to_occupancy_values(logodds: np.ndarray) -> np.ndarray:

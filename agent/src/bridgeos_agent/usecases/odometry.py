@@ -34,25 +34,20 @@ def main(argv: list[str]) -> int:
     from geometry_msgs.msg import TwistStamped
     from nav_msgs.msg import Odometry
 
-    from bridgeos_agent.usecases.motion import integrate
+    from bridgeos_agent.usecases.motion import WheelOdometry
     from bridgeos_agent.usecases.rosio import LossCounter, Metrics, quaternion
 
     rospy.init_node("odometry")
     metrics = Metrics("odometry")
     loss = LossCounter()
     publisher = rospy.Publisher("odom", Odometry, queue_size=50)
-    state = {"pose": args.start, "stamp": None}
+    wheel_odometry = WheelOdometry(args.start)
 
     def on_wheels(message: TwistStamped) -> None:
         loss.update(message.header.seq)
         stamp = message.header.stamp
         v, w = message.twist.linear.x, message.twist.angular.z
-        if state["stamp"] is not None:
-            dt = (stamp - state["stamp"]).to_sec()
-            if dt > 0:
-                state["pose"] = integrate(state["pose"], v, w, dt)
-        state["stamp"] = stamp
-        pose = state["pose"]
+        pose = wheel_odometry.update(stamp.to_nsec(), v, w)
         odom = Odometry()
         odom.header.stamp = stamp
         odom.header.frame_id = "odom"

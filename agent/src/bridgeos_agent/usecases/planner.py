@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import threading
-import time
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -27,14 +26,15 @@ def main(argv: list[str]) -> int:
     from nav_msgs.msg import OccupancyGrid, Path
     from std_msgs.msg import Header
 
-    from bridgeos_agent.usecases.planning import plan_path
+    from bridgeos_agent.usecases.planning import GoalPlanner
     from bridgeos_agent.usecases.rosio import LossCounter, Metrics, grid_from_message
     from bridgeos_agent.usecases.world import Grid
 
     rospy.init_node("planner")
     metrics = Metrics("planner")
     loss = LossCounter()
-    state: dict = {"map": None, "pose": None, "goal": None, "planned": None, "path": None}
+    planner = GoalPlanner(args.robot_radius)
+    state: dict = {"goal": None, "path": None}
     # Latched: a subscriber that connects late (or a migrated one) still gets the current plan.
     publisher = rospy.Publisher("path", Path, queue_size=5, latch=True)
 
@@ -42,49 +42,44 @@ def main(argv: list[str]) -> int:
 
     def plan() -> None:
         with lock:
-            _plan()
-
-    def _plan() -> None:
-        goal, pose, known = state["goal"], state["pose"], state["map"]
-        if goal is None or pose is None or known is None:
-            return
-        key = goal.header.stamp.to_nsec()
-        if state["planned"] == key:
-            publisher.publish(state["path"])  # the goal again: the same plan again
-            return
-        values, grid = known
-        begin = time.perf_counter()
-        target = (goal.pose.position.x, goal.pose.position.y)
-        points = plan_path(values != 0, grid, pose, target, args.robot_radius)
-        elapsed_ms = (time.perf_counter() - begin) * 1000
-        path = Path(header=Header(stamp=goal.header.stamp, frame_id="map"))
-        for x, y in points or []:
-            step = PoseStamped(header=path.header)
-            step.pose.position.x, step.pose.position.y = x, y
-            step.pose.orientation.w = 1.0
-            path.poses.append(step)
-        state["planned"], state["path"] = key, path
-        publisher.publish(path)
-        if points is None:
-            print(f"[planner] no path from {pose} to {target}", flush=True)
-        metrics.report("planning_ms", elapsed_ms, waypoints=str(len(path.poses)))
+            result = planner.plan()
+            if result is None:
+                return
+            if not result.fresh:
+                publisher.publish(state["path"])  # the goal again: the same plan again
+                return
+            goal = state["goal"]
+            path = Path(header=Header(stamp=goal.header.stamp, frame_id="map"))
+            for x, y in result.points or []:
+                step = PoseStamped(header=path.header)
+                step.pose.position.x, step.pose.position.y = x, y
+                step.pose.orientation.w = 1.0
+                path.poses.append(step)
+            state["path"] = path
+            publisher.publish(path)
+            if result.points is None:
+                print(f"[planner] no path from {planner.position} to {planner.goal}", flush=True)
+            metrics.report("planning_ms", result.elapsed_ms, waypoints=str(len(path.poses)))
 
     def on_map(message: OccupancyGrid) -> None:
         values, resolution, origin = grid_from_message(message)
-        state["map"] = (values, Grid(resolution, origin[0], origin[1], values.shape[1], values.shape[0]))
+        with lock:
+            planner.set_map(values, Grid(resolution, origin[0], origin[1], values.shape[1], values.shape[0]))
         plan()
 
     def on_pose(message: PoseStamped) -> None:
         loss.update(message.header.seq)
-        state["pose"] = (message.pose.position.x, message.pose.position.y)
-        goal = state["goal"]
-        if goal is not None and state["planned"] != goal.header.stamp.to_nsec():
+        with lock:
+            waiting = planner.set_position(message.pose.position.x, message.pose.position.y)
+        if waiting:
             plan()  # a goal came before the robot's first pose
         if loss.received % 200 == 0:
             metrics.report("message_loss_pct", loss.loss_pct, topic="pose")
 
     def on_goal(message: PoseStamped) -> None:
-        state["goal"] = message
+        with lock:
+            state["goal"] = message
+            planner.set_goal(message.header.stamp.to_nsec(), message.pose.position.x, message.pose.position.y)
         plan()
 
     rospy.Subscriber("map", OccupancyGrid, on_map, queue_size=1)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import heapq
 import math
+import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from bridgeos_agent.usecases.world import Grid, disk_offsets, inflate
 
-__all__ = ["astar", "plan_path", "segment_free"]
+__all__ = ["GoalPlanner", "Plan", "astar", "plan_path", "segment_free"]
 
 SQRT2 = math.sqrt(2.0)
 NEIGHBOURS = [(-1, -1, SQRT2), (-1, 0, 1.0), (-1, 1, SQRT2), (0, -1, 1.0), (0, 1, 1.0), (1, -1, SQRT2), (1, 0, 1.0)]
@@ -100,3 +102,50 @@ def plan_path(
         smooth.append(points[j])
         i = j
     return [(float(x), float(y)) for x, y in smooth]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A plan for one goal: its points (None: no way there), whether it is new, and how long it took."""
+
+    key: int
+    points: list[tuple[float, float]] | None
+    fresh: bool
+    elapsed_ms: float = 0.0
+
+
+@dataclass
+class GoalPlanner:
+    """Plan from the latest pose to the latest goal on the latest map, once per goal (a goal's key)."""
+
+    robot_radius: float = 0.25
+    blocked: np.ndarray | None = None
+    grid: Grid | None = None
+    position: tuple[float, float] | None = None
+    goal: tuple[int, tuple[float, float]] | None = None
+    planned: Plan | None = None
+
+    def set_map(self, values: np.ndarray, grid: Grid) -> None:
+        """Take a map's occupancy values (anything not free, unknown included, is an obstacle)."""
+        self.blocked, self.grid = values != 0, grid
+
+    def set_position(self, x: float, y: float) -> bool:
+        """Take the robot's position; say whether a goal waits for its first plan."""
+        self.position = (x, y)
+        return self.goal is not None and (self.planned is None or self.planned.key != self.goal[0])
+
+    def set_goal(self, key: int, x: float, y: float) -> None:
+        """Take a goal; the same key again means the same goal sent again."""
+        self.goal = (key, (x, y))
+
+    def plan(self) -> Plan | None:
+        """Return the current goal's plan (computed once per key), or None while map, pose or goal is missing."""
+        if self.goal is None or self.position is None or self.blocked is None or self.grid is None:
+            return None
+        key, target = self.goal
+        if self.planned is not None and self.planned.key == key:
+            return Plan(key, self.planned.points, fresh=False)
+        begin = time.perf_counter()
+        points = plan_path(self.blocked, self.grid, self.position, target, self.robot_radius)
+        self.planned = Plan(key, points, fresh=True, elapsed_ms=(time.perf_counter() - begin) * 1000)
+        return self.planned

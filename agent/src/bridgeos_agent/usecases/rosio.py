@@ -18,6 +18,7 @@ import numpy as np
 from bridgeos_agent.usecases.motion import Pose
 
 __all__ = [
+    "XYZ_DTYPE",
     "LossCounter",
     "Metrics",
     "cloud_message",
@@ -33,6 +34,8 @@ __all__ = [
 # rospy reads each connection's messages into a buffer this large; a smaller one than a
 # message makes a queue_size=1 subscriber fall behind instead of dropping stale clouds.
 BIG_BUFFER = 1 << 27
+# A sampled cloud's points: x y z float32, packed.
+XYZ_DTYPE = np.dtype({"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8], "itemsize": 12})
 
 
 class Metrics:
@@ -212,7 +215,7 @@ def grid_message(header: Any, values: np.ndarray, resolution: float, origin: tup
 
     info = MapMetaData(resolution=resolution, width=values.shape[1], height=values.shape[0])
     info.map_load_time = header.stamp
-    info.origin.position.x, info.origin.position.y = origin
+    info.origin.position.x, info.origin.position.y = float(origin[0]), float(origin[1])  # ROS 2 wants floats
     info.origin.orientation.w = 1.0
     return OccupancyGrid(header=header, info=info, data=values.astype(np.int8).reshape(-1).tolist())
 

@@ -18,17 +18,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 def main(argv: list[str]) -> int:
     args = parse_args(argv)
-    import numpy as np
     import rospy
     from sensor_msgs.msg import PointCloud2
 
     from bridgeos_agent.usecases.detection import voxel_sample
-    from bridgeos_agent.usecases.rosio import BIG_BUFFER, LossCounter, Metrics, cloud_message, cloud_xyz
+    from bridgeos_agent.usecases.rosio import BIG_BUFFER, XYZ_DTYPE, LossCounter, Metrics, cloud_message, cloud_xyz
 
     rospy.init_node("sampler")
     metrics = Metrics("sampler")
     loss = LossCounter()
-    xyz_dtype = np.dtype({"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8], "itemsize": 12})
     publisher = rospy.Publisher("pointcloud_sampled", PointCloud2, queue_size=1)
 
     def on_cloud(message: PointCloud2) -> None:
@@ -39,7 +37,7 @@ def main(argv: list[str]) -> int:
         except ValueError as exc:
             rospy.logwarn_throttle(10, f"sampler: skipping a cloud: {exc}")
             return
-        publisher.publish(cloud_message(message.header, sampled.view(xyz_dtype).reshape(-1)))
+        publisher.publish(cloud_message(message.header, sampled.view(XYZ_DTYPE).reshape(-1)))
         metrics.report("sampling_ms", (time.perf_counter() - begin) * 1000, points=str(len(sampled)))
         if loss.received % 10 == 0:
             metrics.report("message_loss_pct", loss.loss_pct, topic="pointcloud")

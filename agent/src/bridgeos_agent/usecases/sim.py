@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from bridgeos_agent.usecases.motion import Follower, Pose, integrate
-from bridgeos_agent.usecases.world import cast_rays, disk_offsets, get_world
+from bridgeos_agent.usecases.world import World, cast_rays, disk_offsets, get_world
 
 ROBOT_RADIUS = 0.2
 CMD_TIMEOUT = 0.5
@@ -45,6 +45,62 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return args
 
 
+class SimBody:
+    """The robot's body without ROS: obeys commands or follows a path, bumps into walls, casts its laser."""
+
+    def __init__(self, world: World, start: Pose, speed: float, beams: int, max_range: float) -> None:
+        self.world, self.speed, self.max_range = world, speed, max_range
+        self.grid = world.grid(0.1)
+        self.occupied = world.occupancy(0.1)
+        self.body_dy, self.body_dx = disk_offsets(ROBOT_RADIUS / self.grid.resolution)
+        self.angles = np.linspace(-math.pi, math.pi, beams, endpoint=False)
+        self.pose = start
+        self.cmd = (0.0, 0.0)
+        self.cmd_at = -math.inf
+        self.follower: Follower | None = None
+        self.path_stamp: int | None = None
+        self.collisions = 0
+
+    def command(self, v: float, w: float, now: float) -> None:
+        """Obey (v, w) for CMD_TIMEOUT seconds from now (monotonic); someone drives by hand: drop the path."""
+        self.cmd, self.cmd_at, self.follower = (v, w), now, None
+
+    def follow(self, stamp_ns: int, points: list[tuple[float, float]]) -> None:
+        """Follow a path, unless it is the plan of that stamp again."""
+        if stamp_ns == self.path_stamp:
+            return
+        self.path_stamp = stamp_ns
+        self.follower = Follower(points, max_speed=self.speed) if points else None
+
+    def free(self, pose: Pose) -> bool:
+        """Say whether the body fits at a pose."""
+        iy, ix = self.grid.cell(pose.x, pose.y)
+        cy, cx = self.body_dy + iy, self.body_dx + ix
+        return bool(self.grid.inside(cy, cx).all() and not self.occupied[cy, cx].any())
+
+    def step(self, dt: float, now: float) -> tuple[float, float]:
+        """Move for dt seconds; return the (v, w) the wheels turned at."""
+        follower = self.follower
+        if follower is not None and not follower.done:
+            v, w = follower.command(self.pose)
+        elif now - self.cmd_at < CMD_TIMEOUT:
+            v, w = self.cmd
+        else:
+            v, w = 0.0, 0.0
+        moved = integrate(self.pose, v, w, dt)
+        if not self.free(moved):
+            self.collisions += 1
+            v = 0.0  # the bumper stops the wheels; turning on the spot is still allowed
+            moved = integrate(self.pose, 0.0, w, dt)
+        self.pose = moved
+        return v, w
+
+    def scan(self) -> np.ndarray:
+        """Return the laser's ranges from the current pose (beams from -pi, counter-clockwise)."""
+        pose = self.pose
+        return cast_rays(self.occupied, self.grid, pose.x, pose.y, self.angles + pose.theta, self.max_range)
+
+
 def main(argv: list[str]) -> int:
     args = parse_args(argv)
     import rospy
@@ -56,30 +112,14 @@ def main(argv: list[str]) -> int:
 
     rospy.init_node("sim")
     world = args.world
-    grid = world.grid(0.1)
-    occupied = world.occupancy(0.1)
-    body_dy, body_dx = disk_offsets(ROBOT_RADIUS / grid.resolution)
-    angles = np.linspace(-math.pi, math.pi, args.beams, endpoint=False)
-    state = {"pose": args.start, "cmd": (0.0, 0.0), "cmd_at": -math.inf, "follower": None, "path_stamp": None}
-    collisions = 0
+    body = SimBody(world, args.start, args.speed, args.beams, args.max_range)
+    angles = body.angles
 
     def on_cmd(msg: Twist) -> None:
-        state["cmd"] = (msg.linear.x, msg.angular.z)
-        state["cmd_at"] = time.monotonic()
-        state["follower"] = None  # someone drives by hand: drop the path
+        body.command(msg.linear.x, msg.angular.z, time.monotonic())
 
     def on_path(msg: Path) -> None:
-        stamp = msg.header.stamp.to_nsec()
-        if stamp == state["path_stamp"]:
-            return  # the same plan again
-        state["path_stamp"] = stamp
-        points = [(p.pose.position.x, p.pose.position.y) for p in msg.poses]
-        state["follower"] = Follower(points, max_speed=args.speed) if points else None
-
-    def free(pose: Pose) -> bool:
-        iy, ix = grid.cell(pose.x, pose.y)
-        cy, cx = body_dy + iy, body_dx + ix
-        return bool(grid.inside(cy, cx).all() and not occupied[cy, cx].any())
+        body.follow(msg.header.stamp.to_nsec(), [(p.pose.position.x, p.pose.position.y) for p in msg.poses])
 
     rospy.Subscriber("cmd_vel", Twist, on_cmd, queue_size=10)
     rospy.Subscriber("path", Path, on_path, queue_size=2)
@@ -101,20 +141,8 @@ def main(argv: list[str]) -> int:
         last = now
         if dt <= 0:
             continue
-        pose = state["pose"]
-        follower = state["follower"]
-        if follower is not None and not follower.done:
-            v, w = follower.command(pose)
-        elif time.monotonic() - state["cmd_at"] < CMD_TIMEOUT:
-            v, w = state["cmd"]
-        else:
-            v, w = 0.0, 0.0
-        moved = integrate(pose, v, w, dt)
-        if not free(moved):
-            collisions += 1
-            v = 0.0  # the bumper stops the wheels; turning on the spot is still allowed
-            moved = integrate(pose, 0.0, w, dt)
-        state["pose"] = moved
+        v, w = body.step(dt, time.monotonic())
+        moved = body.pose
         wheels = TwistStamped()
         wheels.header.stamp = now
         wheels.header.frame_id = "base_link"
@@ -132,7 +160,6 @@ def main(argv: list[str]) -> int:
         ) = quaternion(moved.theta)
         pose_pub.publish(stamped)
         if step % scan_every == 0:
-            ranges = cast_rays(occupied, grid, moved.x, moved.y, angles + moved.theta, args.max_range)
             scan = LaserScan()
             scan.header.stamp = now
             scan.header.frame_id = "base_laser"
@@ -141,11 +168,11 @@ def main(argv: list[str]) -> int:
             scan.time_increment = 0.0
             scan.scan_time = 1.0 / args.scan_rate
             scan.range_min, scan.range_max = 0.05, args.max_range
-            scan.ranges = ranges.astype(np.float32).tolist()
+            scan.ranges = body.scan().astype(np.float32).tolist()
             scan_pub.publish(scan)
         if step % round(args.rate * 10) == 0:
             print(
-                f"[sim] pose x={moved.x:.2f} y={moved.y:.2f} theta={moved.theta:.2f} collisions={collisions}",
+                f"[sim] pose x={moved.x:.2f} y={moved.y:.2f} theta={moved.theta:.2f} collisions={body.collisions}",
                 flush=True,
             )
         step += 1
