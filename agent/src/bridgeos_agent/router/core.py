@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import re
 import time
@@ -11,6 +12,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar, cast
 
+from bridgeos_agent.protocol import Event
+from bridgeos_agent.ros2graph import Ros2Graph
 from bridgeos_agent.rosnames import canonical_name, instance_name
 from bridgeos_agent.rosnode import MasterError, RosNode
 from bridgeos_agent.router.http import HttpRouting
@@ -328,6 +331,12 @@ async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
             "skill %s: no cloud relay (%s); the robot's router relays every link itself", supervisor.skill, exc
         )
     supervisor.context["router"] = router
+    graph = getattr(controller, "ros2_graph", None)
+    if graph is not None and router.ros2_routes:
+        await router.set_ros2_graphs(graph, _cloud_graph(graph, getattr(controller, "ros2_discovery_server", None)))
+    router.on_route_error = functools.partial(
+        _report_route_error, controller, supervisor.skill, asyncio.get_running_loop()
+    )
     try:
         await router.start()
         if router.url:
@@ -347,6 +356,24 @@ async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
                 await router.enable_ros(controller.ros_master)
     finally:
         await router.close()
+
+
+def _cloud_graph(robot: Ros2Graph, server: str | None) -> Ros2Graph | None:
+    """Return the robot's cloud graph: the same domain, found through the cloud's discovery server."""
+    if not server:
+        return None
+    return Ros2Graph(domain_id=robot.domain_id, rmw=robot.rmw, discovery_server=server)
+
+
+def _report_route_error(
+    controller: SkillHost, skill: str, loop: asyncio.AbstractEventLoop, name: str, reason: str
+) -> None:
+    """Tell the cloud about a route that cannot run (its event log shows it); safe from rclpy's threads."""
+    data = {"message": f"skill {skill}: route {name}: {reason}"[:2000], "field": "router", "code": "route_failed"}
+    tasks = getattr(controller, "tasks", None)
+    if tasks is None or loop.is_closed():
+        return
+    loop.call_soon_threadsafe(lambda: tasks.spawn(controller.emit(Event.ERROR_MESSAGE, data)))
 
 
 def _component_env(supervisor: SkillSupervisor) -> dict[str, str]:

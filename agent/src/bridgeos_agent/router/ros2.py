@@ -181,9 +181,10 @@ class Ros2Routing(RouterBase):
         """Say which graphs to join: the robot's and, when the cloud runs one, its discovery server's.
 
         Call again when the cloud's discovery server changes: ROS 2 routing restarts on the new graphs.
-        Known limit: once a process has made a discovery-server participant, Fast DDS (Jazzy wheels)
-        keeps that setting for participants made later, so call this before ``start()`` and treat a
-        changed server as needing an agent restart until the cloud side moves to a process of its own.
+        Once a process has made a discovery-server participant, Fast DDS (Jazzy wheels) makes the
+        participants made later clients too; each graph's participant is therefore made once per
+        process and shared by every Skill (``ros2graphs``), robot first: call this before ``start()``.
+        A robot graph never seen before, made after a cloud graph, would hear nothing.
         """
         if self._r2_graphs == (robot, cloud):
             return

@@ -20,6 +20,11 @@ logger = logging.getLogger(__name__)
 # rmw_fastrtps reads the discovery env when the first node of a Context creates its participant:
 # the env is set just around that moment, one graph at a time.
 _ENV_LOCK = threading.Lock()
+# One Context (one DDS participant) per graph for the life of the process, shared by every Skill's
+# router: once a process has a discovery-server client, Fast DDS (Jazzy's wheels) makes participants
+# created later clients too, so a robot graph's participant made after the cloud's hears nothing.
+# Made once, robot first, and never again, every Skill's router reaches both graphs.
+_CONTEXTS: dict[Ros2Graph, Any] = {}
 
 
 class GraphSide:
@@ -33,7 +38,6 @@ class GraphSide:
 
         self.label = label
         self.graph = graph
-        self.context = Context()
         env = graph.env()
         env.pop("RMW_IMPLEMENTATION", None)  # chosen once per process, when rclpy loads
         if graph.discovery_server:
@@ -46,7 +50,11 @@ class GraphSide:
                 os.environ.pop("ROS_DISCOVERY_SERVER", None)
                 os.environ.pop("ROS_SUPER_CLIENT", None)
                 os.environ.update(env)
-                rclpy.init(context=self.context, domain_id=graph.domain_id, args=[])
+                context = _CONTEXTS.get(graph)
+                if context is None:
+                    context = _CONTEXTS[graph] = Context()
+                    rclpy.init(context=context, domain_id=graph.domain_id, args=[])
+                self.context = context
                 name = re.sub(r"[^A-Za-z0-9_]", "_", node_name)
                 # Topics on one node and executor thread; services on another with a pool, so a
                 # long action result never holds up the topics' hot path.
@@ -86,7 +94,7 @@ class GraphSide:
             executor.spin()
 
     def close(self) -> None:
-        """Leave the graph: stop the threads and destroy the nodes and the Context."""
+        """Leave the graph: stop the threads and destroy the nodes (the shared Context stays)."""
         self.relay.close()
         self._executor.shutdown(timeout_sec=2)
         self._services.shutdown(timeout_sec=2)
@@ -94,8 +102,6 @@ class GraphSide:
             self.node.destroy_node()
             self.service_node.destroy_node()
             self.relay_node.destroy_node()
-        with contextlib.suppress(Exception):
-            self.context.try_shutdown()
         for thread in self._threads:
             thread.join(2)
 
