@@ -26,6 +26,7 @@ from .discovery import converge_discovery_server
 from .discovery import wanted as discovery_wanted
 from .locks import LockBusy, orchestration_lock
 from .masters import converge_ros_master, master_url
+from .relay import reconcile_relays
 from .orchestration import (
     LOG_TAIL,
     RUNNING,
@@ -78,6 +79,7 @@ def _reconcile(now: float) -> dict[str, int]:
         "relaunched": 0,
         "masters": 0,
         "ros2_discovery": 0,
+        "relays": 0,
         "metrics": 0,
     }
     observed = with_runtime("reconciler", lambda runtime: runtime.observe())
@@ -122,6 +124,7 @@ def _reconcile(now: float) -> dict[str, int]:
             done["removed"] += _remove_orphan(item)
     done["masters"] = _reconcile_masters(masters)
     done["ros2_discovery"] = _reconcile_discovery_servers(servers)
+    done["relays"] = reconcile_relays()
     _remove_orphan_networks()
     done["metrics"] = collect_stats({key[0] for key in wanted})
     prometheus.reconciled(done)

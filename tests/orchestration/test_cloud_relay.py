@@ -1,0 +1,175 @@
+"""Cloud-side routing run by the cloud: the worker's relay per robot Skill, and the robot told where it is.
+
+Real parts throughout: daphne and a Celery worker of a test cloud of their own (process runtime),
+a robot authenticating over a real socket with its ROS master (a private rosmaster), the relay
+process the worker starts, a Skill Router linked to it with what the login answered, and rospy
+talker and listener nodes whose bytes are counted by the nodes themselves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import psutil
+import pytest
+from asgiref.sync import sync_to_async
+
+from bridgeos_agent import protocol
+from bridgeos_agent.link import Link
+from bridgeos_agent.protocol import Event
+from bridgeos_agent.router import RouterSettings, SkillRouter
+from bridgeos_agent.router.cloudrelay import CloudLink
+from bridgeos_agent.skillconfig import parse_skill_config
+from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
+from skills.models import CloudRelay, Skill
+from skills.services import remove_skill
+from tests.agent.roshelpers import Nodes, private_rosmaster
+from tests.agent.test_controller import eventually, make_robot
+from tests.agent.test_router_cloudrelay import CONFIG, SKILL, ns, subscribers_of
+
+from .conftest import make_stack
+
+pytestmark = [
+    pytest.mark.ros,
+    pytest.mark.django_db(transaction=True),
+    pytest.mark.timeout(90),
+    pytest.mark.usefixtures("robots_disconnect_before_flush"),
+]
+
+
+@pytest.fixture(scope="module")
+def rosmaster(tmp_path_factory) -> Iterator[str]:
+    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
+        yield uri
+
+
+@pytest.fixture(scope="module")
+def stack(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator:
+    yield from make_stack("process", tmp_path_factory.mktemp("relay"))
+
+
+@pytest.fixture
+def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
+    runner = Nodes(rosmaster, tmp_path)
+    try:
+        yield runner
+    finally:
+        runner.kill_all()
+
+
+async def login(stack, robot_id: str, token: str, master: str) -> tuple[Link, dict]:
+    """Authenticate a robot with its ROS master; return the link and the success frame's data."""
+    link = Link(stack.ws_url + "/ws/robot/")
+    success = await link.connect(Event.AUTHENTICATION_ROBOT, {"robot": robot_id, "token": token, "ros_master": master})
+    await link.next(Event.CONNECTION_ESTABLISHED)
+    await link.next(Event.ROBOT_CONFIG)
+    return link, dict(success.data)
+
+
+@sync_to_async
+def relay_row(robot_id: str) -> CloudRelay | None:
+    return CloudRelay.objects.filter(skill__robot_id=robot_id).first()
+
+
+async def relay_status(robot_id: str) -> str | None:
+    row = await relay_row(robot_id)
+    return row.status if row else None
+
+
+async def relays_of(robot_id: str) -> list:
+    return [o for o in await asyncio.to_thread(observe_relays) if o.robot == robot_id]
+
+
+async def _is(value, expected) -> bool:
+    return (await value) == expected
+
+
+async def answers(url: str, token: str | None) -> int:
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    async with httpx.AsyncClient(timeout=5) as http:
+        return (await http.get(url + "/statistics", headers=headers)).status_code
+
+
+async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_with_the_skill(
+    stack, rosmaster, nodes, tmp_path
+):
+    token, _ = await make_robot("rl-one", skill=CONFIG)
+    plain_token, _ = await make_robot("rl-plain", skill={**CONFIG, "components": _robot_only()})
+    link, success = await login(stack, "rl-one", token, rosmaster)
+    try:
+        # The login answer names the Skill's relay (a valid protocol payload, parsed as the agent parses it).
+        parsed = protocol.AuthenticationSuccess.model_validate(success)
+        assert parsed.cloud_relays is not None and set(parsed.cloud_relays) == {SKILL}
+        relay = parsed.cloud_relays[SKILL]
+        assert relay.url.startswith("http://127.0.0.1:") and len(relay.token) >= 32
+        await eventually(lambda: _is(relay_status("rl-one"), "running"), timeout=45, what="the relay running")
+        [process] = await relays_of("rl-one")
+        assert process.kind == KIND_CLOUD_RELAY and process.skill == SKILL
+        # The token is in no column and not on the relay's command line (which any user can read).
+        row = await relay_row("rl-one")
+        assert relay.token not in repr(row.__dict__)
+        assert relay.token not in " ".join(psutil.Process(process.id).cmdline())
+
+        # Its control API answers the token only.
+        assert await answers(relay.url, relay.token) == 200
+        assert await answers(relay.url, None) == 401
+        assert await answers(relay.url, relay.token[:-1] + "x") == 401
+
+        # A router linked with what the login answered hands the cloud→cloud pair to the relay.
+        cloud_link = CloudLink(relay.url, relay.token, poll=0.3)
+        settings = RouterSettings(http_host="127.0.0.1", statistics_period=0.5, drain_timeout=5)
+        router = SkillRouter(parse_skill_config(CONFIG), ros_master=rosmaster, settings=settings, robot="rl-one")
+        router.cloud_link = cloud_link
+        router.set_active("talker", "cloud")
+        router.set_active("listener", "cloud")
+        await router.start()
+        try:
+            assert cloud_link.up
+            nodes.run("listener", "listener", namespace=ns("listener", "cloud"))
+            assert await router.wait_ready("listener", "cloud", 30)
+            count = 200
+            talker_args = ("--tag", "c", "--rate", "200", "--count", str(count), "--size", "1000", "--wait")
+            nodes.run("talker", "talker", *talker_args, namespace=ns("talker", "cloud"))
+            await eventually(lambda: len(nodes.messages("listener")) >= count, what="every message via the relay")
+            assert nodes.messages("listener") == [("c", seq) for seq in range(1, count + 1)]
+            assert cloud_link.owned == {("/chatter", "listener")}
+            [subscriber] = subscribers_of(rosmaster, f"{ns('talker', 'cloud')}/chatter")
+            assert "cloudrelay" in subscriber and subscriber != router.node.name
+        finally:
+            await router.close()
+
+        # A robot whose Skill runs only on the robot gets no relay.
+        plain_link, plain = await login(stack, "rl-plain", plain_token, rosmaster)
+        await plain_link.close()
+        assert "cloud_relays" not in plain and await relay_row("rl-plain") is None
+
+        # Killed, it is started again by the reconciler, on the same port with the same token.
+        os.killpg(process.id, signal.SIGKILL)
+        await eventually(lambda: _count(relays_of("rl-one"), 0), timeout=10, what="the relay gone")
+        done = await asyncio.to_thread(stack.reconcile)
+        assert done["relays"] == 1
+        [again] = await relays_of("rl-one")
+        assert again.id != process.id
+        assert await answers(relay.url, relay.token) == 200
+
+        # Removed with its Skill.
+        skill = await sync_to_async(Skill.objects.get)(robot_id="rl-one", skill_id=SKILL)
+        assert await sync_to_async(remove_skill)(skill)
+        await eventually(lambda: _count(relays_of("rl-one"), 0), timeout=30, what="the relay stopped")
+        with pytest.raises(httpx.ConnectError):
+            await answers(relay.url, relay.token)
+    finally:
+        await link.close()
+
+
+async def _count(found, expected: int) -> bool:
+    return len(await found) == expected
+
+
+def _robot_only() -> dict:
+    return {name: {**spec, "location": "robot"} for name, spec in CONFIG["components"].items()}
