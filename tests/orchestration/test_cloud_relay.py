@@ -26,8 +26,7 @@ from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.router.cloudrelay import CloudLink
 from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
-from skills.models import CloudRelay, Skill
-from skills.services import remove_skill
+from skills.models import CloudRelay
 from tests.agent.roshelpers import Nodes, private_rosmaster
 from tests.agent.test_controller import eventually, make_robot
 from tests.agent.test_router_cloudrelay import CONFIG, SKILL, ns, subscribers_of
@@ -98,8 +97,8 @@ async def answers(url: str, token: str | None) -> int:
 async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_with_the_skill(
     stack, rosmaster, nodes, tmp_path
 ):
-    token, _ = await make_robot("rl-one", skill=CONFIG)
-    plain_token, _ = await make_robot("rl-plain", skill={**CONFIG, "components": _robot_only()})
+    token, api_token = await make_robot("rl-one", skill=CONFIG)
+    plain_token, plain_api_token = await make_robot("rl-plain", skill={**CONFIG, "components": _robot_only()})
     link, success = await login(stack, "rl-one", token, rosmaster)
     try:
         # The login answer names the Skill's relay (a valid protocol payload, parsed as the agent parses it).
@@ -151,20 +150,33 @@ async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_
         # Killed, it is started again by the reconciler, on the same port with the same token.
         os.killpg(process.id, signal.SIGKILL)
         await eventually(lambda: _count(relays_of("rl-one"), 0), timeout=10, what="the relay gone")
-        done = await asyncio.to_thread(stack.reconcile)
-        assert done["relays"] == 1
+        await asyncio.to_thread(stack.reconcile)
+        await eventually(lambda: _count(relays_of("rl-one"), 1), timeout=20, what="the relay restarted")
         [again] = await relays_of("rl-one")
         assert again.id != process.id
-        assert await answers(relay.url, relay.token) == 200
+        await eventually(lambda: _answered(relay.url, relay.token), timeout=20, what="the restarted relay answering")
+        assert await answers(relay.url, None) == 401
 
-        # Removed with its Skill.
-        skill = await sync_to_async(Skill.objects.get)(robot_id="rl-one", skill_id=SKILL)
-        assert await sync_to_async(remove_skill)(skill)
+        # Removed with its Skill (by its owner only).
+        async with httpx.AsyncClient(base_url=stack.url, timeout=30) as api:
+            remove = "/api/robot/rl-one/skill/remove"
+            stranger = {"Authorization": f"Token {plain_api_token}"}
+            assert (await api.post(remove, json={"skill": SKILL}, headers=stranger)).status_code == 404
+            assert await relay_row("rl-one") is not None
+            owner = {"Authorization": f"Token {api_token}"}
+            assert (await api.post(remove, json={"skill": SKILL}, headers=owner)).status_code == 204
         await eventually(lambda: _count(relays_of("rl-one"), 0), timeout=30, what="the relay stopped")
         with pytest.raises(httpx.ConnectError):
             await answers(relay.url, relay.token)
     finally:
         await link.close()
+
+
+async def _answered(url: str, token: str) -> bool:
+    try:
+        return await answers(url, token) == 200
+    except httpx.ConnectError:
+        return False
 
 
 async def _count(found, expected: int) -> bool:
