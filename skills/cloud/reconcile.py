@@ -26,7 +26,6 @@ from .discovery import converge_discovery_server
 from .discovery import wanted as discovery_wanted
 from .locks import LockBusy, orchestration_lock
 from .masters import converge_ros_master, master_url
-from .relay import reconcile_relays
 from .orchestration import (
     LOG_TAIL,
     RUNNING,
@@ -38,6 +37,7 @@ from .orchestration import (
     who,
     with_runtime,
 )
+from .relay import reconcile_relays
 from .reporting import announce, cloud_is_active, fail, record_running, tell_robot
 from .runtime import (
     KIND_COMPONENT,

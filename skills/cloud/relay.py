@@ -31,6 +31,7 @@ import secrets
 import socket
 import sys
 import time
+
 from django.conf import settings
 from django.db import transaction
 from django.utils import timezone
@@ -150,7 +151,8 @@ async def _start(runtime: CloudRuntime, relay: CloudRelay) -> ComponentState:
     config.write_text(json.dumps(skill.config))
     host = settings.BRIDGEOS["CLOUD_HOST"]
     command = [sys.executable, "-m", "bridgeos_agent.router.cloudrelay", "--config", str(config)]
-    command += ["--master", skill.robot.ros_master, "--host", host, "--port", str(relay.port), "--robot", skill.robot_id]
+    command += ["--master", skill.robot.ros_master, "--host", host, "--port", str(relay.port)]
+    command += ["--robot", skill.robot_id]
     env = {"BRIDGEOS_CLOUD_RELAY_TOKEN": relay_token(skill.robot_id, skill.skill_id, relay)}
     if os.environ.get("PYTHONPATH"):
         env["PYTHONPATH"] = os.environ["PYTHONPATH"]  # the worker's own agent package
