@@ -20,6 +20,7 @@ import pytest
 from asgiref.sync import sync_to_async
 
 from bridgeos_agent import protocol
+from bridgeos_agent.controller import RobotController
 from bridgeos_agent.link import Link
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.router import RouterSettings, SkillRouter
@@ -28,7 +29,7 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
 from skills.models import CloudRelay
 from tests.agent.roshelpers import Nodes, private_rosmaster
-from tests.agent.test_controller import eventually, make_robot
+from tests.agent.test_controller import agent_settings, eventually, make_robot, running
 from tests.agent.test_router_cloudrelay import CONFIG, SKILL, ns, subscribers_of
 
 from .conftest import make_stack
@@ -185,3 +186,18 @@ async def _count(found, expected: int) -> bool:
 
 def _robot_only() -> dict:
     return {name: {**spec, "location": "robot"} for name, spec in CONFIG["components"].items()}
+
+
+async def test_an_agent_links_its_skill_router_to_the_relay_the_cloud_named(stack, rosmaster, tmp_path):
+    token, _ = await make_robot("rl-agent", skill=CONFIG)
+    settings = agent_settings(stack.server, "rl-agent", token, tmp_path / "agent", detect_ros_master=False)
+    controller = RobotController(settings)
+    controller.local_ros_master = controller.ros_master = rosmaster
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        relay = controller.cloud_relays[SKILL]
+        await eventually(lambda: _is(relay_status("rl-agent"), "running"), timeout=45, what="the relay running")
+        record = await controller.start_skill(parse_skill_config(CONFIG), starting=[])
+        router = record.supervisor.context["router"]
+        assert router.cloud_link is not None and router.cloud_link.url == relay.url
+        await eventually(lambda: router.cloud_link.up, timeout=20, what="the router linked to the relay")
