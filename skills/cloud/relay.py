@@ -249,10 +249,16 @@ def reconcile_relays() -> int:
     return fixed
 
 
-def stop_all_relays() -> int:
-    """Stop every relay process of this cloud (cloud_down); return how many there were."""
+def remove_relay_processes() -> int:
+    """Stop every relay process of this cloud, touching no row; return how many there were."""
     found = observe_relays()
     for item in found:
         with_runtime(item.robot, lambda runtime, item=item: runtime.remove(item), name="process")
-    CloudRelay.objects.exclude(status=CS.STOPPED).update(status=CS.STOPPED)
     return len(found)
+
+
+def stop_all_relays() -> int:
+    """Stop every relay process of this cloud and mark every relay stopped (cloud_down); return how many ran."""
+    removed = remove_relay_processes()
+    CloudRelay.objects.exclude(status=CS.STOPPED).update(status=CS.STOPPED)
+    return removed

@@ -9,6 +9,7 @@ talker and listener nodes whose bytes are counted by the nodes themselves.
 from __future__ import annotations
 
 import asyncio
+import io
 import os
 import signal
 from collections.abc import Iterator
@@ -201,3 +202,34 @@ async def test_an_agent_links_its_skill_router_to_the_relay_the_cloud_named(stac
         router = record.supervisor.context["router"]
         assert router.cloud_link is not None and router.cloud_link.url == relay.url
         await eventually(lambda: router.cloud_link.up, timeout=20, what="the router linked to the relay")
+
+
+async def test_a_relay_goes_with_its_robot_and_with_cloud_down(stack, rosmaster):
+    from django.core.management import call_command
+
+    from robots.models import Robot
+
+    for robot_id in ("rl-gone", "rl-down"):
+        token, _ = await make_robot(robot_id, skill=CONFIG)
+        link, _ = await login(stack, robot_id, token, rosmaster)
+        await link.close()
+        await eventually(lambda r=robot_id: _is(relay_status(r), "running"), timeout=45, what=f"{robot_id}'s relay")
+
+    # A deleted robot's relay: the reconciler removes what no row wants any more.
+    await eventually(lambda: _disconnected("rl-gone"), timeout=30, what="the robot gone")
+    await sync_to_async(lambda: Robot.objects.filter(id="rl-gone").delete())()
+    await asyncio.to_thread(stack.reconcile)
+    await eventually(lambda: _count(relays_of("rl-gone"), 0), timeout=30, what="the deleted robot's relay gone")
+    assert len(await relays_of("rl-down")) == 1
+
+    # cloud_down stops every relay and says so in the rows.
+    await sync_to_async(call_command)("cloud_down", stdout=io.StringIO())
+    assert await relays_of("rl-down") == []
+    assert await relay_status("rl-down") == "stopped"
+
+
+@sync_to_async
+def _disconnected(robot_id: str) -> bool:
+    from robots.models import Robot
+
+    return not Robot.objects.filter(id=robot_id, connected=True).exists()
