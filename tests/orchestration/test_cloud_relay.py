@@ -12,6 +12,7 @@ import asyncio
 import io
 import os
 import signal
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -104,12 +105,17 @@ async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_
     link, success = await login(stack, "rl-one", token, rosmaster)
     try:
         # The login answer names the Skill's relay (a valid protocol payload, parsed as the agent parses it).
+        started = time.monotonic()
         parsed = protocol.AuthenticationSuccess.model_validate(success)
         assert parsed.cloud_relays is not None and set(parsed.cloud_relays) == {SKILL}
         relay = parsed.cloud_relays[SKILL]
         assert relay.url.startswith("http://127.0.0.1:") and len(relay.token) >= 32
         await eventually(lambda: _is(relay_status("rl-one"), "running"), timeout=45, what="the relay running")
+        print(f"relay running {time.monotonic() - started:.1f} s after the login answer")
         [process] = await relays_of("rl-one")
+        rss_mb = psutil.Process(process.id).memory_info().rss / 2**20
+        print(f"cloud relay RSS: {rss_mb:.1f} MB")
+        assert rss_mb < 200
         assert process.kind == KIND_CLOUD_RELAY and process.skill == SKILL
         # The token is in no column and not on the relay's command line (which any user can read).
         row = await relay_row("rl-one")
