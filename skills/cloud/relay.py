@@ -141,14 +141,17 @@ async def _start(runtime: CloudRuntime, relay: CloudRelay) -> ComponentState:
     """Launch the relay process unless it runs already (whoever launched it)."""
     assert isinstance(runtime, CloudProcessRuntime)
     skill = relay.skill
+    config = runtime.data_dir / f"relay-{skill.skill_id}.json"
+    text = json.dumps(skill.config, sort_keys=True)
     found = await runtime._find(KIND_CLOUD_RELAY, skill.skill_id, RELAY_COMPONENT)
     if found is not None:
-        return ComponentState(
-            skill=skill.skill_id, component=RELAY_COMPONENT, status=Status.RUNNING, pid_or_container_id=found.pid
-        )
+        if config.is_file() and config.read_text() == text:
+            return ComponentState(
+                skill=skill.skill_id, component=RELAY_COMPONENT, status=Status.RUNNING, pid_or_container_id=found.pid
+            )
+        await _stop(runtime, skill.skill_id)  # it routes an older config of the Skill
     runtime.data_dir.mkdir(parents=True, exist_ok=True)
-    config = runtime.data_dir / f"relay-{skill.skill_id}.json"
-    config.write_text(json.dumps(skill.config))
+    config.write_text(text)
     host = settings.BRIDGEOS["CLOUD_HOST"]
     command = [sys.executable, "-m", "bridgeos_agent.router.cloudrelay", "--config", str(config)]
     command += ["--master", skill.robot.ros_master, "--host", host, "--port", str(relay.port)]

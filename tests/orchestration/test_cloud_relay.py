@@ -239,3 +239,41 @@ def _disconnected(robot_id: str) -> bool:
     from robots.models import Robot
 
     return not Robot.objects.filter(id=robot_id, connected=True).exists()
+
+
+async def test_a_relay_running_an_older_config_of_its_skill_is_replaced_at_the_next_login(stack, rosmaster):
+    token, _ = await make_robot("rl-conf", skill=CONFIG)
+    link, first = await login(stack, "rl-conf", token, rosmaster)
+    await link.close()
+    await eventually(lambda: _is(relay_status("rl-conf"), "running"), timeout=45, what="the relay running")
+    [before] = await relays_of("rl-conf")
+    # Same config at the next login: the same process.
+    await eventually(lambda: _disconnected("rl-conf"), timeout=30, what="the robot gone")
+    link, again = await login(stack, "rl-conf", token, rosmaster)
+    await link.close()
+    assert again["cloud_relays"] == first["cloud_relays"]
+    await asyncio.sleep(2)
+    assert [item.id for item in await relays_of("rl-conf")] == [before.id]
+    # A changed config: a new process routing it, on the same port with the same token.
+    changed = {**CONFIG, "skill": "Chat, renamed"}
+    await sync_to_async(_set_config)("rl-conf", changed)
+    await eventually(lambda: _disconnected("rl-conf"), timeout=30, what="the robot gone")
+    link, third = await login(stack, "rl-conf", token, rosmaster)
+    await link.close()
+    assert third["cloud_relays"] == first["cloud_relays"]
+    await eventually(lambda: _replaced(before.id), timeout=30, what="the relay replaced")
+    relay = first["cloud_relays"][SKILL]
+    await eventually(lambda: _answered(relay["url"], relay["token"]), timeout=20, what="the new relay answering")
+
+
+def _set_config(robot_id: str, config: dict) -> None:
+    from skills.models import Skill
+
+    skill = Skill.objects.get(robot_id=robot_id, skill_id=SKILL)
+    skill.config = config
+    skill.save()
+
+
+async def _replaced(pid: int) -> bool:
+    found = await relays_of("rl-conf")
+    return len(found) == 1 and found[0].id != pid
