@@ -34,6 +34,7 @@ import time
 
 from django.conf import settings
 from django.db import transaction
+from django.db.models import Exists, OuterRef
 from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName as CS
@@ -43,7 +44,7 @@ from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
 from monitoring.choices import Level
 from monitoring.services import record_event
 
-from ..models import CloudRelay, Skill
+from ..models import CloudRelay, Component, Skill
 from .locks import LockBusy, orchestration_lock
 from .orchestration import LaunchFailed, TryAgain, enqueue_on_commit, with_runtime
 from .process import CloudProcessRuntime, _key, _marked
@@ -87,7 +88,10 @@ def relay_token(robot_id: str, skill_id: str, relay: CloudRelay) -> str:
 
 def wanted(relay: CloudRelay) -> bool:
     """Tell whether a relay should run: its robot has a ROS master and its Skill a cloud-capable component."""
-    return bool(relay.skill.robot.ros_master) and relay.skill.components.filter(location__in=CLOUD_LOCATIONS).exists()
+    capable = getattr(relay, "cloud_capable", None)  # annotated by the reconciler's one query
+    if capable is None:
+        capable = relay.skill.components.filter(location__in=CLOUD_LOCATIONS).exists()
+    return bool(relay.skill.robot.ros_master) and capable
 
 
 def _free_port() -> int:
@@ -232,7 +236,9 @@ def reconcile_relays() -> int:
     """Start the wanted relays that are not running (crashed); stop those not wanted; return how many were fixed."""
     fixed = 0
     running = {(item.robot, item.skill): item for item in observe_relays()}
-    rows = {(r.skill.robot_id, r.skill.skill_id): r for r in CloudRelay.objects.select_related("skill__robot")}
+    capable = Component.objects.filter(skill=OuterRef("skill"), location__in=CLOUD_LOCATIONS)
+    relays = CloudRelay.objects.select_related("skill__robot").annotate(cloud_capable=Exists(capable))
+    rows = {(r.skill.robot_id, r.skill.skill_id): r for r in relays}
     for key, relay in rows.items():
         if relay.status == CS.FAILED and key not in running:
             continue  # it could not start: the next login (or a new row) tries again

@@ -29,7 +29,7 @@ from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.router.cloudrelay import CloudLink
 from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
-from skills.models import CloudRelay
+from skills.models import CloudRelay, Component
 from tests.agent.roshelpers import Nodes, private_rosmaster
 from tests.agent.test_controller import agent_settings, eventually, make_robot, running
 from tests.agent.test_router_cloudrelay import CONFIG, SKILL, ns, subscribers_of
@@ -215,7 +215,7 @@ async def test_a_relay_goes_with_its_robot_and_with_cloud_down(stack, rosmaster)
 
     from robots.models import Robot
 
-    for robot_id in ("rl-gone", "rl-down"):
+    for robot_id in ("rl-gone", "rl-moved", "rl-down"):
         token, _ = await make_robot(robot_id, skill=CONFIG)
         link, _ = await login(stack, robot_id, token, rosmaster)
         await link.close()
@@ -226,6 +226,13 @@ async def test_a_relay_goes_with_its_robot_and_with_cloud_down(stack, rosmaster)
     await sync_to_async(lambda: Robot.objects.filter(id="rl-gone").delete())()
     await asyncio.to_thread(stack.reconcile)
     await eventually(lambda: _count(relays_of("rl-gone"), 0), timeout=30, what="the deleted robot's relay gone")
+    assert len(await relays_of("rl-down")) == 1
+
+    # A Skill left with no component allowed in the cloud: the reconciler stops its relay.
+    await sync_to_async(lambda: Component.objects.filter(skill__robot_id="rl-moved").update(location="robot"))()
+    await asyncio.to_thread(stack.reconcile)
+    await eventually(lambda: _count(relays_of("rl-moved"), 0), timeout=30, what="the unwanted relay stopped")
+    await eventually(lambda: _is(relay_status("rl-moved"), "stopped"), timeout=10, what="its row stopped")
     assert len(await relays_of("rl-down")) == 1
 
     # cloud_down stops every relay and says so in the rows.
