@@ -199,6 +199,7 @@ class RobotConsumer(ProtocolConsumer):
                     "robot": connected.robot,
                     "ros_master": connected.ros_master,
                     "ros2_discovery_server": connected.ros2_discovery_server,
+                    "cloud_relays": connected.cloud_relays,
                 },
                 reply_to=envelope.id,
                 now=time.time(),

@@ -31,7 +31,7 @@ from monitoring.services import record_event, record_events
 
 from .choices import RobotStatus
 from .models import ApiToken, Robot, hash_token
-from .signals import credentials_rotated, ros2_discovery_wanted, ros_master_wanted
+from .signals import cloud_relays_wanted, credentials_rotated, ros2_discovery_wanted, ros_master_wanted
 
 
 def create_robot(
@@ -130,6 +130,7 @@ class Connected:
     replaced_channel: str = ""
     ros_master: str | None = None
     ros2_discovery_server: str | None = None
+    cloud_relays: dict[str, dict[str, str]] | None = None
 
 
 def connect_robots(logins: list[Login]) -> list[Connected]:
@@ -182,6 +183,8 @@ def _mark_all_connected(logins: list[Login], outcomes: list[Connected]) -> None:
             outcome.robot, outcome.config, outcome.ros_master = robot.id, robot.config, master or None
             servers = ros2_discovery_wanted.send(Robot, robot_id=robot.id, graph=login.ros2, previous=robot.ros2)
             outcome.ros2_discovery_server = next((answer for _, answer in servers if answer), None)
+            relays = cloud_relays_wanted.send(Robot, robot_id=robot.id, ros_master=master)
+            outcome.cloud_relays = next((answer for _, answer in relays if answer), None)
             # Kept with the graph, so the API and the dashboard show where its cloud copies find each other.
             robot.ros2 = (
                 None if login.ros2 is None else {**login.ros2, "cloud_discovery_server": outcome.ros2_discovery_server}

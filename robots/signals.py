@@ -21,3 +21,7 @@ ros_master_wanted = Signal()
 # that marks it connected; a receiver may answer the "host:port" of the discovery server the cloud runs for
 # the robot's ROS 2 cloud graph (the cloud's orchestration). No answer: none.
 ros2_discovery_wanted = Signal()
+
+# Sent with robot_id=, ros_master= (the master its components use, or "") inside the transaction that marks it
+# connected; a receiver may answer {skill: {"url", "token"}} of the cloud relays the cloud runs for its Skills.
+cloud_relays_wanted = Signal()

@@ -147,3 +147,23 @@ class RobotCloud(models.Model):
 
     def __str__(self) -> str:
         return f"cloud side of {self.robot_id}"
+
+
+class CloudRelay(models.Model):
+    """The cloud relay of one robot Skill (cloud-side routing): its control port and whether it runs.
+
+    Its token is not kept: it is derived from SECRET_KEY and ``nonce`` (random per relay), so the
+    database alone never yields it and every cloud process (login answer, worker) derives the same one.
+    """
+
+    skill = models.OneToOneField(Skill, on_delete=models.CASCADE, primary_key=True, related_name="cloud_relay")
+    port = models.PositiveIntegerField(unique=True, help_text="The relay's control port on the cloud host.")
+    nonce = models.CharField(max_length=64)
+    status = models.CharField(
+        max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value
+    )
+    message = models.TextField(blank=True)
+    updated_at = models.DateTimeField(auto_now=True)
+
+    def __str__(self) -> str:
+        return f"cloud relay of {self.skill_id}: {self.status}"

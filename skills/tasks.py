@@ -13,7 +13,7 @@ from typing import Any
 
 from celery import Task, shared_task
 
-from .cloud import converge, discovery, masters, reconcile
+from .cloud import converge, discovery, masters, reconcile, relay
 from .cloud.orchestration import TryAgain
 
 RETRIES = 4
@@ -73,3 +73,10 @@ def ensure_ros2_discovery(self: Task, robot_id: str) -> str:
 def reconcile_cloud() -> dict[str, int]:
     """Compare the desired cloud copies with what runs and fix the difference."""
     return reconcile.reconcile()
+
+
+@shared_task(**RETRIED)
+def ensure_cloud_relay(self: Task, robot_id: str, skill_id: str) -> str:
+    """Run (or stop) a robot Skill's cloud relay as its row says."""
+    # Given up on, the reconciler starts or stops it on its next round.
+    return relay.converge_relay(robot_id, skill_id)

@@ -180,6 +180,7 @@ def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) 
 def remove_cloud_copies(runtime: str | None = None) -> int:
     """Remove everything the test cloud runs (cloud copies, ROS masters); return how many there were."""
     from skills.cloud.orchestration import with_runtime
+    from skills.cloud.relay import remove_relay_processes
 
     async def sweep(cloud_runtime) -> int:
         found = await cloud_runtime.observe()
@@ -187,7 +188,8 @@ def remove_cloud_copies(runtime: str | None = None) -> int:
             await cloud_runtime.remove(item)
         return len(found)
 
-    return with_runtime("cleanup", sweep, name=runtime)
+    # Cloud relays are host processes whatever the runtime.
+    return with_runtime("cleanup", sweep, name=runtime) + remove_relay_processes()
 
 
 @pytest.fixture(autouse=True)

@@ -37,6 +37,7 @@ from .orchestration import (
     who,
     with_runtime,
 )
+from .relay import reconcile_relays
 from .reporting import announce, cloud_is_active, fail, record_running, tell_robot
 from .runtime import (
     KIND_COMPONENT,
@@ -78,6 +79,7 @@ def _reconcile(now: float) -> dict[str, int]:
         "relaunched": 0,
         "masters": 0,
         "ros2_discovery": 0,
+        "relays": 0,
         "metrics": 0,
     }
     observed = with_runtime("reconciler", lambda runtime: runtime.observe())
@@ -122,6 +124,7 @@ def _reconcile(now: float) -> dict[str, int]:
             done["removed"] += _remove_orphan(item)
     done["masters"] = _reconcile_masters(masters)
     done["ros2_discovery"] = _reconcile_discovery_servers(servers)
+    done["relays"] = reconcile_relays()
     _remove_orphan_networks()
     done["metrics"] = collect_stats({key[0] for key in wanted})
     prometheus.reconciled(done)

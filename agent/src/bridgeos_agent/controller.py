@@ -125,6 +125,7 @@ class RobotController:
         self.ros_master: str | None = None  # the master components use
         self.ros2_graph: Ros2Graph | None = None  # the robot's ROS 2 graph, when the agent routes ROS 2
         self.ros2_discovery_server: str | None = None  # "host:port" the cloud runs for the robot's cloud graph
+        self.cloud_relays: dict[str, Any] = {}  # Skill id -> CloudRelayInfo the cloud named (cloud-side routing)
         self.stopped = asyncio.Event()
         self.exit_code = 0
         self.usage: dict[tuple[str, str], Usage] = {}  # the runtime's last measurement per (skill, component)
@@ -294,6 +295,7 @@ class RobotController:
         """Count the new connection, then take the ROS master and ROS 2 discovery server the cloud named."""
         self.metrics.connected()
         self._use_ros_master(getattr(success, "ros_master", None))
+        self.cloud_relays = dict(getattr(success, "cloud_relays", None) or {})
         server = getattr(success, "ros2_discovery_server", None)
         if self.ros2_graph is not None and server != self.ros2_discovery_server:
             self.ros2_discovery_server = server

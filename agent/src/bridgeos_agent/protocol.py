@@ -314,6 +314,13 @@ class AuthenticationRobot(Payload):
     ros2: Ros2GraphInfo | None = None
 
 
+class CloudRelayInfo(Payload):
+    """Where a robot's router reaches the cloud relay of one of its Skills, and the relay's token."""
+
+    url: Url
+    token: Token
+
+
 class AuthenticationSuccess(Payload):
     """Confirm authentication of a robot or a user."""
 
@@ -324,6 +331,8 @@ class AuthenticationSuccess(Payload):
     ros_master: Url | None = None
     # For a ROS 2 robot: "host:port" of the discovery server the cloud runs for its cloud graph.
     ros2_discovery_server: HostPort | None = None
+    # For a robot: the cloud relay the cloud runs per Skill (cloud-side routing), by Skill id.
+    cloud_relays: dict[Slug, CloudRelayInfo] | None = Field(default=None, max_length=1000)
 
 
 class AuthenticationFailure(Payload):

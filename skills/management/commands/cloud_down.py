@@ -8,6 +8,7 @@ from django.core.management.base import BaseCommand
 from django.db import transaction
 
 from skills.cloud.orchestration import with_runtime
+from skills.cloud.relay import stop_all_relays
 from skills.cloud.runtime import CloudRuntime, cloud_id, runtime_name
 from skills.models import CloudInstance, Component, RobotCloud
 
@@ -29,6 +30,7 @@ class Command(BaseCommand):
             return len(found), len(networks)
 
         removed, networks = with_runtime("cloud-down", sweep)
+        removed += stop_all_relays()  # processes whatever the runtime
         with transaction.atomic():
             CloudInstance.objects.exclude(status="stopped").update(desired="stopped", status="stopped", container={})
             Component.objects.filter(active_location="cloud").update(status="stopped")

@@ -250,6 +250,7 @@ class CloudRelay(SkillRouter):
         self.node_name = self.node_name.replace("/router", "/cloudrelay", 1)
         self.token = token
         self.control_url: str | None = None
+        self.control_port = 0  # the control API's port (0: any free one)
         self._control: web.AppRunner | None = None
 
     def _places(self, where: str) -> tuple[Where, ...]:
@@ -279,7 +280,7 @@ class CloudRelay(SkillRouter):
         self._spawn(self._refresh_loop())
         self._control = web.AppRunner(app, access_log=None)
         await self._control.setup()
-        site = web.TCPSite(self._control, self.settings.http_host, 0)
+        site = web.TCPSite(self._control, self.settings.http_host, self.control_port)
         await site.start()
         port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
         self.control_url = f"http://{self.settings.http_advertise}:{port}"
@@ -719,6 +720,7 @@ async def serve(args: argparse.Namespace, config: SkillConfig) -> None:
     """Run a cloud relay until stopped; print one JSON line with its control URL first."""
     settings = RouterSettings(http_host=args.host, http_advertise=args.host, ros_host=args.host)
     relay = CloudRelay(config, ros_master=args.master, token=args.token, settings=settings, robot=args.robot)
+    relay.control_port = args.port
     await relay.start()
     print(json.dumps({"url": relay.control_url, "node": relay.node_name, "ros": relay.ros_on}), flush=True)
     try:
@@ -732,6 +734,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--config", required=True, help="the Skill config (JSON file)")
     parser.add_argument("--master", required=True, help="the ROS master the robot's Skill uses")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on and advertise")
+    parser.add_argument("--port", type=int, default=0, help="the control API's port (0: any free one)")
     parser.add_argument("--robot", default=None)
     parser.add_argument("--token", default=os.environ.get("BRIDGEOS_CLOUD_RELAY_TOKEN") or secrets.token_urlsafe(24))
     args = parser.parse_args(argv)

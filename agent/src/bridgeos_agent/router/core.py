@@ -322,10 +322,12 @@ async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
     for name, location in record.locations.items():
         if location in LOCATIONS and name in record.config.components:
             router.set_active(name, location)
-    from bridgeos_agent.router.cloudrelay import link_from_env  # (it builds on this module)
+    from bridgeos_agent.router.cloudrelay import CloudLink, link_from_env  # (it builds on this module)
 
+    # The relay the cloud named at login, else the one the environment names, else none.
+    offered = getattr(controller, "cloud_relays", {}).get(supervisor.skill)
     try:
-        router.cloud_link = link_from_env(supervisor.skill)
+        router.cloud_link = CloudLink(offered.url, offered.token) if offered else link_from_env(supervisor.skill)
     except ValueError as exc:
         logger.error(
             "skill %s: no cloud relay (%s); the robot's router relays every link itself", supervisor.skill, exc
