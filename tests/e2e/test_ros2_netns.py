@@ -126,7 +126,7 @@ def test_a_ros2_listener_moved_robot_cloud_robot_over_a_link_without_multicast_m
         migrate = f"/api/robot/{ROBOT}/skill/{SKILL}/component/listener/migrate"
         for where in ("cloud", "robot"):
             before = len(heard(*roots))
-            answer = cloud.api(api_token, "POST", migrate, params={"wait": 90})
+            answer = cloud.api(api_token, "POST", migrate, params={"wait": 60})
             assert answer.status_code == 200 and answer.json().get("accepted"), answer.text
             wait_until(
                 lambda w=where: instances(ROBOT, SKILL)[("listener", w)] == 1, f"the listener on the {where}", 60
@@ -138,7 +138,7 @@ def test_a_ros2_listener_moved_robot_cloud_robot_over_a_link_without_multicast_m
         time.sleep(1.0)
         seqs = heard(*roots)
         cloud_seqs = heard(roots[1])
-        assert len(cloud_seqs) >= 2 * RATE, "the cloud copy heard nothing through the link"
+        assert len(cloud_seqs) >= RATE, f"the cloud copy heard {len(cloud_seqs)} messages through the link"
         assert len(seqs) == len(set(seqs)), f"{len(seqs) - len(set(seqs))} messages heard twice"
         first, last = min(seqs), max(seqs)
         missing = sorted(set(range(first, last + 1)) - set(seqs))
