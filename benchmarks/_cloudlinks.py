@@ -34,7 +34,7 @@ import sys
 import tempfile
 import time
 import xmlrpc.client
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -320,6 +320,33 @@ def figure(quick: bool = True) -> float | None:
         flush=True,
     )
     return float(result["robot_link_bytes_all_cloud_over_before"])
+
+
+def figure_beside(quick: bool = True) -> Callable[[], float | None]:
+    """Start the measurement in a process of its own now; the returned call waits for its figure."""
+    process = subprocess.Popen(
+        [sys.executable, __file__, *(["--quick"] if quick else [])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+
+    def result() -> float | None:
+        out, err = process.communicate(timeout=300)
+        lines = out.strip().splitlines()
+        if process.returncode != 0 or not lines:
+            print(f"robot link bytes not measured: {err.strip()[-1500:]}", file=sys.stderr, flush=True)
+            return None
+        found = json.loads(lines[-1])
+        print(
+            f"robot link, every movable component in the cloud: {found['robot_link_kbytes_per_s_before']} kB/s"
+            f" before, {found['robot_link_kbytes_per_s_after']} kB/s with the cloud relay (benchmarks/_cloudlinks.py)",
+            flush=True,
+        )
+        return float(found["robot_link_bytes_all_cloud_over_before"])
+
+    return result
 
 
 def main() -> None:
