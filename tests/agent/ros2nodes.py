@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -25,6 +26,8 @@ def talker(node, args) -> None:
     while args.wait and not publisher.get_subscription_count():
         time.sleep(0.01)
     time.sleep(args.settle)
+    while args.gate and not os.path.exists(args.gate):
+        time.sleep(0.01)
     start = time.monotonic()
     seq = 0
     while (args.count == 0 or seq < args.count) and not (args.duration and time.monotonic() - start > args.duration):
@@ -96,6 +99,7 @@ def main() -> None:
     parser.add_argument("--wait", action="store_true")
     parser.add_argument("--settle", type=float, default=0.0)
     parser.add_argument("--linger", type=float, default=30.0)
+    parser.add_argument("--gate", default="", help="publish only once this file exists")
     args, ros_args = parser.parse_known_args()
     rclpy.init(args=[sys.argv[0], *ros_args])
     node = rclpy.create_node(f"{args.role}_{args.tag}")
