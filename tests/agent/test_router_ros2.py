@@ -187,6 +187,27 @@ async def test_an_action_is_relayed_with_its_feedback_and_result(nodes, make_rou
     assert feedback, "no feedback came through the router"
 
 
+async def test_an_instance_gets_endpoints_only_once_placed_and_then_hears(nodes, make_router):
+    # Fast DDS pairs each new endpoint with all of its participant's: unplaced instances stay closed.
+    router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
+    graph = router._r2_sides["robot"].node
+    nodes.run("robot", "listener", "--topic", "chatter", namespace=ns("listener", "robot"))
+    nodes.run("cloud", "listener", "--topic", "chatter", namespace=ns("listener", "cloud"))
+    nodes.run("talk", "talker", "--topic", "chatter", "--rate", "50", namespace=ns("talker", "robot"))
+    await eventually(lambda: len(nodes.messages("robot")) >= 5, what="the robot listener hears")
+    assert graph.count_publishers(f"{ns('listener', 'cloud')}/chatter") == 0
+    assert graph.count_subscribers(f"{ns('talker', 'cloud')}/chatter") == 0
+    assert nodes.messages("cloud") == []
+    # The controller places the cloud instance and waits for it: its endpoint opens and matches.
+    assert await router.wait_ready("listener", "cloud", 30)
+    assert graph.count_publishers(f"{ns('listener', 'cloud')}/chatter") == 1
+    await router.switch("listener", "cloud")
+    await eventually(lambda: len(nodes.messages("cloud")) >= 5, what="the cloud listener hears after the switch")
+    heard = len(nodes.messages("robot"))
+    await asyncio.sleep(0.5)
+    assert len(nodes.messages("robot")) == heard, "the robot instance still hears after the switch"
+
+
 async def test_bad_input_is_reported_with_the_topic_and_the_reason_and_starts_nothing_of_it(nodes, make_router):
     errors = []
     routes = [

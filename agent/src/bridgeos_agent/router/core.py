@@ -193,6 +193,8 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics, R
     def set_active(self, component: str, location: str | None) -> None:
         """Make an instance active at once (a component's first start, or its stop)."""
         self._check(component, location)
+        if location is not None:
+            self._r2_want(component, location)  # type: ignore[arg-type]
         self._active[component] = location  # type: ignore[assignment]
         link = self.cloud_link
         if link is not None and link.up:
@@ -204,6 +206,7 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics, R
         if location is None:
             raise ValueError("switch needs a location")
         old = self._active.get(component)
+        self._r2_want(component, location)  # type: ignore[arg-type]
         self._active[component] = location  # type: ignore[assignment]
         link = self.cloud_link
         plan = link.plan(self) if link is not None and link.up else None  # in this same step

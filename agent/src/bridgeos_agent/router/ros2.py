@@ -38,6 +38,7 @@ ACTION_TOPICS = ("_action/feedback", "_action/status")
 VOLATILE_DEPTH = 5000
 CALL_TIMEOUT = 30.0
 RESULT_TIMEOUT = 3600.0  # get_result answers only when the goal ends
+PER_PASS = 64  # graph lookups per discovery pass (every 50 ms)
 
 
 class Ros2Topic(RoutedTopic):
@@ -89,6 +90,12 @@ class Ros2Routing(RouterBase):
         self._r2_statistics: Any = None
         self._r2_task: asyncio.Task[None] | None = None
         self._r2_lock = threading.Lock()
+        # Instances the controller asked about (placed, waited for): their endpoints open even
+        # while inactive; the rest stay closed, for Fast DDS pairs each new endpoint with every
+        # endpoint of its participant (the cost of mapping a topic grows with those open).
+        self._r2_wanted: set[tuple[str, str]] = set()
+        self._r2_cursor = 0
+        self._r2_qos_cursor = 0
 
     def _start_statistics(self) -> None:
         """Start the statistics loop (the router's core does)."""
@@ -324,15 +331,22 @@ class Ros2Routing(RouterBase):
             passes += 1
             try:
                 self._r2_discover()
-                if passes % 20 == 0:
+                if passes % 4 == 0:
                     self._r2_check_qos()
             except Exception:  # one bad graph answer must not end routing
                 logger.exception("skill %s: ROS 2 discovery pass failed", self.skill)
             await asyncio.sleep(0.05)
 
     def _r2_discover(self) -> None:
-        """Subscribe each source once a publisher shows up there, mirroring its QoS."""
+        """Subscribe each source once a publisher shows up there, mirroring its QoS.
+
+        A name present in the graph is asked about its publishers (a graph-wide lookup), at most
+        ``PER_PASS`` names a pass: a canonical name stays present through the router's own
+        publisher, and asking about all of them every pass would cost O(topics x endpoints).
+        """
         names: dict[int, set[str]] = {}
+        instances: list[tuple[Ros2Topic, str, list[Any], Any]] = []
+        canonicals: list[tuple[Ros2Topic, str, list[Any], Any]] = []
         for topic in list(self._topics.values()):
             if not isinstance(topic, Ros2Topic):
                 continue
@@ -344,7 +358,16 @@ class Ros2Routing(RouterBase):
                 if present is None:
                     present = names[id(side)] = {n for n, _ in side.node.get_topic_names_and_types()}
                 if name in present:
-                    self._r2_try_source(topic, name, source, side)
+                    (canonicals if source[0] is None else instances).append((topic, name, source, side))
+        # An instance's publisher is what a placement waits for: those first, then a turn of the rest.
+        found = instances + canonicals
+        if len(found) > PER_PASS:
+            start = self._r2_cursor % len(found)
+            found = (found[start:] + found[:start])[:PER_PASS]
+            self._r2_cursor = start + PER_PASS
+        for topic, name, source, side in found:
+            if source[1] is None:
+                self._r2_try_source(topic, name, source, side)
 
     def _r2_try_source(self, topic: Ros2Topic, name: str, source: list[Any], side: Any) -> None:
         infos = side.node.get_publishers_info_by_topic(name)
@@ -360,10 +383,28 @@ class Ros2Routing(RouterBase):
         self._r2_subscribe(topic, name, source, info.qos_profile.reliability, info.qos_profile.durability)
 
     def _r2_open(self, topic: Ros2Topic, reliability: Any, durability: Any) -> None:
-        """Open all of a topic's endpoints as for a publisher of this reliability and durability."""
+        """Open a topic's endpoints as when its wanted instances' publishers of this QoS show up."""
+        publisher = topic.route.publisher
         for name, source in topic.sources.items():
-            if source[1] is None:
+            if source[1] is None and source[0] is not None and self._r2_wants(publisher, source[0]):
                 self._r2_subscribe(topic, name, source, reliability, durability)
+
+    def _r2_wants(self, component: str, where: Where) -> bool:
+        """Tell whether an instance's endpoints should be open: it is active or the controller asked for it."""
+        return self._active.get(component) == where or (component, where) in self._r2_wanted
+
+    def _r2_want(self, component: str, where: Where) -> None:
+        """Open the endpoints that deliver to an instance (it is placed, waited for or switched to)."""
+        if (component, where) in self._r2_wanted:
+            return
+        self._r2_wanted.add((component, where))
+        if not self._r2_sides:
+            return
+        for topic in list(self._topics.values()):
+            if isinstance(topic, Ros2Topic) and topic.qos is not None:
+                delivery = topic.deliveries.get(component)
+                if delivery is not None and getattr(delivery, where) is None:
+                    self._r2_make_sink(topic, component, delivery, where)
 
     def _r2_subscribe(self, topic: Ros2Topic, name: str, source: list[Any], reliability: Any, durability: Any) -> None:
         """Subscribe one source with the QoS its publisher offers (the sinks too, for the first)."""
@@ -402,19 +443,31 @@ class Ros2Routing(RouterBase):
         topic.canonical_pub = robot.create_publisher(topic.msg_class, topic.canonical, topic.qos, event_callbacks=quiet)
         for component, delivery in topic.deliveries.items():
             for where in locations(self.config.components[component].location):
-                name = instance_name(topic.route.name, self.skill, component, where)
-                publisher = self._side(where).relay_node.create_publisher(
-                    topic.msg_class, name, topic.qos, event_callbacks=quiet
-                )
-                setattr(delivery, where, publisher)
+                if self._r2_wants(component, where):
+                    self._r2_make_sink(topic, component, delivery, where)
+
+    def _r2_make_sink(self, topic: Ros2Topic, component: str, delivery: Delivery, where: Where) -> None:
+        """Publish a topic into one subscriber instance's namespace, with the publisher's QoS."""
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        quiet = PublisherEventCallbacks(use_default_callbacks=False)
+        name = instance_name(topic.route.name, self.skill, component, where)
+        node = self._side(where).relay_node
+        setattr(delivery, where, node.create_publisher(topic.msg_class, name, topic.qos, event_callbacks=quiet))
 
     def _r2_check_qos(self) -> None:
-        """Report subscribers that ask for a QoS the router's publication (the publisher's) does not offer."""
+        """Report subscribers that ask for a QoS the router's publication (the publisher's) does not offer.
+
+        ``PER_PASS`` topics a call, in turn: counting a name's subscribers walks the whole graph.
+        """
         from rclpy.qos import QoSCompatibility, qos_check_compatible
 
-        for topic in list(self._topics.values()):
-            if not isinstance(topic, Ros2Topic) or topic.qos is None:
-                continue
+        opened = [t for t in self._topics.values() if isinstance(t, Ros2Topic) and t.qos is not None]
+        if len(opened) > PER_PASS:
+            start = self._r2_qos_cursor % len(opened)
+            opened = (opened[start:] + opened[:start])[:PER_PASS]
+            self._r2_qos_cursor = start + PER_PASS
+        for topic in opened:
             sinks: list[tuple[Any, Any]] = [(None, topic.canonical_pub)]
             for delivery in topic.deliveries.values():
                 sinks += [(where, getattr(delivery, where)) for where in ("robot", "cloud")]
@@ -446,9 +499,10 @@ class Ros2Routing(RouterBase):
             topic.outside_messages += 1
             for component, delivery in topic.deliveries.items():
                 where = active.get(component)
-                if where is None:
+                publisher = getattr(delivery, where) if where is not None else None
+                if publisher is None:
                     continue
-                getattr(delivery, where).publish(data)
+                publisher.publish(data)
                 delivery.messages += 1
                 delivery.bytes_robot += payload
         else:
@@ -467,9 +521,10 @@ class Ros2Routing(RouterBase):
                 topic.bytes_robot += payload
             for component, delivery in topic.deliveries.items():
                 where = active.get(component)
-                if where is None:
+                publisher = getattr(delivery, where) if where is not None else None
+                if publisher is None:
                     continue
-                getattr(delivery, where).publish(data)
+                publisher.publish(data)
                 delivery.messages += 1
                 if where == "robot":
                     topic.bytes_robot += payload
@@ -551,6 +606,7 @@ class Ros2Routing(RouterBase):
         """Tell whether a ROS 2 instance's endpoints have matched the router's."""
         if not self._r2_sides:
             return True
+        self._r2_want(component, location)
         for topic in list(self._topics.values()):
             if not isinstance(topic, Ros2Topic):
                 continue
