@@ -57,6 +57,7 @@ def server(node, args) -> None:
     from std_srvs.srv import Trigger
 
     def answer(request, response):
+        time.sleep(args.delay)
         response.success, response.message = True, args.tag
         return response
 
@@ -99,6 +100,7 @@ def main() -> None:
     parser.add_argument("--wait", action="store_true")
     parser.add_argument("--settle", type=float, default=0.0)
     parser.add_argument("--linger", type=float, default=30.0)
+    parser.add_argument("--delay", type=float, default=0.0, help="a server answers after this many seconds")
     parser.add_argument("--gate", default="", help="publish only once this file exists")
     args, ros_args = parser.parse_known_args()
     rclpy.init(args=[sys.argv[0], *ros_args])

@@ -119,10 +119,14 @@ async def test_a_transient_local_map_reaches_a_late_joiner_and_best_effort_stays
     await eventually(lambda: len(nodes.messages("fast")) >= 10, what="the best-effort listener hears")
 
 
-async def test_a_service_call_reaches_the_active_server_instance(nodes, make_router):
+async def test_a_service_call_reaches_the_active_server_instance_and_a_switch_waits_for_calls_on_their_way(
+    nodes, make_router
+):
     route = {"name": "/trigger", "type": "std_srvs/srv/Trigger", "server": "server"}
     router = await make_router(skill({"services": [route]}), server="robot")
-    nodes.run("robot", "server", "--topic", "trigger", "--tag", "robot", namespace=ns("server", "robot"))
+    nodes.run(
+        "robot", "server", "--topic", "trigger", "--tag", "robot", "--delay", "1.5", namespace=ns("server", "robot")
+    )
     nodes.run("cloud", "server", "--topic", "trigger", "--tag", "cloud", namespace=ns("server", "cloud"))
     assert await router.wait_ready("server", "robot", 30)
     assert await router.wait_ready("server", "cloud", 30)
@@ -140,17 +144,27 @@ async def test_a_service_call_reaches_the_active_server_instance(nodes, make_rou
     try:
         client = node.create_client(Trigger, "/trigger")
         assert await asyncio.to_thread(client.wait_for_service, 20.0)
-        for where in ("robot", "cloud"):
-            await router.switch("server", where)
-            future = client.call_async(Trigger.Request())
-            await asyncio.to_thread(executor.spin_until_future_complete, future, 20)
-            answers.append(future.result().message)
+        # A slow call to the robot instance is on its way when the server moves to the cloud:
+        # the switch returns only once the robot instance has answered it.
+        sent = time.monotonic()
+        future = client.call_async(Trigger.Request())
+        spun = asyncio.create_task(asyncio.to_thread(executor.spin_until_future_complete, future, 20))
+        await eventually(lambda: router._inflight.get(("server", "robot")), what="the call reaches the router")
+        await router.switch("server", "cloud")
+        assert time.monotonic() - sent > 1.3, "the switch returned before the call on its way was answered"
+        await spun
+        answers.append(future.result().message)
+        future = client.call_async(Trigger.Request())
+        await asyncio.to_thread(executor.spin_until_future_complete, future, 20)
+        answers.append(future.result().message)
     finally:
         executor.shutdown()
         node.destroy_node()
         context.try_shutdown()
     assert answers == ["robot", "cloud"]
-    assert router.statistics()["/trigger"]["calls"] == 2
+    totals = router.statistics()["/trigger"]
+    assert totals["calls"] == 2
+    assert totals["bytes"] > 2 * len("robot")  # the requests' and answers' serialized bytes
 
 
 async def test_an_action_is_relayed_with_its_feedback_and_result(nodes, make_router):

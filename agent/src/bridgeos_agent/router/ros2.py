@@ -89,7 +89,7 @@ class Ros2Routing(RouterBase):
         self._r2_services: dict[str, Ros2Service] = {}
         self._r2_statistics: Any = None
         self._r2_task: asyncio.Task[None] | None = None
-        self._r2_lock = threading.Lock()
+        self._r2_loop: asyncio.AbstractEventLoop | None = None
         # Instances the controller asked about (placed, waited for): their endpoints open even
         # while inactive; the rest stay closed, for Fast DDS pairs each new endpoint with every
         # endpoint of its participant (the cost of mapping a topic grows with those open).
@@ -224,6 +224,7 @@ class Ros2Routing(RouterBase):
         if cloud is not None and cloud.discovery_server:
             sides["cloud"] = await asyncio.to_thread(GraphSide, "cloud", cloud, base + "_cloud", namespace)
         self._r2_sides = sides
+        self._r2_loop = asyncio.get_running_loop()
         self.ros2_off_reason = None
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.qos import QoSProfile
@@ -582,8 +583,24 @@ class Ros2Routing(RouterBase):
             self._side(where).service_node.destroy_client(client)
 
     def _r2_serve(self, service: Ros2Service, request: Any, response: Any) -> Any:
-        """Answer one call with the active server instance's answer (a service executor thread)."""
-        where = self._active.get(service.route.server)
+        """Answer one call with the active server instance's answer (a service executor thread).
+
+        The call counts as in flight at that instance until it is answered: a switch away waits for it.
+        """
+        server = service.route.server
+        with self._calls_lock:
+            where = self._active.get(server)
+            if where is not None:
+                self._inflight[(server, where)] = self._inflight.get((server, where), 0) + 1
+        try:
+            return self._r2_call(service, where, request, response)
+        finally:
+            if where is not None:
+                self._leave((server, where), self._r2_loop)
+
+    def _r2_call(self, service: Ros2Service, where: Where | None, request: Any, response: Any) -> Any:
+        from rclpy.serialization import serialize_message
+
         client = service.clients.get(where) if where else None
         if client is None or not client.wait_for_service(timeout_sec=min(5.0, service.timeout)):
             service.errors += 1
@@ -597,8 +614,10 @@ class Ros2Routing(RouterBase):
             service.errors += 1
             logger.warning("skill %s: %s: the %s instance did not answer", self.skill, service.canonical, where)
             return response
+        answer = future.result()
         service.calls += 1
-        return future.result()
+        service.bytes += len(serialize_message(request)) + len(serialize_message(answer))
+        return answer
 
     # ------------------------------------------------------------------ readiness and statistics
 
@@ -631,7 +650,7 @@ class Ros2Routing(RouterBase):
     def r2_statistics(self) -> dict[str, dict[str, Any]]:
         """Return the ROS 2 services' totals (the topics are in ``statistics()``)."""
         return {
-            name: {"kind": "service", "server": s.route.server, "calls": s.calls, "bytes": 0, "errors": s.errors}
+            name: {"kind": "service", "server": s.route.server, "calls": s.calls, "bytes": s.bytes, "errors": s.errors}
             for name, s in self._r2_services.items()
         }
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -146,6 +147,7 @@ class RouterBase:
     _http_counts: dict[str, list[int]]  # component -> [requests, bytes, errors]
     _inflight: dict[tuple[str, str], int]
     _drained: dict[tuple[str, str], asyncio.Event]
+    _calls_lock: threading.Lock
     _statistics: Publication | None
     _last_traffic: dict[str, tuple[float, tuple[int, int, int, int]]]
     _runner: web.AppRunner | None
@@ -162,12 +164,16 @@ class RouterBase:
 
     def _enter(self, key: tuple[str, str]) -> None:
         """Count a request or call on its way to one instance."""
-        self._inflight[key] = self._inflight.get(key, 0) + 1
+        with self._calls_lock:
+            self._inflight[key] = self._inflight.get(key, 0) + 1
 
-    def _leave(self, key: tuple[str, str]) -> None:
-        """Count one finished; wake a switch waiting for the instance to drain."""
-        left = self._inflight[key] = self._inflight[key] - 1
-        if not left:
-            drained = self._drained.pop(key, None)
-            if drained is not None:
+    def _leave(self, key: tuple[str, str], loop: asyncio.AbstractEventLoop | None = None) -> None:
+        """Count one finished; wake a switch waiting for the instance to drain (``loop``: from another thread)."""
+        with self._calls_lock:
+            left = self._inflight[key] = self._inflight[key] - 1
+            drained = self._drained.pop(key, None) if not left else None
+        if drained is not None:
+            if loop is None:
                 drained.set()
+            else:
+                loop.call_soon_threadsafe(drained.set)

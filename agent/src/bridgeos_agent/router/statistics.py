@@ -128,6 +128,7 @@ class RouterStatistics(RouterBase):
                 dropped += service.errors
         for service in self._r2_services.values():
             if service.route.server == component:
+                robot += service.bytes
                 messages += service.calls
                 dropped += service.errors
         counts = self._http_counts.get(component)
