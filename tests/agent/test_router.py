@@ -212,32 +212,6 @@ async def test_switching_the_listener_delivers_every_message_exactly_once(nodes,
     assert robot + cloud == list(range(1, 3001))
 
 
-async def test_stored_messages_are_replayed_to_a_new_instance(nodes, make_router):
-    topic = {**CHATTER, "store": 5}
-    router = await make_router(skill({"topics": [topic]}), talker="robot", listener="robot")
-    nodes.run(
-        "talker",
-        "talker",
-        "--tag",
-        "t",
-        "--rate",
-        "100",
-        "--count",
-        "12",
-        "--wait",
-        "--linger",
-        "30",
-        namespace=ns("talker", "robot"),
-    )
-    await eventually(lambda: router.statistics()["/chatter"]["messages"] == 12, what="12 messages routed")
-    # A migrated subscriber starts in the cloud and gets the last 5 first (state sync).
-    nodes.run("late", "listener", namespace=ns("listener", "cloud"))
-    assert await router.wait_ready("listener", "cloud", 45)
-    await eventually(lambda: len(nodes.messages("late")) >= 5, what="the replay")
-    await asyncio.sleep(0.3)
-    assert nodes.messages("late") == [("t", seq) for seq in range(8, 13)]
-
-
 async def test_topics_are_added_and_removed_at_runtime(rosmaster, make_router):
     config = skill({"topics": [CHATTER]})
     router = await make_router(config, talker="robot", listener="robot")

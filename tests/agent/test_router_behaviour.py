@@ -3,7 +3,8 @@
 The same Skill, the same real talker and listener processes (tests/agent/rosnodes.py on a
 private rosmaster, tests/agent/ros2nodes.py on a loopback-only ROS 2 graph) and the same
 assertions: relay to the canonical name and the components' instances, outside publishers,
-a talker switched under a 1 kHz stream, a listener switched, statistics, runtime changes.
+a talker switched under a 1 kHz stream, a listener switched, stored messages replayed to a
+new instance, statistics, runtime changes.
 """
 
 from __future__ import annotations
@@ -203,6 +204,20 @@ async def test_switching_the_listener_delivers_every_message_exactly_once(world)
     cloud = [seq for _, seq in nodes.messages("listener-cloud")]
     assert cloud, "the cloud listener heard nothing after the switch"
     assert robot + cloud == list(range(1, 3001))
+
+
+async def test_stored_messages_are_replayed_to_a_new_instance(world):
+    router = await world.make(world.config([{**world.chatter(), "store": 5}]), talker="robot", listener="robot")
+    nodes = world.nodes
+    args = ("--tag", "t", "--rate", "100", "--count", "12", "--wait", "--linger", "30", *world.settle)
+    nodes.run("talker", "talker", *args, namespace=ns("talker", "robot"))
+    await eventually(lambda: router.statistics()["/chatter"]["messages"] == 12, what="12 messages routed")
+    # A migrated subscriber starts in the cloud and gets the last 5 first (state sync).
+    nodes.run("late", "listener", namespace=ns("listener", "cloud"))
+    assert await router.wait_ready("listener", "cloud", 45)
+    await eventually(lambda: len(nodes.messages("late")) >= 5, what="the replay")
+    await asyncio.sleep(0.3)
+    assert nodes.messages("late") == [("t", seq) for seq in range(8, 13)]
 
 
 async def test_statistics_count_what_was_routed(world):

@@ -35,7 +35,7 @@ def skill(router: dict, ros: int = 2) -> dict:
     spec = {"command": ["true"]}
     components = {
         name: {"name": name.title(), "location": "either", "ros": ros, "robot": spec, "cloud": spec}
-        for name in ("talker", "listener", "server")
+        for name in ("talker", "listener", "server", "viewer")
     }
     return {"skill": "Relay2", "skill_id": SKILL, "components": components, "router": router}
 
@@ -86,7 +86,7 @@ async def make_router(tmp_path: Path) -> AsyncIterator[Callable[..., object]]:
 async def test_a_transient_local_map_reaches_a_late_joiner_and_best_effort_stays_best_effort(nodes, make_router):
     routes = [
         {"name": "/map", "type": "nav_msgs/msg/OccupancyGrid", "publisher": "server", "subscribers": []},
-        {"name": "/map_tag", "type": "std_msgs/msg/String", "publisher": "server", "subscribers": []},
+        {"name": "/map_tag", "type": "std_msgs/msg/String", "publisher": "server", "subscribers": ["viewer"]},
         {**CHATTER, "name": "/scan_tag"},
     ]
     router = await make_router(skill({"topics": routes}), talker="robot", listener="robot", server="robot")
@@ -114,6 +114,10 @@ async def test_a_transient_local_map_reaches_a_late_joiner_and_best_effort_stays
     await asyncio.sleep(1.0)
     nodes.run("late", "listener", "--topic", "/map_tag", "--latched", "--depth", "1")
     await eventually(lambda: nodes.messages("late") == [("map", 1)], what="the late joiner gets the map")
+    # A viewer component placed in the cloud long after the map was sent gets it too.
+    nodes.run("moved", "listener", "--topic", "map_tag", "--latched", "--depth", "1", namespace=ns("viewer", "cloud"))
+    assert await router.wait_ready("viewer", "cloud", 30)
+    await eventually(lambda: nodes.messages("moved") == [("map", 1)], what="the moved listener gets the map")
     # A best-effort listener hears the best-effort stream (the router offers what the publisher offers).
     nodes.run("fast", "listener", "--topic", "/scan_tag", "--best-effort")
     await eventually(lambda: len(nodes.messages("fast")) >= 10, what="the best-effort listener hears")

@@ -18,7 +18,7 @@ import logging
 import struct
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from typing import Any
 
@@ -44,7 +44,7 @@ PER_PASS = 64  # graph lookups per discovery pass (every 50 ms)
 class Ros2Topic(RoutedTopic):
     """A routed ROS 2 topic: its type, the sources seen so far and the QoS mirrored."""
 
-    __slots__ = ("msg_class", "own", "qos", "sources")
+    __slots__ = ("matched", "msg_class", "own", "qos", "sources")
 
     def __init__(self, route: TopicRoute, msg_class: type, now: float) -> None:
         super().__init__(route, None, now)
@@ -52,6 +52,7 @@ class Ros2Topic(RoutedTopic):
         self.qos: Any = None  # the QoS of the router's publications, from the first publisher seen
         self.sources: dict[str, list[Any]] = {}  # name -> [where or None, subscription or None]
         self.own: OrderedDict[tuple[int, bytes], None] = OrderedDict()  # what we sent on the canonical name
+        self.matched: dict[tuple[str, str], int] = {}  # (subscriber, where) -> readers its sink matched, last seen
         fields = list(msg_class.get_fields_and_field_types().values())  # type: ignore[attr-defined]
         self.has_header = bool(fields) and fields[0] == "std_msgs/Header"
 
@@ -332,6 +333,7 @@ class Ros2Routing(RouterBase):
             passes += 1
             try:
                 self._r2_discover()
+                self._r2_replay()
                 if passes % 4 == 0:
                     self._r2_check_qos()
             except Exception:  # one bad graph answer must not end routing
@@ -369,6 +371,27 @@ class Ros2Routing(RouterBase):
         for topic, name, source, side in found:
             if source[1] is None:
                 self._r2_try_source(topic, name, source, side)
+
+    def _r2_replay(self) -> None:
+        """Give a subscriber instance that just connected the topic's stored messages (state sync, as ROS 1's).
+
+        Its sink had no reader before: nobody else hears them twice. Under the calls lock, which the
+        relay holds for a topic with a store, so no live message slips in between or out.
+        """
+        for topic in list(self._topics.values()):
+            if not isinstance(topic, Ros2Topic) or topic.store is None or topic.qos is None:
+                continue
+            for component, delivery in topic.deliveries.items():
+                for where in ("robot", "cloud"):
+                    publisher = getattr(delivery, where)
+                    if publisher is None:
+                        continue
+                    count = publisher.get_subscription_count()
+                    if count and not topic.matched.get((component, where)) and topic.store:
+                        with self._calls_lock:
+                            for data in topic.store:
+                                publisher.publish(data)
+                    topic.matched[(component, where)] = count
 
     def _r2_try_source(self, topic: Ros2Topic, name: str, source: list[Any], side: Any) -> None:
         infos = side.node.get_publishers_info_by_topic(name)
@@ -421,6 +444,8 @@ class Ros2Routing(RouterBase):
         )
         if topic.qos is None:
             topic.qos = qos
+            if durable and topic.store is None:
+                topic.store = deque(maxlen=1)  # a latched message reaches a moved subscriber too
             self._r2_make_sinks(topic)
         if not durable:
             # The router's own reader keeps all: falling behind in a burst must not cost messages.
@@ -509,33 +534,49 @@ class Ros2Routing(RouterBase):
         else:
             if active.get(topic.route.publisher) != source:
                 return  # the inactive instance's traffic goes nowhere
-            topic.messages += 1
-            canonical: Any = topic.canonical_pub
-            if canonical is not None:
-                if topic.deliveries:
-                    # The canonical subscription hears this back: know it by its sequence number and bytes.
-                    topic.own[(topic.canonical_delivered + 1, data)] = None
-                    if len(topic.own) > 10000:
-                        topic.own.popitem(last=False)
-                canonical.publish(data)
-                topic.canonical_delivered += 1
+            store = topic.store
+            if store is not None:
+                with self._calls_lock:  # a replay to a new subscriber instance is never cut into
+                    store.append(data)
+                    self._r2_deliver(topic, source, data, payload, active)
+            else:
+                self._r2_deliver(topic, source, data, payload, active)
+        self._r2_window(topic, data, payload, self.clock())
+
+    def _r2_deliver(
+        self, topic: Ros2Topic, source: Where, data: bytes, payload: int, active: dict[str, Where | None]
+    ) -> None:
+        """Send one of the active publisher's messages to the canonical name and the subscribers' instances."""
+        topic.messages += 1
+        canonical: Any = topic.canonical_pub
+        if canonical is not None:
+            if topic.deliveries:
+                # The canonical subscription hears this back: know it by its sequence number and bytes.
+                topic.own[(topic.canonical_delivered + 1, data)] = None
+                if len(topic.own) > 10000:
+                    topic.own.popitem(last=False)
+            canonical.publish(data)
+            topic.canonical_delivered += 1
+            topic.bytes_robot += payload
+        for component, delivery in topic.deliveries.items():
+            where = active.get(component)
+            publisher = getattr(delivery, where) if where is not None else None
+            if publisher is None:
+                continue
+            publisher.publish(data)
+            delivery.messages += 1
+            if where == "robot":
                 topic.bytes_robot += payload
-            for component, delivery in topic.deliveries.items():
-                where = active.get(component)
-                publisher = getattr(delivery, where) if where is not None else None
-                if publisher is None:
-                    continue
-                publisher.publish(data)
-                delivery.messages += 1
-                if where == "robot":
-                    topic.bytes_robot += payload
-                else:
-                    topic.bytes_cloud += payload
-                if source == "robot":
-                    delivery.bytes_robot += payload
-                else:
-                    delivery.bytes_cloud += payload
-        now = self.clock()
+            else:
+                topic.bytes_cloud += payload
+            if source == "robot":
+                delivery.bytes_robot += payload
+            else:
+                delivery.bytes_cloud += payload
+
+    @staticmethod
+    def _r2_window(topic: Ros2Topic, data: bytes, payload: int, now: float) -> None:
+        """Count one relayed message into the statistics window (its period and header stamp's age)."""
         topic.w_messages += 1
         topic.w_bytes += payload
         if topic.w_last:
