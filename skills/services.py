@@ -22,6 +22,7 @@ from robots.services import client_frame
 
 from .choices import COMPONENT_STATUS_CHOICES
 from .cloud import orchestration
+from .cloud.relay import relay_for_skill
 from .models import CloudInstance, Component, Skill, SkillTemplate
 
 if TYPE_CHECKING:
@@ -52,6 +53,16 @@ def add_skill(robot: Robot, config: dict[str, Any]) -> Skill:
 def add_skill_from_template(robot: Robot, template: SkillTemplate) -> Skill:
     """Add the Skill of a catalog template to a robot."""
     return add_skill(robot, template.config)
+
+
+def start_order(skill: Skill) -> dict[str, Any]:
+    """Return the skill_start a robot gets: its config and the cloud relay it uses, if any (started on commit)."""
+    with transaction.atomic():
+        relay = relay_for_skill(skill)
+    order: dict[str, Any] = {"skill": skill.skill_id, "config": skill.config}
+    if relay is not None:
+        order["cloud_relay"] = relay
+    return order
 
 
 # --------------------------------------------------------------------------- robot reports

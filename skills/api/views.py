@@ -113,9 +113,7 @@ class SkillStartView(APIView):
     @extend_schema(request=None, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str, skill_id: str) -> Response:
         skill = skill_of(request, robot_id, skill_id)
-        return relay(
-            robot_id, Event.SKILL_START, {"skill": skill.skill_id, "config": skill.config}, wait_seconds(request)
-        )
+        return relay(robot_id, Event.SKILL_START, services.start_order(skill), wait_seconds(request))
 
 
 class SkillStopView(APIView):

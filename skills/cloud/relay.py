@@ -62,16 +62,27 @@ def relays_for(robot_id: str, master: str | None) -> dict[str, dict[str, str]]:
     if not master:
         return {}  # a relay is a node on the robot's ROS master
     skills = Skill.objects.filter(robot_id=robot_id, components__location__in=CLOUD_LOCATIONS).distinct()
-    answer = {}
-    for skill in skills:
-        relay = CloudRelay.objects.select_for_update().filter(skill=skill).first()
-        if relay is None:
-            relay = CloudRelay.objects.create(
-                skill=skill, port=_free_port(), nonce=secrets.token_hex(16), status=CS.PENDING
-            )
-        enqueue_on_commit("ensure_cloud_relay", robot_id, skill.skill_id)
-        answer[skill.skill_id] = {"url": relay_url(relay.port), "token": relay_token(robot_id, skill.skill_id, relay)}
-    return answer
+    return {skill.skill_id: _relay_of(skill) for skill in skills}
+
+
+def relay_for_skill(skill: Skill) -> dict[str, str] | None:
+    """Return {url, token} of the relay a Skill started while its robot is connected uses (None: it needs none).
+
+    In the caller's transaction; the relay is started on commit, as at a login.
+    """
+    if not skill.robot.ros_master or not skill.components.filter(location__in=CLOUD_LOCATIONS).exists():
+        return None
+    return _relay_of(skill)
+
+
+def _relay_of(skill: Skill) -> dict[str, str]:
+    relay = CloudRelay.objects.select_for_update().filter(skill=skill).first()
+    if relay is None:
+        relay = CloudRelay.objects.create(
+            skill=skill, port=_free_port(), nonce=secrets.token_hex(16), status=CS.PENDING
+        )
+    enqueue_on_commit("ensure_cloud_relay", skill.robot_id, skill.skill_id)
+    return {"url": relay_url(relay.port), "token": relay_token(skill.robot_id, skill.skill_id, relay)}
 
 
 def relay_url(port: int) -> str:

@@ -180,6 +180,33 @@ async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_
         await link.close()
 
 
+async def test_a_skill_added_while_its_robot_is_connected_gets_its_relay_with_skill_start(stack, rosmaster):
+    token, api_token = await make_robot("rl-late", skill={**CONFIG, "components": _robot_only()})
+    link, success = await login(stack, "rl-late", token, rosmaster)
+    try:
+        assert "cloud_relays" not in success
+        owner = {"Authorization": f"Token {api_token}"}
+        async with httpx.AsyncClient(base_url=stack.url, timeout=30) as api:
+            late = {**CONFIG, "skill_id": "late-relay", "skill": "Late relay"}
+            added = await api.post("/api/robot/rl-late/skill/add", json={"config": late}, headers=owner)
+            assert added.status_code == 201, added.text
+            start = asyncio.create_task(
+                api.post("/api/robot/rl-late/skill/late-relay/start", params={"wait": 10}, headers=owner)
+            )
+            frame = await link.next(Event.SKILL_START, timeout=20)
+            await link.send(Event.ACK, reply_to=frame.id)
+            assert (await start).status_code == 200
+        order = protocol.SkillStart.model_validate(frame.data)
+        assert order.skill == "late-relay" and order.cloud_relay is not None
+        relay = order.cloud_relay
+        await eventually(lambda: _answered(relay.url, relay.token), timeout=45, what="the late Skill's relay answering")
+        assert await answers(relay.url, None) == 401
+        # The robot-only Skill still has none.
+        assert [o.skill for o in await relays_of("rl-late")] == ["late-relay"]
+    finally:
+        await link.close()
+
+
 async def _answered(url: str, token: str) -> bool:
     try:
         return await answers(url, token) == 200

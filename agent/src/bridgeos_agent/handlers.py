@@ -109,6 +109,8 @@ async def on_skill_start(controller: RobotController, envelope: Envelope, p: Any
             raise ProtocolError(
                 f"config is for skill {config.skill_id!r}, not {p.skill!r}", field="data.config.skill_id"
             )
+    if p.cloud_relay is not None:
+        controller.cloud_relays[p.skill] = p.cloud_relay  # a Skill added since the login: its router links to it
     # Accepted: ack now, launch in the background and report progress as statuses.
     controller.spawn(controller.start_skill(config))
 

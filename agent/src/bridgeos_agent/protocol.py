@@ -404,10 +404,11 @@ class OffloadingGet(RobotScoped):
 
 
 class SkillStart(RobotScoped):
-    """Order a Skill to launch, optionally with its config."""
+    """Order a Skill to launch, optionally with its config and the cloud relay it uses (cloud-side routing)."""
 
     skill: Slug
     config: JsonObject | None = None
+    cloud_relay: CloudRelayInfo | None = None
 
 
 class SkillStop(RobotScoped):
