@@ -379,9 +379,10 @@ class SkillManager:
             )
         if points:
             await self.host.emit(Event.METRICS, {"metrics": points})
-        for decision in decisions:
-            if decision.migrate:
-                await self._move(decision, costs[decision.component], now)
+        # Moves decided together go together: one component's cloud start does not hold up another's.
+        moves = [self._move(d, costs[d.component], now) for d in decisions if d.migrate]
+        if moves:
+            await asyncio.gather(*moves)
         return decisions
 
     async def _move(self, decision: Decision, estimate: PolicyCosts, decided_at: float) -> None:
@@ -392,6 +393,14 @@ class SkillManager:
         try:
             await self.host.migrate_component(record, decision.component, decision.target)
             self.save_placement()
+            logger.info(
+                "skill %s: %s moved to the %s in %.2f s (decided by the %s)",
+                self.skill_id,
+                decision.component,
+                decision.target,
+                time.perf_counter() - started,
+                decision.decided_by,
+            )
         except Exception as exc:  # e.g. no room on the robot: the next decision after the cooldown tries again
             error = str(exc) or type(exc).__name__
             logger.warning(

@@ -75,6 +75,7 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics, R
         # ROS 2 calls are counted from rclpy's threads: they read the active instance and count
         # themselves under it in one step, so a switch never misses a call still on its way.
         self._calls_lock = threading.Lock()
+        self._switching = asyncio.Lock()
         self._statistics = None
         self._last_traffic = {}
         self._runner = None
@@ -210,21 +211,24 @@ class SkillRouter(TopicRouting, ServiceRouting, HttpRouting, RouterStatistics, R
         if location is None:
             raise ValueError("switch needs a location")
         self._r2_want(component, location)  # type: ignore[arg-type]
-        with self._calls_lock:
-            old = self._active.get(component)
-            self._active[component] = location  # type: ignore[assignment]
-            key = (component, old)
-            busy = old is not None and old != location and bool(self._inflight.get(key))  # type: ignore[arg-type]
-            drained = self._drained.setdefault(key, asyncio.Event()) if busy else None  # type: ignore[arg-type]
-        link = self.cloud_link
-        plan = link.plan(self) if link is not None and link.up else None  # in this same step
-        # Topics switch in one step of the event loop: a burst goes wholly to the old or the new
-        # instance. Requests and service calls already on their way finish at the old instance.
-        if drained is not None:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(drained.wait(), self.settings.drain_timeout)
-        if link is not None and plan is not None:
-            await link.handover(self, plan)
+        # One switch at a time (components moved together): each cloud-relay plan is handed over
+        # before the next is made, so an older plan never lands after a newer one.
+        async with self._switching:
+            with self._calls_lock:
+                old = self._active.get(component)
+                self._active[component] = location  # type: ignore[assignment]
+                key = (component, old)
+                busy = old is not None and old != location and bool(self._inflight.get(key))  # type: ignore[arg-type]
+                drained = self._drained.setdefault(key, asyncio.Event()) if busy else None  # type: ignore[arg-type]
+            link = self.cloud_link
+            plan = link.plan(self) if link is not None and link.up else None  # in this same step
+            # Topics switch in one step of the event loop: a burst goes wholly to the old or the new
+            # instance. Requests and service calls already on their way finish at the old instance.
+            if drained is not None:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(drained.wait(), self.settings.drain_timeout)
+            if link is not None and plan is not None:
+                await link.handover(self, plan)
         logger.info("skill %s: %s now routed to its %s instance", self.skill, component, location)
 
     def _check(self, component: str, location: str | None) -> None:
