@@ -373,6 +373,9 @@ class RosbridgeSession:
             self.status(exc.level, f"{op}: {exc}", ident)
         except BridgeError as exc:
             self.status("error", f"{op}: {exc}", ident)
+        except Exception as exc:  # a fault of ours must cost the client one answer, not its connection
+            logger.exception("rosbridge: %s failed", op)
+            self.status("error", f"{op}: internal error: {type(exc).__name__}: {exc}"[:500], ident)
 
     async def _ignore(self, message: dict[str, Any]) -> None:
         return
