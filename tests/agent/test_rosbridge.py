@@ -32,6 +32,7 @@ from tests.conftest import free_port
 pytestmark = [pytest.mark.timeout(120)]
 
 FRAME_LIMIT = 1 << 20  # the test server's frame limit, small enough to exceed cheaply
+LINGER_S = 0.5  # how long the test server keeps a topic after its last client left
 
 
 def ros1_available() -> bool:
@@ -116,7 +117,7 @@ def _ros1_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
         async def start() -> RosbridgeServer:
             graph = Ros1Graph(master)
             await graph.start()
-            server = RosbridgeServer(graph, max_frame_bytes=FRAME_LIMIT)
+            server = RosbridgeServer(graph, max_frame_bytes=FRAME_LIMIT, linger_s=LINGER_S)
             await server.start("127.0.0.1", 0)
             return server
 
@@ -146,7 +147,9 @@ def _ros2_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
             nodes.stop("caller")
 
     async def start() -> RosbridgeServer:
-        server = RosbridgeServer(Ros2BridgeGraph(graph, asyncio.get_running_loop()), max_frame_bytes=FRAME_LIMIT)
+        server = RosbridgeServer(
+            Ros2BridgeGraph(graph, asyncio.get_running_loop()), max_frame_bytes=FRAME_LIMIT, linger_s=LINGER_S
+        )
         await server.start("127.0.0.1", 0)
         return server
 
@@ -204,6 +207,16 @@ def test_a_client_receives_a_topic_the_robot_publishes(robot: Robot, client: ros
     assert all(message["data"].startswith("robot ") for message in heard)
     seqs = [int(message["data"].split()[1]) for message in heard]
     assert seqs == sorted(seqs)
+
+
+def test_the_robot_is_subscribed_only_while_someone_listens(robot: Robot, client: roslibpy.Ros) -> None:
+    topic = roslibpy.Topic(client, "/chatter", "std_msgs/String")
+    heard: list[dict[str, Any]] = []
+    topic.subscribe(heard.append)
+    wait_for(lambda: heard, what="a message")
+    assert "/chatter" in robot.server.bridge.subscribed_topics()
+    topic.unsubscribe()
+    wait_for(lambda: "/chatter" not in robot.server.bridge.subscribed_topics(), what="the graph unsubscription")
 
 
 def test_a_robot_node_hears_what_a_client_publishes(robot: Robot, client: roslibpy.Ros) -> None:

@@ -40,6 +40,7 @@ MAX_CALLS_IN_FLIGHT = 64  # service calls one client may have running at once
 MAX_FRAGMENTED = 8  # fragmented messages one client may be sending at once
 DEFAULT_CALL_TIMEOUT = 30.0
 CLIENT_SERVICE_TIMEOUT = 10.0  # how long a ROS caller waits for a client-advertised service to answer
+LINGER_S = 5.0  # how long a topic stays subscribed in the graph after its last client left
 
 Send = Callable[[str | bytes], Awaitable[None]]
 
@@ -151,11 +152,12 @@ class _Outlet:
 class _Fanout:
     """One graph subscription and the clients' outlets it feeds."""
 
-    __slots__ = ("outlets", "subscription")
+    __slots__ = ("idle", "outlets", "subscription")
 
     def __init__(self) -> None:
         self.subscription: GraphSubscription | None = None
         self.outlets: dict[_Outlet, RosbridgeSession] = {}
+        self.idle: asyncio.TimerHandle | None = None  # the unsubscribe pending once the last client left
 
     def deliver(self, sample: Sample) -> None:
         for outlet, session in self.outlets.items():
@@ -173,11 +175,13 @@ class Rosbridge:
         max_frame_bytes: int = MAX_FRAME_BYTES,
         default_queue: int = DEFAULT_QUEUE,
         client_service_timeout: float = CLIENT_SERVICE_TIMEOUT,
+        linger_s: float = LINGER_S,
     ) -> None:
         self.graph = graph
         self.max_frame_bytes = max_frame_bytes
         self.default_queue = default_queue
         self.client_service_timeout = client_service_timeout
+        self.linger_s = linger_s
         self.sessions: set[RosbridgeSession] = set()
         self._fanouts: dict[str, _Fanout] = {}
         self._attaching: dict[str, asyncio.Lock] = {}
@@ -195,6 +199,8 @@ class Rosbridge:
         """Close every session and leave the graph's topics and services."""
         for session in list(self.sessions):
             await session.close()
+        for topic in list(self._fanouts):
+            self._drop_fanout(topic)
 
     # ------------------------------------------------------------------ topics
 
@@ -208,6 +214,9 @@ class Rosbridge:
                 fanout.subscription = await self.graph.subscribe(topic, type_, fanout.deliver)
                 self._fanouts[topic] = fanout
             assert fanout.subscription is not None
+            if fanout.idle is not None:
+                fanout.idle.cancel()
+                fanout.idle = None
             if type_ is not None and self.graph.normalize_type(type_) != fanout.subscription.type:
                 if not fanout.outlets:
                     self._drop_fanout(topic)
@@ -216,15 +225,23 @@ class Rosbridge:
             return fanout.subscription.type
 
     def detach(self, topic: str, outlet: _Outlet) -> None:
-        """Stop feeding an outlet; the last one leaving unsubscribes in the graph."""
+        """Stop feeding an outlet; the graph subscription ends a little after the last one leaves."""
         fanout = self._fanouts.get(topic)
         if fanout is not None:
             fanout.outlets.pop(outlet, None)
-            if not fanout.outlets:
-                self._drop_fanout(topic)
+            if not fanout.outlets and fanout.idle is None:
+                # Kept a moment: a client that unsubscribes and subscribes again (page reloads, roslibjs
+                # re-subscribing) reuses the connection instead of racing a publisher's teardown of it.
+                fanout.idle = asyncio.get_running_loop().call_later(self.linger_s, self._expire, topic, fanout)
+
+    def _expire(self, topic: str, fanout: _Fanout) -> None:
+        if self._fanouts.get(topic) is fanout and not fanout.outlets:
+            self._drop_fanout(topic)
 
     def _drop_fanout(self, topic: str) -> None:
         fanout = self._fanouts.pop(topic)
+        if fanout.idle is not None:
+            fanout.idle.cancel()
         if fanout.subscription is not None:
             fanout.subscription.close()
 
@@ -289,6 +306,10 @@ class Rosbridge:
         del self._services[name]
         entry[1].close()
         return True
+
+    def subscribed_topics(self) -> list[str]:
+        """Return the topics the bridge is subscribed to in the graph."""
+        return list(self._fanouts)
 
     def client_services(self) -> list[str]:
         """Return the services clients advertise."""
