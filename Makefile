@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml agent/pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV); \
 	$(PY) -m pip install -q --upgrade pip setuptools wheel; \
 	$(PY) -m pip install -q torch==2.13.0; \
-	$(PY) -m pip install -q -e "./agent[ros2]" -e ".[test]"; \
+	$(PY) -m pip install -q -e "./agent[ros2,rosbridge]" -e ".[test]"; \
 	echo "== venv: ready in $$(( $$(date +%s) - start )) s"
 	@touch $@
 

@@ -1,4 +1,4 @@
-"""Small real rclpy nodes for the router's tests and benchmark: talker, listener, map, server, action, caller."""
+"""Small real rclpy nodes for the router's tests and benchmark: talker, listener, server, action, caller."""
 
 from __future__ import annotations
 
@@ -86,9 +86,23 @@ def action(node, args) -> None:
     rclpy.spin(node)
 
 
+def caller(node, args) -> None:
+    """Call a std_srvs/SetBool service once (data: true) and print its answer."""
+    from std_srvs.srv import SetBool
+
+    client = node.create_client(SetBool, args.topic)
+    if not client.wait_for_service(timeout_sec=20):
+        print("no service", flush=True)
+        return
+    future = client.call_async(SetBool.Request(data=True))
+    rclpy.spin_until_future_complete(node, future, timeout_sec=20)
+    answer = future.result()
+    print(f"answer {answer.success} {answer.message}" if answer is not None else "no answer", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("role", choices=["talker", "listener", "server", "action"])
+    parser.add_argument("role", choices=["talker", "listener", "server", "action", "caller"])
     parser.add_argument("--topic", default="chatter")
     parser.add_argument("--tag", default="t")
     parser.add_argument("--rate", type=float, default=10.0)

@@ -93,13 +93,45 @@ def run_agent(args: argparse.Namespace) -> int:
                 logging.getLogger("bridgeos_agent").error("cannot serve metrics on %s: %s", args.metrics, exc)
                 return 1
             logging.getLogger("bridgeos_agent").info("metrics on http://%s/metrics", args.metrics)
+        rosbridge = None
+        if args.rosbridge:
+            # Before the controller runs: the robot's ROS 2 Context must be made before any cloud graph's.
+            try:
+                rosbridge = await _serve_rosbridge(args.rosbridge, args.rosbridge_ros)
+            except Exception as exc:  # no master, no rclpy, port taken: say which and stop
+                logging.getLogger("bridgeos_agent").error("cannot serve rosbridge on %s: %s", args.rosbridge, exc)
+                if exporter is not None:
+                    await exporter.cleanup()
+                return 1
         try:
             return await controller.run()
         finally:
+            if rosbridge is not None:
+                await rosbridge.close()
             if exporter is not None:
                 await exporter.cleanup()
 
     return asyncio.run(main())
+
+
+async def _serve_rosbridge(address: str, ros: str) -> Any:
+    """Serve rosbridge v2 for the robot's ROS 1 or ROS 2 graph (auto: ROS 1 when a master answers)."""
+    from bridgeos_agent.bridges.server import RosbridgeServer, open_graph, parse_address
+
+    host, port = parse_address(address)
+    if ros == "auto":
+        ros = "ros1" if find_ros_master() else "ros2"
+    graph = await open_graph(ros)
+    server = RosbridgeServer(graph)
+    try:
+        await server.start(host, port)
+    except BaseException:
+        await graph.close()
+        raise
+    logging.getLogger("bridgeos_agent").info(
+        "rosbridge v2 for the robot's %s graph on ws://%s:%d (unauthenticated)", ros.upper(), host, server.port
+    )
+    return server
 
 
 def doctor(args: argparse.Namespace) -> int:

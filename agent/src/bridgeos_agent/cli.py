@@ -89,6 +89,21 @@ def _metrics_address(value: str) -> str:
     return value
 
 
+def _rosbridge_address(value: str) -> str:
+    """Accept HOST:PORT for --rosbridge (a port of its own: 0 is refused)."""
+    from bridgeos_agent.metrics import parse_address
+
+    try:
+        host, port = parse_address(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--rosbridge {exc}") from None
+    if port == 0:
+        raise argparse.ArgumentTypeError(f"--rosbridge {value!r}: give a port (rosbridge's usual one is 9090)")
+    if any(ch.isspace() for ch in host):
+        raise argparse.ArgumentTypeError(f"--rosbridge {value!r}: the host must not contain whitespace")
+    return value
+
+
 def _device(value: str) -> str:
     """Accept a network device name (at most 15 letters, digits, '-', '_' or '.')."""
     if not value or len(value) > 15 or not all(ch.isalnum() or ch in "-_." for ch in value):
@@ -247,6 +262,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve Prometheus metrics on http://HOST:PORT/metrics, unauthenticated: keep HOST on loopback "
         "or a monitoring network (env BRIDGEOS_METRICS)",
     )
+    run.add_argument(
+        "--rosbridge",
+        type=_rosbridge_address,
+        default=os.environ.get("BRIDGEOS_ROSBRIDGE") or None,
+        metavar="HOST:PORT",
+        help="serve the rosbridge v2 protocol for this robot's ROS graph on ws://HOST:PORT, unauthenticated "
+        "like rosbridge_server: keep HOST on loopback, e.g. 127.0.0.1:9090 (env BRIDGEOS_ROSBRIDGE; default off)",
+    )
+    run.add_argument(
+        "--rosbridge-ros",
+        default=os.environ.get("BRIDGEOS_ROSBRIDGE_ROS", "auto"),
+        help="which graph --rosbridge serves: ros1 (the ROS master of ROS_MASTER_URI), ros2 (this process's "
+        "ROS 2 env) or auto: ros1 when a ROS master answers, else ros2 (env BRIDGEOS_ROSBRIDGE_ROS)",
+    )
     run.add_argument("-q", "--quiet", action="store_true", help="print warnings and errors only")
     run.set_defaults(run_parser=run)
 
@@ -330,6 +359,26 @@ def _check_ros2_args(parser: argparse.ArgumentParser, args: argparse.Namespace) 
         parser.error(f"--ros2 on: {missing}")
 
 
+def _check_rosbridge_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if args.rosbridge_ros not in ("auto", "ros1", "ros2"):
+        parser.error(
+            f"--rosbridge-ros (env BRIDGEOS_ROSBRIDGE_ROS) must be auto, ros1 or ros2, not {args.rosbridge_ros!r}"
+        )
+    if args.rosbridge is None:
+        return
+    try:
+        import cbor2  # noqa: F401
+    except ImportError:
+        parser.error("--rosbridge needs cbor2: pip install 'bridgeos-agent[rosbridge]'")
+    if args.rosbridge_ros == "ros1":
+        try:
+            import rosbags  # noqa: F401
+        except ImportError:
+            parser.error("--rosbridge-ros ros1 needs rosbags: pip install 'bridgeos-agent[rosbridge]'")
+    if args.rosbridge_ros == "ros2" and (missing := rclpy_missing()):
+        parser.error(f"--rosbridge-ros ros2: {missing}")
+
+
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Check the run options, then run the Robot Controller until it is stopped."""
     _check_connection_args(parser, args)
@@ -337,6 +386,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         parser.error(f"--data-dir {args.data_dir} exists and is not a directory")
     _check_transport_args(parser, args)
     _check_ros2_args(parser, args)
+    _check_rosbridge_args(parser, args)
     from bridgeos_agent.agent import run_agent
 
     return run_agent(args)

@@ -8,12 +8,12 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from bridgeos_agent.ros2graph import Ros2Graph
 
-__all__ = ["GraphSide", "RelayLoop"]
+__all__ = ["GraphSide", "RelayLoop", "joined"]
 
 logger = logging.getLogger(__name__)
 
@@ -27,52 +27,66 @@ _ENV_LOCK = threading.Lock()
 _CONTEXTS: dict[Ros2Graph, Any] = {}
 
 
+@contextlib.contextmanager
+def joined(graph: Ros2Graph) -> Iterator[Any]:
+    """Yield the graph's process-wide Context, made on first use, with the graph's env set around it.
+
+    Create a graph's nodes inside this block: rmw reads the discovery env when a Context's first
+    node makes its participant. Anything of the process that joins a graph (a Skill's router, the
+    rosbridge door) goes through here, so every part shares one participant per graph.
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    env = graph.env()
+    env.pop("RMW_IMPLEMENTATION", None)  # chosen once per process, when rclpy loads
+    if graph.discovery_server:
+        # A plain client of a discovery server learns only the endpoints it matches; the router
+        # must see the whole graph to find each instance's publishers, so it is a super client.
+        env["ROS_SUPER_CLIENT"] = "TRUE"
+    with _ENV_LOCK:
+        saved = {name: os.environ.get(name) for name in (*env, "ROS_DISCOVERY_SERVER", "ROS_SUPER_CLIENT")}
+        try:
+            os.environ.pop("ROS_DISCOVERY_SERVER", None)
+            os.environ.pop("ROS_SUPER_CLIENT", None)
+            os.environ.update(env)
+            context = _CONTEXTS.get(graph)
+            if context is None:
+                context = _CONTEXTS[graph] = Context()
+                rclpy.init(context=context, domain_id=graph.domain_id, args=[])
+            yield context
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+
 class GraphSide:
     """One ROS 2 graph the router takes part in: a Context, a topic node and a service node."""
 
     def __init__(self, label: str, graph: Ros2Graph, node_name: str, namespace: str) -> None:
         import rclpy
         from rclpy.callback_groups import ReentrantCallbackGroup
-        from rclpy.context import Context
         from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
         self.label = label
         self.graph = graph
-        env = graph.env()
-        env.pop("RMW_IMPLEMENTATION", None)  # chosen once per process, when rclpy loads
-        if graph.discovery_server:
-            # A plain client of a discovery server learns only the endpoints it matches; the router
-            # must see the whole graph to find each instance's publishers, so it is a super client.
-            env["ROS_SUPER_CLIENT"] = "TRUE"
-        with _ENV_LOCK:
-            saved = {name: os.environ.get(name) for name in (*env, "ROS_DISCOVERY_SERVER", "ROS_SUPER_CLIENT")}
-            try:
-                os.environ.pop("ROS_DISCOVERY_SERVER", None)
-                os.environ.pop("ROS_SUPER_CLIENT", None)
-                os.environ.update(env)
-                context = _CONTEXTS.get(graph)
-                if context is None:
-                    context = _CONTEXTS[graph] = Context()
-                    rclpy.init(context=context, domain_id=graph.domain_id, args=[])
-                self.context = context
-                name = re.sub(r"[^A-Za-z0-9_]", "_", node_name)
-                # Topics on one node and executor thread; services on another with a pool, so a
-                # long action result never holds up the topics' hot path.
-                light: dict[str, Any] = {
-                    "namespace": namespace,
-                    "context": self.context,
-                    "start_parameter_services": False,
-                }
-                self.node = rclpy.create_node(name, **light)
-                self.service_node = rclpy.create_node(name + "_services", **light)
-                # The relay's subscriptions: taken by a loop of our own, not rclpy's executor (5-10x faster).
-                self.relay_node = rclpy.create_node(name + "_relay", **light, enable_rosout=False)
-            finally:
-                for key, value in saved.items():
-                    if value is None:
-                        os.environ.pop(key, None)
-                    else:
-                        os.environ[key] = value
+        with joined(graph) as context:
+            self.context = context
+            name = re.sub(r"[^A-Za-z0-9_]", "_", node_name)
+            # Topics on one node and executor thread; services on another with a pool, so a
+            # long action result never holds up the topics' hot path.
+            light: dict[str, Any] = {
+                "namespace": namespace,
+                "context": self.context,
+                "start_parameter_services": False,
+            }
+            self.node = rclpy.create_node(name, **light)
+            self.service_node = rclpy.create_node(name + "_services", **light)
+            # The relay's subscriptions: taken by a loop of our own, not rclpy's executor (5-10x faster).
+            self.relay_node = rclpy.create_node(name + "_relay", **light, enable_rosout=False)
         self.group = ReentrantCallbackGroup()
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(self.node)

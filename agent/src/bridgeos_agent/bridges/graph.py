@@ -1,0 +1,124 @@
+"""What a bridge needs of a robot's ROS graph, ROS 1 or ROS 2: topics, services, parameters and types.
+
+A bridge protocol (rosbridge v2 now; Foxglove WebSocket and MCAP recording later) talks to one
+``BridgeGraph`` and never to rclpy or TCPROS itself. Messages come off the graph as ``Sample``s:
+their serialized bytes, decoded to plain data (dicts, lists, ``bytes`` for byte arrays) only when
+a client needs them, and then once for every client.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from typing import Any, Protocol
+
+__all__ = [
+    "BridgeError",
+    "BridgeGraph",
+    "GraphPublisher",
+    "GraphSubscription",
+    "Sample",
+    "ServiceHandler",
+]
+
+ServiceHandler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
+
+
+class BridgeError(Exception):
+    """A request the graph cannot carry out; the text is what the client is told."""
+
+
+class Sample:
+    """One message off the graph: its serialized bytes, decoded on first use and cached."""
+
+    __slots__ = ("_decode", "_msg", "frames", "raw", "stamp")
+
+    def __init__(
+        self, raw: bytes | memoryview, decode: Callable[[Any], dict[str, Any]], stamp: tuple[int, int]
+    ) -> None:
+        self.raw = raw
+        self.stamp = stamp  # (seconds, nanoseconds) of the graph's clock when it arrived
+        self._decode = decode
+        self._msg: dict[str, Any] | None = None
+        # Encoded frames by encoding, so a message sent to many clients is encoded once.
+        self.frames: dict[Any, Any] = {}
+
+    def msg(self) -> dict[str, Any]:
+        """Return the message as plain data."""
+        if self._msg is None:
+            self._msg = self._decode(self.raw)
+        return self._msg
+
+
+class GraphSubscription(Protocol):
+    """A subscription of the bridge in the graph."""
+
+    type: str
+
+    def close(self) -> None:
+        """Leave the topic."""
+
+
+class GraphPublisher(Protocol):
+    """A publisher of the bridge in the graph."""
+
+    type: str
+
+    def publish(self, msg: dict[str, Any]) -> None:
+        """Publish one message given as plain data; raise BridgeError naming a bad field."""
+
+    def close(self) -> None:
+        """Stop publishing."""
+
+
+class BridgeGraph(Protocol):
+    """A robot's ROS graph as the bridges see it."""
+
+    ros_version: int  # 1 or 2
+
+    def normalize_type(self, type_: str) -> str:
+        """Return the graph's own spelling of a type ('pkg/Type' or 'pkg/msg/Type'), or raise BridgeError."""
+
+    async def topics(self) -> dict[str, str]:
+        """Return every topic of the graph with its type."""
+
+    async def services(self) -> dict[str, str]:
+        """Return every service of the graph with its type ('' when it cannot be told)."""
+
+    async def nodes(self) -> list[str]:
+        """Return the full names of the graph's nodes."""
+
+    async def subscribe(self, topic: str, type_: str | None, deliver: Callable[[Sample], None]) -> GraphSubscription:
+        """Subscribe to a topic; ``deliver`` runs on the event loop for each message."""
+
+    async def advertise(self, topic: str, type_: str) -> GraphPublisher:
+        """Publish on a topic."""
+
+    async def call_service(self, name: str, type_: str | None, args: dict[str, Any], timeout: float) -> dict[str, Any]:
+        """Call a service of the graph and return its response as plain data."""
+
+    async def advertise_service(self, name: str, type_: str, handler: ServiceHandler) -> GraphSubscription:
+        """Serve a service in the graph, each call answered by ``handler``."""
+
+    async def get_param(self, name: str) -> Any:
+        """Return a parameter's value; raise KeyError when it is not set."""
+
+    async def set_param(self, name: str, value: Any) -> None:
+        """Set a parameter."""
+
+    async def delete_param(self, name: str) -> None:
+        """Delete a parameter; raise KeyError when it is not set."""
+
+    async def param_names(self) -> list[str]:
+        """Return the names of every parameter."""
+
+    def now(self) -> tuple[int, int]:
+        """Return the graph's time as (seconds, nanoseconds)."""
+
+    def time_message(self, seconds: int, nanoseconds: int) -> dict[str, int]:
+        """Return a time as this ROS spells it in a message."""
+
+    def message_details(self, type_: str) -> list[dict[str, Any]]:
+        """Return rosapi's TypeDefs of a message type and every type inside it."""
+
+    async def close(self) -> None:
+        """Leave the graph."""

@@ -1,0 +1,832 @@
+"""The rosbridge v2 protocol, free of any transport: frames in, frames out through a send callback.
+
+One ``Rosbridge`` serves a robot's graph to many clients; each client is a ``RosbridgeSession``
+fed with the frames it sends (JSON text, or CBOR bytes) and writing its answers through the
+async ``send`` it was given. The WebSocket door (``bridges.server``) is a thin adapter, and the
+cloud's per-robot relay can feed the same sessions over the robot's own connection.
+
+A graph subscription is shared by every client of a topic; each client gets its own bounded
+queue per topic (the oldest message is dropped, and counted, when it is full), so a slow client
+only ever loses its own messages and never holds up the robot or another client.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import itertools
+import json
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, GraphSubscription, Sample
+
+__all__ = ["COMPRESSIONS", "LEVELS", "Rosbridge", "RosbridgeSession"]
+
+logger = logging.getLogger(__name__)
+
+LEVELS = {"info": 0, "warning": 1, "error": 2, "none": 3}
+COMPRESSIONS = ("none", "cbor", "cbor-raw")
+MAX_FRAME_BYTES = 16 << 20  # a frame bigger than this is refused with a status, the connection kept
+DEFAULT_QUEUE = 100  # messages queued per topic for a client that reads slower than the topic runs
+MAX_QUEUE = 10_000
+CONTROL_QUEUE = 1_000  # answers and statuses waiting for a client that does not read
+MAX_CALLS_IN_FLIGHT = 64  # service calls one client may have running at once
+MAX_FRAGMENTED = 8  # fragmented messages one client may be sending at once
+DEFAULT_CALL_TIMEOUT = 30.0
+CLIENT_SERVICE_TIMEOUT = 10.0  # how long a ROS caller waits for a client-advertised service to answer
+LINGER_S = 5.0  # how long a topic stays subscribed in the graph after its last client left
+
+Send = Callable[[str | bytes], Awaitable[None]]
+
+
+def _json_default(value: Any) -> Any:
+    # rosbridge sends uint8[]/char[] as base64 in JSON; numeric arrays arrive as lists already.
+    if isinstance(value, bytes | bytearray | memoryview):
+        return base64.b64encode(value).decode()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def encode_json(message: dict[str, Any]) -> str:
+    """Encode a protocol message as rosbridge's JSON."""
+    return json.dumps(message, default=_json_default, separators=(",", ":"))
+
+
+def encode_cbor(message: dict[str, Any]) -> bytes:
+    """Encode a protocol message as CBOR (byte arrays stay bytes)."""
+    import cbor2
+
+    return cbor2.dumps(message)
+
+
+class _Fail(BridgeError):
+    """A client's request that is refused, at a level (error unless said)."""
+
+    def __init__(self, message: str, level: str = "error") -> None:
+        super().__init__(message)
+        self.level = level
+
+
+def _text(message: dict[str, Any], key: str, *, required: bool = True) -> str | None:
+    value = message.get(key)
+    if value is None and not required:
+        return None
+    if not isinstance(value, str) or not value:
+        raise _Fail(f"'{key}' must be a non-empty string" if key in message else f"'{key}' is missing")
+    return value
+
+
+def _name(message: dict[str, Any], key: str) -> str:
+    value = _text(message, key)
+    assert value is not None
+    if len(value) > 256 or any(ch.isspace() for ch in value):
+        raise _Fail(f"'{key}' {value[:64]!r} is not a ROS name")
+    return value if value.startswith("/") else "/" + value
+
+
+def _count(message: dict[str, Any], key: str, default: int, *, upto: int | None = None) -> int:
+    value = message.get(key, default)
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+        raise _Fail(f"'{key}' must be a number >= 0, not {value!r}")
+    if upto is not None and value > upto:
+        raise _Fail(f"'{key}' must be at most {upto}, not {value!r}")
+    return int(value)
+
+
+class _Outlet:
+    """What one client receives of one topic: its subscriptions' options and its queue."""
+
+    __slots__ = (
+        "compression",
+        "dropped",
+        "fragment_size",
+        "next_at",
+        "options",
+        "queue",
+        "sent",
+        "throttle_s",
+        "topic",
+        "type",
+    )
+
+    def __init__(self, topic: str) -> None:
+        self.topic = topic
+        self.type = ""
+        self.options: dict[str, dict[str, Any]] = {}  # subscription id -> its options, in arrival order
+        self.queue: deque[Sample] = deque(maxlen=DEFAULT_QUEUE)
+        self.compression = "none"
+        self.throttle_s = 0.0
+        self.fragment_size: int | None = None
+        self.next_at = 0.0
+        self.dropped = 0
+        self.sent = 0
+
+    def configure(self, default_queue: int) -> None:
+        """Merge the subscriptions as rosbridge does: lowest throttle, longest queue, smallest fragments."""
+        options = list(self.options.values())
+        self.throttle_s = min(o["throttle_rate"] for o in options) / 1000
+        queue_length = max(o["queue_length"] for o in options)
+        fragments = [o["fragment_size"] for o in options if o["fragment_size"]]
+        self.fragment_size = min(fragments) if fragments else None
+        self.compression = options[-1]["compression"]
+        # queue_length 0 is rosbridge's "no queueing": with a throttle, only the latest message waits;
+        # without one, a short queue still stands between the robot and a slow socket.
+        size = queue_length or (1 if self.throttle_s else default_queue)
+        if size != self.queue.maxlen:
+            self.queue = deque(self.queue, maxlen=size)
+
+    def offer(self, sample: Sample) -> None:
+        """Queue a message, dropping (and counting) the oldest when the queue is full."""
+        if len(self.queue) == self.queue.maxlen:
+            self.dropped += 1
+        self.queue.append(sample)
+
+
+class _Fanout:
+    """One graph subscription and the clients' outlets it feeds."""
+
+    __slots__ = ("idle", "outlets", "subscription")
+
+    def __init__(self) -> None:
+        self.subscription: GraphSubscription | None = None
+        self.outlets: dict[_Outlet, RosbridgeSession] = {}
+        self.idle: asyncio.TimerHandle | None = None  # the unsubscribe pending once the last client left
+
+    def deliver(self, sample: Sample) -> None:
+        for outlet, session in self.outlets.items():
+            outlet.offer(sample)
+            session.wake()
+
+
+class Rosbridge:
+    """Serve one robot graph to any number of rosbridge v2 clients."""
+
+    def __init__(
+        self,
+        graph: BridgeGraph,
+        *,
+        max_frame_bytes: int = MAX_FRAME_BYTES,
+        default_queue: int = DEFAULT_QUEUE,
+        client_service_timeout: float = CLIENT_SERVICE_TIMEOUT,
+        linger_s: float = LINGER_S,
+    ) -> None:
+        self.graph = graph
+        self.max_frame_bytes = max_frame_bytes
+        self.default_queue = default_queue
+        self.client_service_timeout = client_service_timeout
+        self.linger_s = linger_s
+        self.sessions: set[RosbridgeSession] = set()
+        self._fanouts: dict[str, _Fanout] = {}
+        self._attaching: dict[str, asyncio.Lock] = {}
+        self._publishers: dict[str, tuple[GraphPublisher, set[RosbridgeSession]]] = {}
+        self._services: dict[str, tuple[RosbridgeSession, GraphSubscription]] = {}
+        self.rosapi = Rosapi(self)
+
+    def session(self, send: Send) -> RosbridgeSession:
+        """Open a session for a new client whose frames go out through ``send``."""
+        session = RosbridgeSession(self, send)
+        self.sessions.add(session)
+        return session
+
+    async def close(self) -> None:
+        """Close every session and leave the graph's topics and services."""
+        for session in list(self.sessions):
+            await session.close()
+        for topic in list(self._fanouts):
+            self._drop_fanout(topic)
+
+    # ------------------------------------------------------------------ topics
+
+    async def attach(self, topic: str, type_: str | None, session: RosbridgeSession, outlet: _Outlet) -> str:
+        """Feed ``outlet`` with a topic, subscribing in the graph for its first client; return its type."""
+        lock = self._attaching.setdefault(topic, asyncio.Lock())
+        async with lock:
+            fanout = self._fanouts.get(topic)
+            if fanout is None:
+                fanout = _Fanout()
+                fanout.subscription = await self.graph.subscribe(topic, type_, fanout.deliver)
+                self._fanouts[topic] = fanout
+            assert fanout.subscription is not None
+            if fanout.idle is not None:
+                fanout.idle.cancel()
+                fanout.idle = None
+            if type_ is not None and self.graph.normalize_type(type_) != fanout.subscription.type:
+                if not fanout.outlets:
+                    self._drop_fanout(topic)
+                raise _Fail(f"{topic} is of type {fanout.subscription.type}, not {type_}")
+            fanout.outlets[outlet] = session
+            return fanout.subscription.type
+
+    def detach(self, topic: str, outlet: _Outlet) -> None:
+        """Stop feeding an outlet; the graph subscription ends a little after the last one leaves."""
+        fanout = self._fanouts.get(topic)
+        if fanout is not None:
+            fanout.outlets.pop(outlet, None)
+            if not fanout.outlets and fanout.idle is None:
+                # Kept a moment: a client that unsubscribes and subscribes again (page reloads, roslibjs
+                # re-subscribing) reuses the connection instead of racing a publisher's teardown of it.
+                fanout.idle = asyncio.get_running_loop().call_later(self.linger_s, self._expire, topic, fanout)
+
+    def _expire(self, topic: str, fanout: _Fanout) -> None:
+        if self._fanouts.get(topic) is fanout and not fanout.outlets:
+            self._drop_fanout(topic)
+
+    def _drop_fanout(self, topic: str) -> None:
+        fanout = self._fanouts.pop(topic)
+        if fanout.idle is not None:
+            fanout.idle.cancel()
+        if fanout.subscription is not None:
+            fanout.subscription.close()
+
+    async def advertise(self, topic: str, type_: str, session: RosbridgeSession) -> GraphPublisher:
+        """Publish on a topic for a client; clients of one topic share its publisher."""
+        entry = self._publishers.get(topic)
+        if entry is None:
+            known = (await self.graph.topics()).get(topic)
+            wanted = self.graph.normalize_type(type_)
+            if known is not None and known != wanted:
+                raise _Fail(f"{topic} already exists with type {known}, not {type_}")
+            entry = (await self.graph.advertise(topic, wanted), set())
+            self._publishers[topic] = entry
+        publisher, users = entry
+        if self.graph.normalize_type(type_) != publisher.type:
+            raise _Fail(f"{topic} is advertised with type {publisher.type}, not {type_}")
+        users.add(session)
+        return publisher
+
+    def unadvertise(self, topic: str, session: RosbridgeSession) -> None:
+        """Forget a client's publisher; the last one leaving stops publishing in the graph."""
+        entry = self._publishers.get(topic)
+        if entry is not None:
+            entry[1].discard(session)
+            if not entry[1]:
+                del self._publishers[topic]
+                entry[0].close()
+
+    # ------------------------------------------------------------------ services
+
+    async def call_service(self, name: str, type_: str | None, args: dict[str, Any], timeout: float) -> dict[str, Any]:
+        """Call a service: rosapi's, one a client advertised, or the graph's."""
+        if name.startswith("/rosapi/"):
+            return await self.rosapi.call(name, args)
+        entry = self._services.get(name)
+        if entry is not None:
+            return await entry[0].serve_call(name, args, timeout)
+        return await self.graph.call_service(name, type_, args, timeout)
+
+    async def advertise_service(self, name: str, type_: str, session: RosbridgeSession) -> None:
+        """Serve a service in the graph whose calls go to a client."""
+        entry = self._services.get(name)
+        if entry is not None:
+            if entry[0] is session:
+                return
+            raise _Fail(f"{name} is already advertised by another client")
+        if name.startswith("/rosapi/"):
+            raise _Fail(f"{name} is served by the bridge itself")
+        if name in await self.graph.services():
+            raise _Fail(f"{name} is already served in the ROS graph")
+
+        async def handle(args: dict[str, Any]) -> dict[str, Any]:
+            return await session.serve_call(name, args, self.client_service_timeout)
+
+        self._services[name] = (session, await self.graph.advertise_service(name, type_, handle))
+
+    def unadvertise_service(self, name: str, session: RosbridgeSession) -> bool:
+        """Stop serving a client's service; False when that client did not serve it."""
+        entry = self._services.get(name)
+        if entry is None or entry[0] is not session:
+            return False
+        del self._services[name]
+        entry[1].close()
+        return True
+
+    def subscribed_topics(self) -> list[str]:
+        """Return the topics the bridge is subscribed to in the graph."""
+        return list(self._fanouts)
+
+    def client_services(self) -> list[str]:
+        """Return the services clients advertise."""
+        return list(self._services)
+
+    def forget(self, session: RosbridgeSession) -> None:
+        """Drop a closed session."""
+        self.sessions.discard(session)
+
+
+class RosbridgeSession:
+    """One rosbridge v2 client: parse its frames, run its operations, queue what goes back to it."""
+
+    def __init__(self, bridge: Rosbridge, send: Send) -> None:
+        self.bridge = bridge
+        self.graph = bridge.graph
+        self._send = send
+        self.level = LEVELS["error"]  # rosbridge's default: only errors are reported until set_level
+        self._control: deque[str | bytes] = deque()
+        self.control_dropped = 0
+        self._outlets: dict[str, _Outlet] = {}
+        self._order: list[_Outlet] = []
+        self._advertised: dict[str, GraphPublisher] = {}
+        self._services: set[str] = set()
+        self._calls: set[asyncio.Task[None]] = set()
+        self._waiting: dict[str, asyncio.Future[dict[str, Any]]] = {}  # our call_service id -> its answer
+        self._fragments: dict[str, dict[int, str]] = {}
+        self._ids = itertools.count(1)
+        self._wake = asyncio.Event()
+        self._binary = False  # answer in CBOR once the client speaks CBOR
+        self.closed = False
+        self._handlers: dict[str, Callable[[dict[str, Any]], Awaitable[None]]] = {
+            "advertise": self._advertise,
+            "unadvertise": self._unadvertise,
+            "publish": self._publish,
+            "subscribe": self._subscribe,
+            "unsubscribe": self._unsubscribe,
+            "call_service": self._call_service,
+            "service_response": self._service_response,
+            "advertise_service": self._advertise_service,
+            "unadvertise_service": self._unadvertise_service,
+            "set_level": self._set_level,
+            "status": self._ignore,
+            "fragment": self._fragment,
+        }
+
+    # ------------------------------------------------------------------ frames in
+
+    async def receive(self, data: str | bytes) -> None:
+        """Handle one frame from the client; every fault is answered with a status, never raised."""
+        if len(data) > self.bridge.max_frame_bytes:
+            self.status("error", f"frame of {len(data)} bytes exceeds the limit of {self.bridge.max_frame_bytes}")
+            return
+        try:
+            if isinstance(data, str):
+                message = json.loads(data)
+            else:
+                import cbor2
+
+                message = cbor2.loads(data)
+                self._binary = True
+        except (ValueError, UnicodeDecodeError, EOFError) as exc:
+            kind = "JSON" if isinstance(data, str) else "CBOR"
+            self.status("error", f"malformed {kind}: {exc}")
+            return
+        except Exception as exc:  # cbor2 raises its own decode errors for any bad byte
+            self.status("error", f"malformed CBOR: {exc}")
+            return
+        if not isinstance(message, dict) or not isinstance(message.get("op"), str):
+            self.status("error", "a rosbridge message must be an object with an 'op' string")
+            return
+        op, ident = message["op"], message.get("id")
+        if ident is not None and not isinstance(ident, str | int):
+            ident = None
+        handler = self._handlers.get(op)
+        if handler is None:
+            self.status("error", f"unknown op {op[:64]!r}", ident)
+            return
+        try:
+            await handler(message)
+        except _Fail as exc:
+            self.status(exc.level, f"{op}: {exc}", ident)
+        except BridgeError as exc:
+            self.status("error", f"{op}: {exc}", ident)
+        except Exception as exc:  # a fault of ours must cost the client one answer, not its connection
+            logger.exception("rosbridge: %s failed", op)
+            self.status("error", f"{op}: internal error: {type(exc).__name__}: {exc}"[:500], ident)
+
+    async def _ignore(self, message: dict[str, Any]) -> None:
+        return
+
+    async def _fragment(self, message: dict[str, Any]) -> None:
+        ident, data, num, total = (message.get(k) for k in ("id", "data", "num", "total"))
+        if not isinstance(ident, str | int) or not isinstance(data, str):
+            raise _Fail("a fragment needs an 'id' and a 'data' string")
+        if not isinstance(num, int) or not isinstance(total, int) or not 0 <= num < total <= 100_000:
+            raise _Fail("a fragment needs 0 <= num < total")
+        key = str(ident)
+        parts = self._fragments.get(key)
+        if parts is None:
+            if len(self._fragments) >= MAX_FRAGMENTED:
+                raise _Fail(f"more than {MAX_FRAGMENTED} fragmented messages at once")
+            parts = self._fragments[key] = {}
+        parts[num] = data
+        if sum(len(part) for part in parts.values()) > self.bridge.max_frame_bytes:
+            del self._fragments[key]
+            raise _Fail(f"fragmented message {key} exceeds {self.bridge.max_frame_bytes} bytes")
+        if len(parts) == total:
+            del self._fragments[key]
+            await self.receive("".join(parts[i] for i in range(total)))
+
+    async def _set_level(self, message: dict[str, Any]) -> None:
+        level = message.get("level")
+        if level not in LEVELS:
+            raise _Fail(f"level must be one of {', '.join(LEVELS)}, not {level!r}")
+        self.level = LEVELS[level]
+
+    async def _advertise(self, message: dict[str, Any]) -> None:
+        topic, type_ = _name(message, "topic"), _text(message, "type")
+        assert type_ is not None
+        publisher = self._advertised.get(topic)
+        if publisher is not None:
+            if self.graph.normalize_type(type_) != publisher.type:
+                raise _Fail(f"{topic} is advertised with type {publisher.type}, not {type_}")
+            return
+        self._advertised[topic] = await self.bridge.advertise(topic, type_, self)
+
+    async def _unadvertise(self, message: dict[str, Any]) -> None:
+        topic = _name(message, "topic")
+        if self._advertised.pop(topic, None) is None:
+            raise _Fail(f"{topic} is not advertised by this client", "warning")
+        self.bridge.unadvertise(topic, self)
+
+    async def _publish(self, message: dict[str, Any]) -> None:
+        topic = _name(message, "topic")
+        msg = message.get("msg", {})
+        if not isinstance(msg, dict):
+            raise _Fail("'msg' must be an object")
+        publisher = self._advertised.get(topic)
+        if publisher is None:
+            # rosbridge publishes on an existing topic without an advertise, with the topic's type.
+            known = (await self.graph.topics()).get(topic)
+            if known is None:
+                raise _Fail(f"{topic} does not exist: advertise it with a type first")
+            publisher = self._advertised[topic] = await self.bridge.advertise(topic, known, self)
+        publisher.publish(msg)
+
+    async def _subscribe(self, message: dict[str, Any]) -> None:
+        topic = _name(message, "topic")
+        type_ = _text(message, "type", required=False)
+        compression = message.get("compression") or "none"
+        if compression not in COMPRESSIONS:
+            raise _Fail(f"compression {compression!r} is not supported: use one of {', '.join(COMPRESSIONS)}")
+        options = {
+            "throttle_rate": _count(message, "throttle_rate", 0, upto=3_600_000),
+            "queue_length": _count(message, "queue_length", 0, upto=MAX_QUEUE),
+            "fragment_size": _count(message, "fragment_size", 0) or None,
+            "compression": compression,
+        }
+        if options["fragment_size"] is not None and compression != "none":
+            raise _Fail("fragment_size applies to JSON only (compression 'none')")
+        ident = message.get("id")
+        key = str(ident) if isinstance(ident, str | int) else f"subscribe:{topic}"
+        outlet = self._outlets.get(topic)
+        if outlet is None:
+            outlet = _Outlet(topic)
+            outlet.type = await self.bridge.attach(topic, type_, self, outlet)
+            self._outlets[topic] = outlet
+            self._order.append(outlet)
+        elif type_ is not None and self.graph.normalize_type(type_) != outlet.type:
+            raise _Fail(f"{topic} is of type {outlet.type}, not {type_}")
+        outlet.options.pop(key, None)
+        outlet.options[key] = options
+        outlet.configure(self.bridge.default_queue)
+
+    async def _unsubscribe(self, message: dict[str, Any]) -> None:
+        topic = _name(message, "topic")
+        outlet = self._outlets.get(topic)
+        if outlet is None:
+            raise _Fail(f"not subscribed to {topic}", "warning")
+        ident = message.get("id")
+        if isinstance(ident, str | int) and str(ident) in outlet.options:
+            del outlet.options[str(ident)]
+        else:
+            outlet.options.clear()
+        if outlet.options:
+            outlet.configure(self.bridge.default_queue)
+        else:
+            self._drop_outlet(outlet)
+
+    def _drop_outlet(self, outlet: _Outlet) -> None:
+        self._outlets.pop(outlet.topic, None)
+        with contextlib.suppress(ValueError):
+            self._order.remove(outlet)
+        self.bridge.detach(outlet.topic, outlet)
+
+    async def _call_service(self, message: dict[str, Any]) -> None:
+        name = _name(message, "service")
+        type_ = _text(message, "type", required=False)
+        args = message.get("args", {})
+        if isinstance(args, list) and not args:
+            args = {}
+        if not isinstance(args, dict):
+            raise _Fail("'args' must be an object with the request's fields")
+        timeout = message.get("timeout") or DEFAULT_CALL_TIMEOUT
+        if isinstance(timeout, bool) or not isinstance(timeout, int | float) or not 0 < timeout <= 3600:
+            raise _Fail(f"'timeout' must be a number of seconds in (0, 3600], not {timeout!r}")
+        if len(self._calls) >= MAX_CALLS_IN_FLIGHT:
+            raise _Fail(f"{MAX_CALLS_IN_FLIGHT} service calls are already running for this client")
+        task = asyncio.get_running_loop().create_task(self._run_call(name, type_, args, float(timeout), message))
+        self._calls.add(task)
+        task.add_done_callback(self._calls.discard)
+
+    async def _run_call(
+        self, name: str, type_: str | None, args: dict[str, Any], timeout: float, message: dict[str, Any]
+    ) -> None:
+        answer: dict[str, Any] = {"op": "service_response", "service": message["service"]}
+        if "id" in message:
+            answer["id"] = message["id"]
+        try:
+            values = await asyncio.wait_for(self.bridge.call_service(name, type_, args, timeout), timeout)
+        except BridgeError as exc:
+            answer.update(values=str(exc), result=False)
+        except TimeoutError:
+            answer.update(values=f"{name} did not answer within {timeout:g} s", result=False)
+        else:
+            answer.update(values=values, result=True)
+        self.send(answer)
+
+    async def _service_response(self, message: dict[str, Any]) -> None:
+        ident = message.get("id")
+        future = self._waiting.pop(str(ident), None) if isinstance(ident, str | int) else None
+        if future is None:
+            raise _Fail(f"no call is waiting for a response with id {ident!r}")
+        if future.done():
+            return
+        values = message.get("values", {})
+        if message.get("result", True) is False:
+            future.set_exception(BridgeError(f"the client's service failed: {values}"))
+        elif not isinstance(values, dict):
+            future.set_exception(BridgeError("the client answered with 'values' that are not an object"))
+        else:
+            future.set_result(values)
+
+    async def _advertise_service(self, message: dict[str, Any]) -> None:
+        name, type_ = _name(message, "service"), _text(message, "type")
+        assert type_ is not None
+        await self.bridge.advertise_service(name, type_, self)
+        self._services.add(name)
+
+    async def _unadvertise_service(self, message: dict[str, Any]) -> None:
+        name = _name(message, "service")
+        if not self.bridge.unadvertise_service(name, self):
+            raise _Fail(f"{name} is not advertised by this client", "warning")
+        self._services.discard(name)
+
+    async def serve_call(self, name: str, args: dict[str, Any], timeout: float) -> dict[str, Any]:
+        """Pass a ROS call of a service this client advertised on to it and wait for its answer."""
+        if self.closed:
+            raise BridgeError(f"the client serving {name} has gone")
+        ident = f"service_request:{name}:{next(self._ids)}"
+        future: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
+        self._waiting[ident] = future
+        self.send({"op": "call_service", "id": ident, "service": name, "args": args})
+        try:
+            return await asyncio.wait_for(future, timeout)
+        except TimeoutError:
+            raise BridgeError(f"the client serving {name} did not answer within {timeout:g} s") from None
+        finally:
+            self._waiting.pop(ident, None)
+
+    # ------------------------------------------------------------------ frames out
+
+    def status(self, level: str, text: str, ident: Any = None) -> None:
+        """Tell the client something at a level, if its level asks for it."""
+        if LEVELS[level] < self.level:
+            return
+        message: dict[str, Any] = {"op": "status", "level": level, "msg": text}
+        if ident is not None:
+            message["id"] = ident
+        self.send(message)
+
+    def send(self, message: dict[str, Any]) -> None:
+        """Queue a protocol message (not a topic's) for the client."""
+        if self.closed:
+            return
+        if len(self._control) >= CONTROL_QUEUE:
+            self._control.popleft()
+            self.control_dropped += 1
+        self._control.append(encode_cbor(message) if self._binary else encode_json(message))
+        self._wake.set()
+
+    def wake(self) -> None:
+        """Tell the writer there is something to send."""
+        self._wake.set()
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        """Return each topic's messages sent and dropped for this client."""
+        return {o.topic: {"sent": o.sent, "dropped": o.dropped, "queued": len(o.queue)} for o in self._order}
+
+    async def run(self) -> None:
+        """Write queued frames to the client until the session closes (the door runs this beside its reader)."""
+        while not self.closed:
+            frames, delay = self._take()
+            if frames:
+                for frame in frames:
+                    await self._send(frame)
+                continue
+            self._wake.clear()
+            if delay is None:
+                await self._wake.wait()
+            else:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), delay)
+
+    def _take(self) -> tuple[list[str | bytes], float | None]:
+        """Return the next frames to send, or how long until a throttled topic may send (None: wait)."""
+        if self._control:
+            return [self._control.popleft()], None
+        now = time.monotonic()
+        delay: float | None = None
+        order = self._order
+        for index, outlet in enumerate(order):
+            if not outlet.queue:
+                continue
+            if outlet.next_at > now:
+                wait = outlet.next_at - now
+                delay = wait if delay is None else min(delay, wait)
+                continue
+            sample = outlet.queue.popleft()
+            outlet.next_at = now + outlet.throttle_s
+            # Round robin: the topic just served goes last, so a busy topic cannot starve the others.
+            order.append(order.pop(index))
+            try:
+                frames = self._encode(outlet, sample)
+            except Exception as exc:  # a message the converter cannot read must not stop the writer
+                logger.exception("rosbridge: cannot encode a message of %s", outlet.topic)
+                self.status("error", f"cannot convert a message of {outlet.topic}: {exc}")
+                return [], 0.0
+            outlet.sent += 1
+            return frames, None
+        return [], delay
+
+    def _encode(self, outlet: _Outlet, sample: Sample) -> list[str | bytes]:
+        key = (outlet.topic, outlet.compression)
+        frame = sample.frames.get(key)
+        if frame is None:
+            if outlet.compression == "cbor-raw":
+                secs, nsecs = sample.stamp
+                raw = {"secs": secs, "nsecs": nsecs, "bytes": bytes(sample.raw)}
+                frame = encode_cbor({"op": "publish", "topic": outlet.topic, "msg": raw})
+            elif outlet.compression == "cbor":
+                frame = encode_cbor({"op": "publish", "topic": outlet.topic, "msg": sample.msg()})
+            else:
+                frame = encode_json({"op": "publish", "topic": outlet.topic, "msg": sample.msg()})
+            sample.frames[key] = frame
+        size = outlet.fragment_size
+        if size is None or not isinstance(frame, str) or len(frame) <= size:
+            return [frame]
+        ident = f"{outlet.topic}:{outlet.sent}"
+        total = -(-len(frame) // size)
+        pieces = (frame[i * size : (i + 1) * size] for i in range(total))
+        return [
+            encode_json({"op": "fragment", "id": ident, "data": piece, "num": i, "total": total})
+            for i, piece in enumerate(pieces)
+        ]
+
+    # ------------------------------------------------------------------ end
+
+    async def close(self) -> None:
+        """Undo everything the client did in the graph and fail what waits on it."""
+        if self.closed:
+            return
+        self.closed = True
+        self._wake.set()
+        for outlet in list(self._outlets.values()):
+            self._drop_outlet(outlet)
+        for topic in list(self._advertised):
+            self.bridge.unadvertise(topic, self)
+        self._advertised.clear()
+        for name in list(self._services):
+            self.bridge.unadvertise_service(name, self)
+        for future in self._waiting.values():
+            if not future.done():
+                future.set_exception(BridgeError("the client went away"))
+        self._waiting.clear()
+        for task in list(self._calls):
+            task.cancel()
+        await asyncio.gather(*self._calls, return_exceptions=True)
+        self.bridge.forget(self)
+
+
+ROSAPI_SERVICES = (
+    "topics",
+    "topic_type",
+    "topics_for_type",
+    "services",
+    "service_type",
+    "services_for_type",
+    "nodes",
+    "get_param",
+    "set_param",
+    "delete_param",
+    "has_param",
+    "get_param_names",
+    "search_param",
+    "get_time",
+    "message_details",
+)
+
+
+class Rosapi:
+    """rosapi's services, answered by the bridge from the graph (``/rosapi/<name>``)."""
+
+    def __init__(self, bridge: Rosbridge) -> None:
+        self.bridge = bridge
+        self.graph = bridge.graph
+
+    def names(self) -> list[str]:
+        """Return the full names of the rosapi services."""
+        return [f"/rosapi/{name}" for name in ROSAPI_SERVICES]
+
+    async def call(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
+        """Answer one rosapi call."""
+        short = name.removeprefix("/rosapi/")
+        if short not in ROSAPI_SERVICES:
+            raise BridgeError(f"{name} is not a rosapi service this bridge serves ({', '.join(ROSAPI_SERVICES)})")
+        method: Callable[[dict[str, Any]], Awaitable[dict[str, Any]]] = getattr(self, "_" + short)
+        return await method(args)
+
+    @staticmethod
+    def _arg(args: dict[str, Any], key: str, default: str | None = None) -> str:
+        value = args.get(key, default)
+        if not isinstance(value, str) or (default is None and not value):
+            raise BridgeError(f"'{key}' must be a non-empty string")
+        return value
+
+    async def _all_services(self) -> dict[str, str]:
+        services = dict(await self.graph.services())
+        for name in self.names():
+            services.setdefault(name, f"rosapi/{name.rsplit('/', 1)[1]}")
+        return services
+
+    async def _topics(self, args: dict[str, Any]) -> dict[str, Any]:
+        topics = sorted((await self.graph.topics()).items())
+        return {"topics": [t for t, _ in topics], "types": [ty for _, ty in topics]}
+
+    async def _topic_type(self, args: dict[str, Any]) -> dict[str, Any]:
+        topic = self._arg(args, "topic")
+        return {"type": (await self.graph.topics()).get(topic if topic.startswith("/") else "/" + topic, "")}
+
+    async def _topics_for_type(self, args: dict[str, Any]) -> dict[str, Any]:
+        wanted = self.graph.normalize_type(self._arg(args, "type"))
+        return {"topics": sorted(t for t, ty in (await self.graph.topics()).items() if ty == wanted)}
+
+    async def _services(self, args: dict[str, Any]) -> dict[str, Any]:
+        return {"services": sorted(await self._all_services())}
+
+    async def _service_type(self, args: dict[str, Any]) -> dict[str, Any]:
+        service = self._arg(args, "service")
+        return {"type": (await self._all_services()).get(service if service.startswith("/") else "/" + service, "")}
+
+    async def _services_for_type(self, args: dict[str, Any]) -> dict[str, Any]:
+        wanted = self._arg(args, "type")
+        return {"services": sorted(s for s, ty in (await self._all_services()).items() if ty == wanted)}
+
+    async def _nodes(self, args: dict[str, Any]) -> dict[str, Any]:
+        return {"nodes": sorted(await self.graph.nodes())}
+
+    async def _get_param(self, args: dict[str, Any]) -> dict[str, Any]:
+        name = self._arg(args, "name")
+        default = args.get("default", args.get("default_value", ""))
+        try:
+            value = await self.graph.get_param(name)
+        except KeyError:
+            if default:
+                return {"value": default, "successful": True, "reason": ""}
+            return {"value": "null", "successful": False, "reason": f"parameter {name} is not set"}
+        return {"value": json.dumps(value, default=_json_default), "successful": True, "reason": ""}
+
+    async def _set_param(self, args: dict[str, Any]) -> dict[str, Any]:
+        name = self._arg(args, "name")
+        text = self._arg(args, "value", "")
+        try:
+            value = json.loads(text)
+        except ValueError:
+            raise BridgeError(f"set_param {name}: 'value' must be JSON text, not {text[:64]!r}") from None
+        await self.graph.set_param(name, value)
+        return {"successful": True, "reason": ""}
+
+    async def _delete_param(self, args: dict[str, Any]) -> dict[str, Any]:
+        name = self._arg(args, "name")
+        try:
+            await self.graph.delete_param(name)
+        except KeyError:
+            return {"successful": False, "reason": f"parameter {name} is not set"}
+        return {"successful": True, "reason": ""}
+
+    async def _has_param(self, args: dict[str, Any]) -> dict[str, Any]:
+        name = self._arg(args, "name")
+        try:
+            await self.graph.get_param(name)
+        except KeyError:
+            return {"exists": False}
+        return {"exists": True}
+
+    async def _get_param_names(self, args: dict[str, Any]) -> dict[str, Any]:
+        return {"names": sorted(await self.graph.param_names())}
+
+    async def _search_param(self, args: dict[str, Any]) -> dict[str, Any]:
+        name = self._arg(args, "name")
+        found = [p for p in await self.graph.param_names() if p.rstrip("/").endswith("/" + name.strip("/"))]
+        return {"global_name": found[0] if found else ""}
+
+    async def _get_time(self, args: dict[str, Any]) -> dict[str, Any]:
+        secs, nsecs = self.graph.now()
+        return {"time": self.graph.time_message(secs, nsecs)}
+
+    async def _message_details(self, args: dict[str, Any]) -> dict[str, Any]:
+        return {"typedefs": self.graph.message_details(self._arg(args, "type"))}

@@ -1,0 +1,90 @@
+"""The robot's rosbridge door: a WebSocket server feeding each connection to a rosbridge session."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+from typing import Any
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+
+from bridgeos_agent.bridges.graph import BridgeGraph
+from bridgeos_agent.bridges.rosbridge import MAX_FRAME_BYTES, Rosbridge
+
+__all__ = ["RosbridgeServer", "open_graph", "parse_address"]
+
+logger = logging.getLogger(__name__)
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """Split HOST:PORT (IPv6 as [::1]:PORT), raising ValueError with the reason."""
+    from bridgeos_agent.metrics import parse_address as split
+
+    return split(text)
+
+
+class RosbridgeServer:
+    """Serve rosbridge v2 on HOST:PORT for one graph; unauthenticated, like rosbridge_server."""
+
+    def __init__(self, graph: BridgeGraph, *, max_frame_bytes: int = MAX_FRAME_BYTES, **options: Any) -> None:
+        self.graph = graph
+        self.bridge = Rosbridge(graph, max_frame_bytes=max_frame_bytes, **options)
+        self.max_frame_bytes = max_frame_bytes
+        self._server: Server | None = None
+        self.port = 0
+
+    async def start(self, host: str, port: int) -> None:
+        """Listen (port 0 picks a free one; ``port`` tells which)."""
+        self._server = await serve(
+            self._connection,
+            host,
+            port,
+            # Frames up to 4x the protocol's limit reach the session, which refuses them with a status and
+            # keeps the connection; only beyond that does the socket close (1009), so memory stays bounded.
+            max_size=self.max_frame_bytes * 4,
+            compression=None,
+        )
+        self.port = next(iter(self._server.sockets)).getsockname()[1]
+
+    async def _connection(self, websocket: ServerConnection) -> None:
+        session = self.bridge.session(websocket.send)
+        writer = asyncio.get_running_loop().create_task(session.run())
+        try:
+            async for frame in websocket:
+                await session.receive(frame)
+        except ConnectionClosed:
+            pass
+        finally:
+            writer.cancel()
+            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed):
+                await writer
+            await session.close()
+
+    async def close(self) -> None:
+        """Stop listening, end every session and leave the graph."""
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+            self._server = None
+        await self.bridge.close()
+        await self.graph.close()
+
+
+async def open_graph(ros: str) -> BridgeGraph:
+    """Join the robot's ROS 1 graph (its ROS_MASTER_URI) or ROS 2 graph (its ROS 2 env)."""
+    if ros == "ros1":
+        from bridgeos_agent.bridges.ros1graph import Ros1Graph
+        from bridgeos_agent.rosmaster import DEFAULT_ROS_MASTER
+
+        host = os.environ.get("ROS_IP") or os.environ.get("ROS_HOSTNAME") or "127.0.0.1"
+        graph1 = Ros1Graph(os.environ.get("ROS_MASTER_URI") or DEFAULT_ROS_MASTER, host=host)
+        await graph1.start()
+        return graph1
+    from bridgeos_agent.bridges.ros2graph import Ros2BridgeGraph
+    from bridgeos_agent.ros2graph import Ros2Graph
+
+    graph2 = Ros2BridgeGraph(Ros2Graph.from_env(), asyncio.get_running_loop())
+    return graph2
