@@ -13,4 +13,6 @@ export PYTHONDONTWRITEBYTECODE=1
 export BRIDGEOS_AUTH_FAILURES="${BRIDGEOS_AUTH_FAILURES:-100000}"
 
 echo "== tests: database ${DATABASE_URL%%\?*}, redis $REDIS_URL"
-exec .venv/bin/python -m pytest "$@"
+# The slowest tests in every log (CI's included), so a slowdown shows where it came from; a
+# later --durations in the arguments wins.
+exec .venv/bin/python -m pytest --durations=25 "$@"

@@ -45,20 +45,33 @@ def ros_env(master_uri: str, ros_home: Path, namespace: str | None = None) -> di
 
 def stop_group(process: subprocess.Popen, timeout: float = 15.0) -> None:
     """Stop a process and everything in its process group: TERM, then KILL."""
-    if process.poll() is None:
+    stop_groups([process], timeout)
+
+
+def stop_groups(processes: list[subprocess.Popen], timeout: float = 15.0) -> None:
+    """Stop processes and their process groups: TERM to all at once, then KILL what is left of each.
+
+    The TERMs go out together so the nodes shut down side by side: one by one, a test's
+    four rospy nodes took three seconds of teardown (about 0.7 s each to unregister).
+    """
+    for process in processes:
+        if process.poll() is None:
+            try:
+                os.killpg(process.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+    deadline = time.monotonic() + timeout
+    for process in processes:
         try:
-            os.killpg(process.pid, signal.SIGTERM)
-        except ProcessLookupError:
-            pass
-        try:
-            process.wait(timeout=timeout)
+            process.wait(timeout=max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             pass
-    try:
-        os.killpg(process.pid, signal.SIGKILL)  # stragglers of the group, even if the leader is gone
-    except ProcessLookupError:
-        pass
-    process.wait(timeout=timeout)
+    for process in processes:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)  # stragglers of the group, even if the leader is gone
+        except ProcessLookupError:
+            pass
+        process.wait(timeout=timeout)
 
 
 @dataclass
@@ -153,8 +166,7 @@ class Nodes:
 
     def stop_all(self) -> None:
         """Stop every node this helper started."""
-        for process in self.running.values():
-            stop_group(process)
+        stop_groups(list(self.running.values()))
 
 
 @pytest.fixture

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import BIN
-from tests.usecases.conftest import stop_group
+from tests.usecases.conftest import stop_groups
 
 GRAPH_ENV = {
     "ROS_DOMAIN_ID": os.environ.get("BRIDGEOS_TEST_ROS2_DOMAIN", "46"),
@@ -91,8 +91,7 @@ class Ros2Nodes:
         pytest.fail(f"{label} did not print /{pattern}/ within {timeout} s\n{self.all_logs()}")
 
     def stop_all(self) -> None:
-        for process in self.running.values():
-            stop_group(process)
+        stop_groups(list(self.running.values()))
 
 
 class Listener:
