@@ -7,8 +7,9 @@ Skill Manager run a Skill of four movable components on a simulated robot
 phases (idle or busy robot, good or poor link), with noise. The components burn the CPU they
 declare, so the runtime's measurements are real. The Skill's custom policy costs each component as a delay:
 on the robot its CPU over the robot's free CPU, in the cloud a round trip plus its data over the
-link's bandwidth (``POLICY`` below). The manager decides every half second (threshold 2 and
-hysteresis 3, in the policy's units, a few percent of a cost; cooldown 8 s).
+link's bandwidth (``POLICY`` below). The robot is sampled and the manager decides every quarter
+second (threshold 2 and hysteresis 3, in the policy's units, a few percent of a cost; cooldown 4 s),
+and moves decided together go together.
 
 Every placement the run went through is costed afterwards with the same PolicyEstimator and cost
 functions, from the script's noiseless conditions and the components' declared usage, and
@@ -81,12 +82,12 @@ ROBOT_ID = "offload-bench"
 SKILL_ID = "offload"
 CPU_CORES = 2.0
 LAN_MBITS = 100.0  # the robot's own network, which components on the robot use to reach its sensors
-DECISION_INTERVAL = 0.5
-SAMPLE_INTERVAL = 0.5
+DECISION_INTERVAL = 0.25
+SAMPLE_INTERVAL = 0.25
 # Cost units (delays of 5-70): the rewards of real changes are 9 or more, the stable phase's reward
 # noise 2-4 (machine load), so a hysteresis of 3 keeps a move to a barely better place from being noise.
 THRESHOLD, HYSTERESIS = 2.0, 3.0
-COOLDOWN = 8.0
+COOLDOWN = 4.0
 TIMELINE_STEP = 0.1
 FLAP_WINDOW = 60.0
 ADAPTED_WITHIN = 1.05
@@ -630,7 +631,10 @@ def main() -> None:
         add_skill(robot, scenario.model_dump(mode="json"))
 
     daphne = Daphne(env, data_dir / "daphne.log")
-    celery = CeleryWorker(env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log")
+    # Two pool processes per robot: the robots' moves at a phase change start their cloud copies at once.
+    celery = CeleryWorker(
+        env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log", concurrency=2 * len(scenarios)
+    )
     try:
         daphne.wait()
         celery.wait()
