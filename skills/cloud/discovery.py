@@ -12,22 +12,16 @@ from __future__ import annotations
 
 import logging
 import socket
-import time
 from typing import Any
 
 from django.conf import settings
-from django.db import transaction
-from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName as CS
-from bridgeos_agent.runtime.base import RuntimeFailure, Status
-from monitoring.choices import Level
-from monitoring.services import record_event
 from robots.models import Robot
 
 from ..models import RobotCloud
-from .locks import LockBusy, orchestration_lock
-from .orchestration import LaunchFailed, TryAgain, enqueue_on_commit, unreachable, with_runtime
+from .orchestration import LaunchFailed, enqueue_on_commit
+from .perrobot import Service, converge, free_port_in, report, udp_bound, udp_held
 from .runtime import discovery_address
 
 logger = logging.getLogger(__name__)
@@ -75,81 +69,38 @@ def wanted(robot: Robot) -> bool:
 
 def _free_port() -> int:
     """Pick the lowest port of the configured range no other robot holds and nothing uses (UDP)."""
-    low, _, high = settings.BRIDGEOS["CLOUD_ROS2_DISCOVERY_PORTS"].partition("-")
     taken = set(RobotCloud.objects.exclude(ros2_discovery_port=None).values_list("ros2_discovery_port", flat=True))
-    for port in range(int(low), int(high or low) + 1):
-        if port not in taken and not _bound(port):
-            return port
-    raise LaunchFailed(f"no free port for a ROS 2 discovery server in BRIDGEOS_CLOUD_ROS2_DISCOVERY_PORTS={low}-{high}")
-
-
-def _bound(port: int) -> bool:
-    """Tell whether a UDP socket of this host holds the port (a discovery server listens on UDP only)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        try:
-            probe.bind(("0.0.0.0", port))
-        except OSError:
-            return True
-    return False
-
-
-def _listening(port: int, *, timeout: float) -> bool:
-    """Tell whether the server holds its UDP port within ``timeout`` (it has no TCP port to connect to)."""
-    deadline = time.monotonic() + timeout
-    while not _bound(port):
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.05)
-    return True
+    return free_port_in("CLOUD_ROS2_DISCOVERY_PORTS", taken, udp_bound, "a ROS 2 discovery server")
 
 
 def converge_discovery_server(robot_id: str) -> str:
     """Run the robot's discovery server while it reports ROS 2; stop it once it no longer does."""
-    try:
-        with orchestration_lock(f"ros2-discovery:{robot_id}"):
-            cloud = RobotCloud.objects.select_related("robot").filter(robot_id=robot_id).first()
-            if cloud is None or cloud.ros2_discovery_port is None:
-                return "none"
-            port = cloud.ros2_discovery_port
-            try:
-                if not wanted(cloud.robot):
-                    with_runtime(robot_id, lambda runtime: runtime.stop_discovery_server())
-                    _set_status(cloud, CS.STOPPED)
-                    return "stopped"
-                host = listen_address()
-                state = with_runtime(robot_id, lambda runtime: runtime.start_discovery_server(host, port))
-            except RuntimeFailure as exc:
-                if unreachable(exc):
-                    raise TryAgain(str(exc)) from None
-                _set_status(cloud, CS.FAILED, str(exc))
-                return "failed"
-            except LaunchFailed as exc:
-                _set_status(cloud, CS.FAILED, str(exc))
-                return "failed"
-            if state.status is Status.RUNNING and _listening(port, timeout=15.0):
-                _set_status(cloud, CS.RUNNING)
-                return "running"
-            if state.status is Status.RUNNING:
-                raise TryAgain(f"the ROS 2 discovery server of {robot_id} runs but holds no UDP port {port} yet")
-            _set_status(cloud, CS.FAILED, state.message or f"exit code {state.exit_code}")
-            return "failed"
-    except LockBusy as exc:
-        raise TryAgain(str(exc)) from None
+
+    def find() -> Service | str:
+        cloud = RobotCloud.objects.select_related("robot").filter(robot_id=robot_id).first()
+        if cloud is None or cloud.ros2_discovery_port is None:
+            return "none"
+        port = cloud.ros2_discovery_port
+        return Service(
+            name=f"the ROS 2 discovery server of {robot_id} on UDP port {port}",
+            wanted=wanted(cloud.robot),
+            start=lambda runtime: runtime.start_discovery_server(listen_address(), port),
+            stop=lambda runtime: runtime.stop_discovery_server(),
+            ready=lambda timeout: udp_held(port, timeout),
+            report=lambda status, message: _set_status(cloud, status, message),
+        )
+
+    return converge(robot_id, f"ros2-discovery:{robot_id}", find)
 
 
 def _set_status(cloud: RobotCloud, status: str, message: str = "") -> None:
-    if cloud.ros2_discovery_status == status and cloud.message == message:
-        return
-    with transaction.atomic():
-        RobotCloud.objects.filter(pk=cloud.pk).update(
-            ros2_discovery_status=status, message=message, updated_at=timezone.now()
-        )
-        cloud.ros2_discovery_status, cloud.message = status, message
-        text = f"ROS 2 discovery server of robot {cloud.robot_id} on UDP port {cloud.ros2_discovery_port} is {status}"
-        record_event(
-            text + (f": {message}" if message else ""),
-            robot_id=cloud.robot_id,
-            level=Level.ERROR if status == CS.FAILED else Level.INFO,
-            kind="cloud_ros2_discovery",
-            data={"port": cloud.ros2_discovery_port, "status": status},
-        )
+    report(
+        cloud,
+        "ros2_discovery_status",
+        status,
+        message,
+        robot_id=cloud.robot_id,
+        text=f"ROS 2 discovery server of robot {cloud.robot_id} on UDP port {cloud.ros2_discovery_port}",
+        kind="cloud_ros2_discovery",
+        data={"port": cloud.ros2_discovery_port, "status": status},
+    )

@@ -30,23 +30,18 @@ import os
 import secrets
 import socket
 import sys
-import time
 
 from django.conf import settings
-from django.db import transaction
 from django.db.models import Exists, OuterRef
-from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.runtime.base import ComponentSpec, ComponentState, RuntimeFailure, Status
 from bridgeos_agent.runtime.process import ProcessRuntime
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
-from monitoring.choices import Level
-from monitoring.services import record_event
 
 from ..models import CloudRelay, Component, Skill
-from .locks import LockBusy, orchestration_lock
 from .orchestration import LaunchFailed, TryAgain, enqueue_on_commit, with_runtime
+from .perrobot import Service, converge, report, tcp_answers
 from .process import CloudProcessRuntime, _key, _marked
 from .runtime import NO_RESTARTS, CloudRuntime, Observed
 
@@ -127,29 +122,20 @@ def _row(robot_id: str, skill_id: str) -> CloudRelay | None:
 
 def converge_relay(robot_id: str, skill_id: str) -> str:
     """Run a Skill's relay while it is wanted; stop it once it is not (or its row is gone)."""
-    try:
-        with orchestration_lock(f"relay:{robot_id}/{skill_id}"):
-            relay = _row(robot_id, skill_id)
-            try:
-                if relay is None or not wanted(relay):
-                    with_runtime(robot_id, lambda runtime: _stop(runtime, skill_id), name="process")
-                    if relay is not None:
-                        _set_status(relay, CS.STOPPED)
-                    return "stopped"
-                state = with_runtime(robot_id, lambda runtime: _start(runtime, relay), name="process")
-            except (RuntimeFailure, LaunchFailed, OSError) as exc:
-                if relay is not None:
-                    _set_status(relay, CS.FAILED, str(exc))
-                return "failed"
-            if state.status is Status.RUNNING and _answers(relay.port, timeout=15.0):
-                _set_status(relay, CS.RUNNING)
-                return "running"
-            if state.status is Status.RUNNING:
-                raise TryAgain(f"the cloud relay of {robot_id}/{skill_id} runs but does not answer on {relay.port} yet")
-            _set_status(relay, CS.FAILED, state.message or f"exit code {state.exit_code}")
-            return "failed"
-    except LockBusy as exc:
-        raise TryAgain(str(exc)) from None
+
+    def find() -> Service:
+        relay = _row(robot_id, skill_id)
+        return Service(
+            name=f"the cloud relay of {robot_id}/{skill_id}" + (f" on port {relay.port}" if relay else ""),
+            wanted=relay is not None and wanted(relay),
+            start=lambda runtime: _start(runtime, relay),
+            stop=lambda runtime: _stop(runtime, skill_id),
+            ready=lambda timeout: relay is not None and tcp_answers(relay.port, timeout),
+            report=lambda status, message: _set_status(relay, status, message) if relay is not None else None,
+            runtime="process",
+        )
+
+    return converge(robot_id, f"relay:{robot_id}/{skill_id}", find)
 
 
 async def _start(runtime: CloudRuntime, relay: CloudRelay) -> ComponentState:
@@ -200,35 +186,19 @@ async def _stop(runtime: CloudRuntime, skill_id: str) -> None:
     await runtime._terminate_found(KIND_CLOUD_RELAY, skill_id, RELAY_COMPONENT, 10.0)
 
 
-def _answers(port: int, *, timeout: float) -> bool:
-    """Tell whether the relay's control API accepts connections within ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            socket.create_connection((settings.BRIDGEOS["CLOUD_HOST"], port), timeout=1).close()
-            return True
-        except OSError:
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.05)
-
-
 def _set_status(relay: CloudRelay, status: str, message: str = "") -> None:
-    if relay.status == status and relay.message == message:
-        return
-    with transaction.atomic():
-        CloudRelay.objects.filter(pk=relay.pk).update(status=status, message=message, updated_at=timezone.now())
-        relay.status, relay.message = status, message
-        robot_id, skill_id = relay.skill.robot_id, relay.skill.skill_id
-        text = f"Cloud relay of {robot_id}/{skill_id} on port {relay.port} is {status}"
-        record_event(
-            text + (f": {message}" if message else ""),
-            robot_id=robot_id,
-            level=Level.ERROR if status == CS.FAILED else Level.INFO,
-            kind="cloud_relay",
-            skill=skill_id,
-            data={"port": relay.port, "status": status},
-        )
+    robot_id, skill_id = relay.skill.robot_id, relay.skill.skill_id
+    report(
+        relay,
+        "status",
+        status,
+        message,
+        robot_id=robot_id,
+        text=f"Cloud relay of {robot_id}/{skill_id} on port {relay.port}",
+        kind="cloud_relay",
+        skill=skill_id,
+        data={"port": relay.port, "status": status},
+    )
 
 
 # --------------------------------------------------------------------------- the reconciler
