@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure the real services bridgeOS runs and tests against are up.
 #
-#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus node
 #   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
 #
 # Idempotent: a part already up is left alone. Missing software is installed with apt
@@ -11,7 +11,7 @@
 set -euo pipefail
 
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus)
+ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus node)
 # Debian's prometheus scrapes `make run`'s cloud and demo agents (docker/prometheus/prometheus.yml);
 # the tests start their own with a temporary config and use promtool from the same package.
 PROMETHEUS_PORT=9090
@@ -87,6 +87,7 @@ numpy_ok() { ros_env /usr/bin/python3 -c 'import numpy' >/dev/null 2>&1; }
 wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok && numpy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
 wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
 wants prometheus && { have prometheus && have promtool || APT_NEEDED+=(prometheus); }
+wants node && { have node && have npm || APT_NEEDED+=(nodejs npm); }
 if wants vpn; then
     for tool in "${VPN_TOOLS[@]}"; do have "${tool%%:*}" || APT_NEEDED+=("${tool#*:}"); done
 fi
@@ -268,6 +269,27 @@ part_prometheus() {
     else
         missing prometheus "$t" "$did, but :$PROMETHEUS_PORT never opened; see $PROMETHEUS_LOG"
     fi
+}
+
+# The real JavaScript clients the tests drive with Node (tests/js/<client>/, each with its package-lock.json).
+part_node() {
+    local t; t=$(now)
+    if ! have node || ! have npm; then
+        missing node "$t" "node/npm not installed (the JavaScript client tests skip): sudo apt-get install nodejs npm"; return
+    fi
+    local did=() dir
+    for dir in "$ROOT_DIR"/tests/js/*/; do
+        [[ -f $dir/package-lock.json ]] || continue
+        # npm ci wipes and reinstalls: only when the lock file changed since the last install.
+        if [[ ! $dir/node_modules/.package-lock.json -nt $dir/package-lock.json ]]; then
+            if ! (cd "$dir" && npm ci --no-audit --no-fund --loglevel=error >/dev/null 2>&1); then
+                missing node "$t" "npm ci failed in ${dir#"$ROOT_DIR"/}: run it there to see why"; return
+            fi
+            did+=("installed ${dir#"$ROOT_DIR"/}")
+        fi
+    done
+    ((${#did[@]})) || did=("packages up to date")
+    report node "$t" "node $(node --version), ${did[*]}"
 }
 
 for part in "${ALL_PARTS[@]}"; do

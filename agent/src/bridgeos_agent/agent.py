@@ -93,21 +93,28 @@ def run_agent(args: argparse.Namespace) -> int:
                 logging.getLogger("bridgeos_agent").error("cannot serve metrics on %s: %s", args.metrics, exc)
                 return 1
             logging.getLogger("bridgeos_agent").info("metrics on http://%s/metrics", args.metrics)
-        rosbridge = None
-        if args.rosbridge:
-            # Before the controller runs: the robot's ROS 2 Context must be made before any cloud graph's.
+        doors: list[Any] = []
+        # Before the controller runs: the robot's ROS 2 Context must be made before any cloud graph's.
+        for option, address, ros, serve_door in (
+            ("rosbridge", args.rosbridge, args.rosbridge_ros, _serve_rosbridge),
+            ("foxglove", args.foxglove, args.foxglove_ros, _serve_foxglove),
+        ):
+            if not address:
+                continue
             try:
-                rosbridge = await _serve_rosbridge(args.rosbridge, args.rosbridge_ros)
+                doors.append(await serve_door(address, ros))
             except Exception as exc:  # no master, no rclpy, port taken: say which and stop
-                logging.getLogger("bridgeos_agent").error("cannot serve rosbridge on %s: %s", args.rosbridge, exc)
+                logging.getLogger("bridgeos_agent").error("cannot serve %s on %s: %s", option, address, exc)
+                for door in doors:
+                    await door.close()
                 if exporter is not None:
                     await exporter.cleanup()
                 return 1
         try:
             return await controller.run()
         finally:
-            if rosbridge is not None:
-                await rosbridge.close()
+            for door in doors:
+                await door.close()
             if exporter is not None:
                 await exporter.cleanup()
 
@@ -130,6 +137,26 @@ async def _serve_rosbridge(address: str, ros: str) -> Any:
         raise
     logging.getLogger("bridgeos_agent").info(
         "rosbridge v2 for the robot's %s graph on ws://%s:%d (unauthenticated)", ros.upper(), host, server.port
+    )
+    return server
+
+
+async def _serve_foxglove(address: str, ros: str) -> Any:
+    """Serve the Foxglove WebSocket protocol for the robot's ROS 1 or ROS 2 graph (auto as for rosbridge)."""
+    from bridgeos_agent.bridges.server import FoxgloveServer, open_graph, parse_address
+
+    host, port = parse_address(address)
+    if ros == "auto":
+        ros = "ros1" if find_ros_master() else "ros2"
+    graph = await open_graph(ros, name="bridgeos_foxglove")
+    server = FoxgloveServer(graph)
+    try:
+        await server.start(host, port)
+    except BaseException:
+        await graph.close()
+        raise
+    logging.getLogger("bridgeos_agent").info(
+        "Foxglove WebSocket for the robot's %s graph on ws://%s:%d (unauthenticated)", ros.upper(), host, server.port
     )
     return server
 

@@ -6,7 +6,7 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 from urllib.parse import urlsplit
@@ -89,19 +89,27 @@ def _metrics_address(value: str) -> str:
     return value
 
 
-def _rosbridge_address(value: str) -> str:
-    """Accept HOST:PORT for --rosbridge (a port of its own: 0 is refused)."""
-    from bridgeos_agent.metrics import parse_address
+def _door_address(option: str, usual: int) -> Callable[[str], str]:
+    """Return the check of HOST:PORT for a bridge door (a port of its own: 0 is refused)."""
 
-    try:
-        host, port = parse_address(value)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"--rosbridge {exc}") from None
-    if port == 0:
-        raise argparse.ArgumentTypeError(f"--rosbridge {value!r}: give a port (rosbridge's usual one is 9090)")
-    if any(ch.isspace() for ch in host):
-        raise argparse.ArgumentTypeError(f"--rosbridge {value!r}: the host must not contain whitespace")
-    return value
+    def check(value: str) -> str:
+        from bridgeos_agent.metrics import parse_address
+
+        try:
+            host, port = parse_address(value)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"{option} {exc}") from None
+        if port == 0:
+            raise argparse.ArgumentTypeError(f"{option} {value!r}: give a port (the usual one is {usual})")
+        if any(ch.isspace() for ch in host):
+            raise argparse.ArgumentTypeError(f"{option} {value!r}: the host must not contain whitespace")
+        return value
+
+    return check
+
+
+_rosbridge_address = _door_address("--rosbridge", 9090)
+_foxglove_address = _door_address("--foxglove", 8765)
 
 
 def _device(value: str) -> str:
@@ -276,6 +284,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="which graph --rosbridge serves: ros1 (the ROS master of ROS_MASTER_URI), ros2 (this process's "
         "ROS 2 env) or auto: ros1 when a ROS master answers, else ros2 (env BRIDGEOS_ROSBRIDGE_ROS)",
     )
+    run.add_argument(
+        "--foxglove",
+        type=_foxglove_address,
+        default=os.environ.get("BRIDGEOS_FOXGLOVE") or None,
+        metavar="HOST:PORT",
+        help="serve the Foxglove WebSocket protocol for this robot's ROS graph on ws://HOST:PORT, unauthenticated "
+        "like foxglove_bridge: keep HOST on loopback, e.g. 127.0.0.1:8765 (env BRIDGEOS_FOXGLOVE; default off)",
+    )
+    run.add_argument(
+        "--foxglove-ros",
+        default=os.environ.get("BRIDGEOS_FOXGLOVE_ROS", "auto"),
+        help="which graph --foxglove serves: ros1, ros2 or auto, as for --rosbridge-ros (env BRIDGEOS_FOXGLOVE_ROS)",
+    )
     run.add_argument("-q", "--quiet", action="store_true", help="print warnings and errors only")
     run.set_defaults(run_parser=run)
 
@@ -379,6 +400,24 @@ def _check_rosbridge_args(parser: argparse.ArgumentParser, args: argparse.Namesp
         parser.error(f"--rosbridge-ros ros2: {missing}")
 
 
+def _check_foxglove_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if args.foxglove_ros not in ("auto", "ros1", "ros2"):
+        parser.error(
+            f"--foxglove-ros (env BRIDGEOS_FOXGLOVE_ROS) must be auto, ros1 or ros2, not {args.foxglove_ros!r}"
+        )
+    if args.foxglove is None:
+        return
+    if args.foxglove == args.rosbridge:
+        parser.error(f"--foxglove and --rosbridge cannot share {args.foxglove}")
+    if args.foxglove_ros == "ros1":
+        try:
+            import rosbags  # noqa: F401
+        except ImportError:
+            parser.error("--foxglove-ros ros1 needs rosbags: pip install 'bridgeos-agent[rosbridge]'")
+    if args.foxglove_ros == "ros2" and (missing := rclpy_missing()):
+        parser.error(f"--foxglove-ros ros2: {missing}")
+
+
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Check the run options, then run the Robot Controller until it is stopped."""
     _check_connection_args(parser, args)
@@ -387,6 +426,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     _check_transport_args(parser, args)
     _check_ros2_args(parser, args)
     _check_rosbridge_args(parser, args)
+    _check_foxglove_args(parser, args)
     from bridgeos_agent.agent import run_agent
 
     return run_agent(args)

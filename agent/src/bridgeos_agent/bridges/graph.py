@@ -1,6 +1,6 @@
 """What a bridge needs of a robot's ROS graph, ROS 1 or ROS 2: topics, services, parameters and types.
 
-A bridge protocol (rosbridge v2 now; Foxglove WebSocket and MCAP recording later) talks to one
+A bridge protocol (rosbridge v2, Foxglove WebSocket; MCAP recording later) talks to one
 ``BridgeGraph`` and never to rclpy or TCPROS itself. Messages come off the graph as ``Sample``s:
 their serialized bytes, decoded to plain data (dicts, lists, ``bytes`` for byte arrays) only when
 a client needs them, and then once for every client.
@@ -66,6 +66,9 @@ class GraphPublisher(Protocol):
     def publish(self, msg: dict[str, Any]) -> None:
         """Publish one message given as plain data; raise BridgeError naming a bad field."""
 
+    def publish_raw(self, raw: bytes) -> None:
+        """Publish one message given serialized in the graph's own encoding; raise BridgeError if it does not read."""
+
     def close(self) -> None:
         """Stop publishing."""
 
@@ -74,12 +77,17 @@ class BridgeGraph(Protocol):
     """A robot's ROS graph as the bridges see it."""
 
     ros_version: int  # 1 or 2
+    message_encoding: str  # how its messages travel serialized: 'ros1' or 'cdr' (Foxglove's and MCAP's names)
+    schema_encoding: str  # how its definitions are written: 'ros1msg' or 'ros2msg'
 
     def normalize_type(self, type_: str) -> str:
         """Return the graph's own spelling of a type ('pkg/Type' or 'pkg/msg/Type'), or raise BridgeError."""
 
     async def topics(self) -> dict[str, str]:
         """Return every topic of the graph with its type."""
+
+    async def published_topics(self) -> dict[str, str]:
+        """Return the topics someone publishes now, with their types."""
 
     async def services(self) -> dict[str, str]:
         """Return every service of the graph with its type ('' when it cannot be told)."""
@@ -95,6 +103,15 @@ class BridgeGraph(Protocol):
 
     async def call_service(self, name: str, type_: str | None, args: dict[str, Any], timeout: float) -> dict[str, Any]:
         """Call a service of the graph and return its response as plain data."""
+
+    async def call_service_raw(self, name: str, type_: str | None, request: bytes, timeout: float) -> bytes:
+        """Call a service with a serialized request and return its serialized response."""
+
+    def schema(self, type_: str) -> str:
+        """Return a message type's full definition: its own, then each type inside it after a 'MSG:' line."""
+
+    def service_schemas(self, type_: str) -> tuple[str, str]:
+        """Return the full definitions of a service type's request and response."""
 
     async def advertise_service(self, name: str, type_: str, handler: ServiceHandler) -> GraphSubscription:
         """Serve a service in the graph, each call answered by ``handler``."""

@@ -42,6 +42,10 @@ class _Publisher:
     def publish(self, msg: dict[str, Any]) -> None:
         self.publication.send(frame(self.graph.types.encode(self._name, msg)), 1)
 
+    def publish_raw(self, raw: bytes) -> None:
+        self.graph.types.decode(self._name, raw)  # a message that does not read never reaches the robot's nodes
+        self.publication.send(frame(raw), 1)
+
     def close(self) -> None:
         self.graph.node.unadvertise(self.topic)
 
@@ -60,6 +64,8 @@ class Ros1Graph:
     """The graph of one ROS master, joined as one node."""
 
     ros_version = 1
+    message_encoding = "ros1"
+    schema_encoding = "ros1msg"
 
     def __init__(self, master_uri: str, *, name: str = "/bridgeos_rosbridge", host: str = "127.0.0.1") -> None:
         self.types = Ros1Types()
@@ -94,6 +100,10 @@ class Ros1Graph:
     async def topics(self) -> dict[str, str]:
         """Return the topics the master knows (published or subscribed) with their types."""
         return {name: type_ for name, type_ in await self._master("getTopicTypes")}
+
+    async def published_topics(self) -> dict[str, str]:
+        """Return the topics with a publisher now (the master keeps every topic it ever saw in getTopicTypes)."""
+        return {name: type_ for name, type_ in await self._master("getPublishedTopics", "")}
 
     async def _state(self) -> tuple[list[Any], list[Any], list[Any]]:
         publishers, subscribers, services = await self._master("getSystemState")
@@ -188,6 +198,21 @@ class Ros1Graph:
 
     async def call_service(self, name: str, type_: str | None, args: dict[str, Any], timeout: float) -> dict[str, Any]:
         """Call a service once over its own TCPROS connection."""
+
+        def request(served: str) -> bytes:
+            return self.types.encode(self.types.ensure_service(served)[0], args)
+
+        served, body = await self._exchange(name, type_, request, timeout)
+        return self.types.decode(self.types.ensure_service(served)[1], body)
+
+    async def call_service_raw(self, name: str, type_: str | None, request: bytes, timeout: float) -> bytes:
+        """Call a service with a request serialized as ROS 1 does; return the serialized response."""
+        return (await self._exchange(name, type_, lambda served: request, timeout))[1]
+
+    async def _exchange(
+        self, name: str, type_: str | None, request: Callable[[str], bytes], timeout: float
+    ) -> tuple[str, bytes]:
+        """Send one request (made once the server named its type) and return that type and the response."""
         where = await self.node.lookup_service(name)
         if where is None:
             raise BridgeError(f"no service {name} in the ROS graph")
@@ -203,8 +228,7 @@ class Ros1Graph:
             served = header.get("type") or (ros1_name(type_) if type_ else "")
             if type_ and served and ros1_name(type_) != served:
                 raise BridgeError(f"{name} is of type {served}, not {type_}")
-            request, response = self.types.ensure_service(served)
-            writer.write(frame(self.types.encode(request, args)))
+            writer.write(frame(request(served)))
             ok = await reader.readexactly(1)
             size = int.from_bytes(await reader.readexactly(4), "little")
             body = await reader.readexactly(size)
@@ -214,7 +238,7 @@ class Ros1Graph:
             writer.close()
         if ok != b"\x01":
             raise BridgeError(f"{name} failed: {body.decode('utf-8', 'replace')}")
-        return self.types.decode(response, body)
+        return served, body
 
     async def advertise_service(self, name: str, type_: str, handler: ServiceHandler) -> _Service:
         """Serve a service whose calls are answered by ``handler``."""
@@ -299,6 +323,16 @@ class Ros1Graph:
     def message_details(self, type_: str) -> list[dict[str, Any]]:
         """Return rosapi's TypeDefs of a message type."""
         return self.types.message_details(type_)
+
+    def schema(self, type_: str) -> str:
+        """Return a message type's full definition, as a ROS 1 publisher announces it."""
+        return self.types.definition(type_)[0]
+
+    def service_schemas(self, type_: str) -> tuple[str, str]:
+        """Return the full definitions of a service's request and response."""
+        request, response = self.types.ensure_service(type_)
+        store = self.types.store
+        return store.generate_msgdef(request, ros_version=1)[0], store.generate_msgdef(response, ros_version=1)[0]
 
 
 def _plain_xmlrpc(value: Any) -> Any:

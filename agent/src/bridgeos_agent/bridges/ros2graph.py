@@ -19,6 +19,7 @@ from collections.abc import Callable
 from typing import Any
 
 from bridgeos_agent.bridges.graph import BridgeError, Sample, ServiceHandler
+from bridgeos_agent.bridges.ros2defs import message_definition, service_definitions
 from bridgeos_agent.ros2graph import Ros2Graph, Ros2TypeError, interface_class
 
 __all__ = ["Ros2BridgeGraph", "fill_message", "message_to_plain"]
@@ -186,6 +187,10 @@ class _Publisher:
         fill_message(message, msg, self.type)
         self.publisher.publish(message)
 
+    def publish_raw(self, raw: bytes) -> None:
+        _deserialize(raw, self.cls, self.type)  # a message that does not read never reaches the robot's nodes
+        self.publisher.publish(bytes(raw))
+
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self._destroy(self.publisher)
@@ -195,6 +200,8 @@ class Ros2BridgeGraph:
     """The robot's ROS 2 graph, joined by one node of the bridge and a raw relay for its subscriptions."""
 
     ros_version = 2
+    message_encoding = "cdr"
+    schema_encoding = "ros2msg"
 
     def __init__(self, graph: Ros2Graph, loop: asyncio.AbstractEventLoop, *, name: str = "bridgeos_rosbridge") -> None:
         import rclpy
@@ -242,6 +249,14 @@ class Ros2BridgeGraph:
     async def topics(self) -> dict[str, str]:
         """Return every topic with its (first) type."""
         return {name: types[0] for name, types in self.node.get_topic_names_and_types() if types}
+
+    async def published_topics(self) -> dict[str, str]:
+        """Return the topics with a publisher now, with their (first) type."""
+        return {
+            name: types[0]
+            for name, types in self.node.get_topic_names_and_types()
+            if types and self.node.count_publishers(name)
+        }
 
     async def services(self) -> dict[str, str]:
         """Return every service with its type."""
@@ -332,16 +347,29 @@ class Ros2BridgeGraph:
 
     async def call_service(self, name: str, type_: str | None, args: dict[str, Any], timeout: float) -> dict[str, Any]:
         """Call a service of the graph."""
+        srv_type = self._service_type(name, type_)
+        cls = _load(srv_type, "srv")
+        request = cls.Request()
+        fill_message(request, args, srv_type + ".Request")
+        return message_to_plain(await self._request(name, srv_type, cls, request, timeout))
+
+    async def call_service_raw(self, name: str, type_: str | None, request: bytes, timeout: float) -> bytes:
+        """Call a service with a CDR-serialized request; return the CDR-serialized response."""
+        from rclpy.serialization import serialize_message
+
+        srv_type = self._service_type(name, type_)
+        cls = _load(srv_type, "srv")
+        message = _deserialize(request, cls.Request, srv_type + ".Request")
+        return bytes(serialize_message(await self._request(name, srv_type, cls, message, timeout)))
+
+    def _service_type(self, name: str, type_: str | None) -> str:
         known = dict(self.node.get_service_names_and_types()).get(name) or []
         srv_type = ros2_name(type_, "srv") if type_ else (known[0] if known else None)
         if srv_type is None:
             raise BridgeError(f"no service {name} in the ROS graph")
         if known and srv_type not in known:
             raise BridgeError(f"{name} is of type {known[0]}, not {srv_type}")
-        cls = _load(srv_type, "srv")
-        request = cls.Request()
-        fill_message(request, args, srv_type + ".Request")
-        return message_to_plain(await self._request(name, srv_type, cls, request, timeout))
+        return srv_type
 
     async def advertise_service(self, name: str, type_: str, handler: ServiceHandler) -> _Handle:
         """Serve a service whose calls are answered by ``handler`` (a failed call answers the default response)."""
@@ -429,6 +457,14 @@ class Ros2BridgeGraph:
 
     # ------------------------------------------------------------------ time and types
 
+    def schema(self, type_: str) -> str:
+        """Return a message type's full ros2msg definition, from its package's installed .msg files."""
+        return message_definition(ros2_name(type_))
+
+    def service_schemas(self, type_: str) -> tuple[str, str]:
+        """Return the full ros2msg definitions of a service's request and response."""
+        return service_definitions(ros2_name(type_, "srv"))
+
     def now(self) -> tuple[int, int]:
         """Return the bridge node's clock."""
         seconds, nanoseconds = self.node.get_clock().now().seconds_nanoseconds()
@@ -478,6 +514,15 @@ class Ros2BridgeGraph:
                 typedef["examples"].append("[]" if length >= 0 else "{}" if "/" in base else "")
             out.append(typedef)
         return out
+
+
+def _deserialize(raw: bytes, cls: Any, type_: str) -> Any:
+    from rclpy.serialization import deserialize_message
+
+    try:
+        return deserialize_message(bytes(raw), cls)
+    except Exception as exc:  # rclpy raises its own RMWError for bytes that are not the type's CDR
+        raise BridgeError(f"{len(raw)} bytes are not a CDR-serialized {type_}: {exc}"[:300]) from None
 
 
 async def _call(handler: ServiceHandler, request: dict[str, Any]) -> dict[str, Any]:

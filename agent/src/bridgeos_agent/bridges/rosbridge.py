@@ -24,6 +24,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from bridgeos_agent.bridges.fanout import DEFAULT_QUEUE, LINGER_S, Fanouts, Outlet, Publishers
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, GraphSubscription, Sample
 
 __all__ = ["COMPRESSIONS", "LEVELS", "Rosbridge", "RosbridgeSession"]
@@ -33,14 +34,12 @@ logger = logging.getLogger(__name__)
 LEVELS = {"info": 0, "warning": 1, "error": 2, "none": 3}
 COMPRESSIONS = ("none", "cbor", "cbor-raw")
 MAX_FRAME_BYTES = 16 << 20  # a frame bigger than this is refused with a status, the connection kept
-DEFAULT_QUEUE = 100  # messages queued per topic for a client that reads slower than the topic runs
 MAX_QUEUE = 10_000
 CONTROL_QUEUE = 1_000  # answers and statuses waiting for a client that does not read
 MAX_CALLS_IN_FLIGHT = 64  # service calls one client may have running at once
 MAX_FRAGMENTED = 8  # fragmented messages one client may be sending at once
 DEFAULT_CALL_TIMEOUT = 30.0
 CLIENT_SERVICE_TIMEOUT = 10.0  # how long a ROS caller waits for a client-advertised service to answer
-LINGER_S = 5.0  # how long a topic stays subscribed in the graph after its last client left
 
 Send = Callable[[str | bytes], Awaitable[None]]
 
@@ -100,33 +99,18 @@ def _count(message: dict[str, Any], key: str, default: int, *, upto: int | None 
     return int(value)
 
 
-class _Outlet:
+class _Outlet(Outlet):
     """What one client receives of one topic: its subscriptions' options and its queue."""
 
-    __slots__ = (
-        "compression",
-        "dropped",
-        "fragment_size",
-        "next_at",
-        "options",
-        "queue",
-        "sent",
-        "throttle_s",
-        "topic",
-        "type",
-    )
+    __slots__ = ("compression", "fragment_size", "next_at", "options", "throttle_s")
 
     def __init__(self, topic: str) -> None:
-        self.topic = topic
-        self.type = ""
+        super().__init__(topic)
         self.options: dict[str, dict[str, Any]] = {}  # subscription id -> its options, in arrival order
-        self.queue: deque[Sample] = deque(maxlen=DEFAULT_QUEUE)
         self.compression = "none"
         self.throttle_s = 0.0
         self.fragment_size: int | None = None
         self.next_at = 0.0
-        self.dropped = 0
-        self.sent = 0
 
     def configure(self, default_queue: int) -> None:
         """Merge the subscriptions as rosbridge does: lowest throttle, longest queue, smallest fragments."""
@@ -138,31 +122,7 @@ class _Outlet:
         self.compression = options[-1]["compression"]
         # queue_length 0 is rosbridge's "no queueing": with a throttle, only the latest message waits;
         # without one, a short queue still stands between the robot and a slow socket.
-        size = queue_length or (1 if self.throttle_s else default_queue)
-        if size != self.queue.maxlen:
-            self.queue = deque(self.queue, maxlen=size)
-
-    def offer(self, sample: Sample) -> None:
-        """Queue a message, dropping (and counting) the oldest when the queue is full."""
-        if len(self.queue) == self.queue.maxlen:
-            self.dropped += 1
-        self.queue.append(sample)
-
-
-class _Fanout:
-    """One graph subscription and the clients' outlets it feeds."""
-
-    __slots__ = ("idle", "outlets", "subscription")
-
-    def __init__(self) -> None:
-        self.subscription: GraphSubscription | None = None
-        self.outlets: dict[_Outlet, RosbridgeSession] = {}
-        self.idle: asyncio.TimerHandle | None = None  # the unsubscribe pending once the last client left
-
-    def deliver(self, sample: Sample) -> None:
-        for outlet, session in self.outlets.items():
-            outlet.offer(sample)
-            session.wake()
+        self.resize(queue_length or (1 if self.throttle_s else default_queue))
 
 
 class Rosbridge:
@@ -183,9 +143,8 @@ class Rosbridge:
         self.client_service_timeout = client_service_timeout
         self.linger_s = linger_s
         self.sessions: set[RosbridgeSession] = set()
-        self._fanouts: dict[str, _Fanout] = {}
-        self._attaching: dict[str, asyncio.Lock] = {}
-        self._publishers: dict[str, tuple[GraphPublisher, set[RosbridgeSession]]] = {}
+        self.fanouts = Fanouts(graph, linger_s=linger_s)
+        self.publishers = Publishers(graph)
         self._services: dict[str, tuple[RosbridgeSession, GraphSubscription]] = {}
         self.rosapi = Rosapi(self)
 
@@ -199,76 +158,7 @@ class Rosbridge:
         """Close every session and leave the graph's topics and services."""
         for session in list(self.sessions):
             await session.close()
-        for topic in list(self._fanouts):
-            self._drop_fanout(topic)
-
-    # ------------------------------------------------------------------ topics
-
-    async def attach(self, topic: str, type_: str | None, session: RosbridgeSession, outlet: _Outlet) -> str:
-        """Feed ``outlet`` with a topic, subscribing in the graph for its first client; return its type."""
-        lock = self._attaching.setdefault(topic, asyncio.Lock())
-        async with lock:
-            fanout = self._fanouts.get(topic)
-            if fanout is None:
-                fanout = _Fanout()
-                fanout.subscription = await self.graph.subscribe(topic, type_, fanout.deliver)
-                self._fanouts[topic] = fanout
-            assert fanout.subscription is not None
-            if fanout.idle is not None:
-                fanout.idle.cancel()
-                fanout.idle = None
-            if type_ is not None and self.graph.normalize_type(type_) != fanout.subscription.type:
-                if not fanout.outlets:
-                    self._drop_fanout(topic)
-                raise _Fail(f"{topic} is of type {fanout.subscription.type}, not {type_}")
-            fanout.outlets[outlet] = session
-            return fanout.subscription.type
-
-    def detach(self, topic: str, outlet: _Outlet) -> None:
-        """Stop feeding an outlet; the graph subscription ends a little after the last one leaves."""
-        fanout = self._fanouts.get(topic)
-        if fanout is not None:
-            fanout.outlets.pop(outlet, None)
-            if not fanout.outlets and fanout.idle is None:
-                # Kept a moment: a client that unsubscribes and subscribes again (page reloads, roslibjs
-                # re-subscribing) reuses the connection instead of racing a publisher's teardown of it.
-                fanout.idle = asyncio.get_running_loop().call_later(self.linger_s, self._expire, topic, fanout)
-
-    def _expire(self, topic: str, fanout: _Fanout) -> None:
-        if self._fanouts.get(topic) is fanout and not fanout.outlets:
-            self._drop_fanout(topic)
-
-    def _drop_fanout(self, topic: str) -> None:
-        fanout = self._fanouts.pop(topic)
-        if fanout.idle is not None:
-            fanout.idle.cancel()
-        if fanout.subscription is not None:
-            fanout.subscription.close()
-
-    async def advertise(self, topic: str, type_: str, session: RosbridgeSession) -> GraphPublisher:
-        """Publish on a topic for a client; clients of one topic share its publisher."""
-        entry = self._publishers.get(topic)
-        if entry is None:
-            known = (await self.graph.topics()).get(topic)
-            wanted = self.graph.normalize_type(type_)
-            if known is not None and known != wanted:
-                raise _Fail(f"{topic} already exists with type {known}, not {type_}")
-            entry = (await self.graph.advertise(topic, wanted), set())
-            self._publishers[topic] = entry
-        publisher, users = entry
-        if self.graph.normalize_type(type_) != publisher.type:
-            raise _Fail(f"{topic} is advertised with type {publisher.type}, not {type_}")
-        users.add(session)
-        return publisher
-
-    def unadvertise(self, topic: str, session: RosbridgeSession) -> None:
-        """Forget a client's publisher; the last one leaving stops publishing in the graph."""
-        entry = self._publishers.get(topic)
-        if entry is not None:
-            entry[1].discard(session)
-            if not entry[1]:
-                del self._publishers[topic]
-                entry[0].close()
+        self.fanouts.close()
 
     # ------------------------------------------------------------------ services
 
@@ -309,7 +199,7 @@ class Rosbridge:
 
     def subscribed_topics(self) -> list[str]:
         """Return the topics the bridge is subscribed to in the graph."""
-        return list(self._fanouts)
+        return self.fanouts.topics()
 
     def client_services(self) -> list[str]:
         """Return the services clients advertise."""
@@ -435,13 +325,13 @@ class RosbridgeSession:
             if self.graph.normalize_type(type_) != publisher.type:
                 raise _Fail(f"{topic} is advertised with type {publisher.type}, not {type_}")
             return
-        self._advertised[topic] = await self.bridge.advertise(topic, type_, self)
+        self._advertised[topic] = await self.bridge.publishers.advertise(topic, type_, self)
 
     async def _unadvertise(self, message: dict[str, Any]) -> None:
         topic = _name(message, "topic")
         if self._advertised.pop(topic, None) is None:
             raise _Fail(f"{topic} is not advertised by this client", "warning")
-        self.bridge.unadvertise(topic, self)
+        self.bridge.publishers.unadvertise(topic, self)
 
     async def _publish(self, message: dict[str, Any]) -> None:
         topic = _name(message, "topic")
@@ -454,7 +344,7 @@ class RosbridgeSession:
             known = (await self.graph.topics()).get(topic)
             if known is None:
                 raise _Fail(f"{topic} does not exist: advertise it with a type first")
-            publisher = self._advertised[topic] = await self.bridge.advertise(topic, known, self)
+            publisher = self._advertised[topic] = await self.bridge.publishers.advertise(topic, known, self)
         publisher.publish(msg)
 
     async def _subscribe(self, message: dict[str, Any]) -> None:
@@ -476,7 +366,7 @@ class RosbridgeSession:
         outlet = self._outlets.get(topic)
         if outlet is None:
             outlet = _Outlet(topic)
-            outlet.type = await self.bridge.attach(topic, type_, self, outlet)
+            await self.bridge.fanouts.attach(topic, type_, outlet, self)
             self._outlets[topic] = outlet
             self._order.append(outlet)
         elif type_ is not None and self.graph.normalize_type(type_) != outlet.type:
@@ -504,7 +394,7 @@ class RosbridgeSession:
         self._outlets.pop(outlet.topic, None)
         with contextlib.suppress(ValueError):
             self._order.remove(outlet)
-        self.bridge.detach(outlet.topic, outlet)
+        self.bridge.fanouts.detach(outlet.topic, outlet)
 
     async def _call_service(self, message: dict[str, Any]) -> None:
         name = _name(message, "service")
@@ -688,7 +578,7 @@ class RosbridgeSession:
         for outlet in list(self._outlets.values()):
             self._drop_outlet(outlet)
         for topic in list(self._advertised):
-            self.bridge.unadvertise(topic, self)
+            self.bridge.publishers.unadvertise(topic, self)
         self._advertised.clear()
         for name in list(self._services):
             self.bridge.unadvertise_service(name, self)
