@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure the real services bridgeOS runs and tests against are up.
 #
-#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus node
 #   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
 #
 # Idempotent: a part already up is left alone. Missing software is installed with apt
@@ -11,7 +11,9 @@
 set -euo pipefail
 
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus)
+ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus node)
+# Third-party JavaScript clients the tests drive (roslib from npm), installed from tests/js's lock file.
+JS_DIR="$ROOT_DIR/tests/js"
 # Debian's prometheus scrapes `make run`'s cloud and demo agents (docker/prometheus/prometheus.yml);
 # the tests start their own with a temporary config and use promtool from the same package.
 PROMETHEUS_PORT=9090
@@ -86,6 +88,7 @@ wants images && ! have debootstrap && APT_NEEDED+=(debootstrap)
 numpy_ok() { ros_env /usr/bin/python3 -c 'import numpy' >/dev/null 2>&1; }
 wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok && numpy_ok || APT_NEEDED+=("${ROS_PACKAGES[@]}"); }
 wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
+wants node && { have node && have npm || APT_NEEDED+=(nodejs npm); }
 wants prometheus && { have prometheus && have promtool || APT_NEEDED+=(prometheus); }
 if wants vpn; then
     for tool in "${VPN_TOOLS[@]}"; do have "${tool%%:*}" || APT_NEEDED+=("${tool#*:}"); done
@@ -268,6 +271,23 @@ part_prometheus() {
     else
         missing prometheus "$t" "$did, but :$PROMETHEUS_PORT never opened; see $PROMETHEUS_LOG"
     fi
+}
+
+part_node() {
+    local t; t=$(now)
+    if ! have node || ! have npm; then
+        missing node "$t" "not installed (the JavaScript client tests skip): sudo apt-get install nodejs npm"; return
+    fi
+    local did="present"
+    # npm writes node_modules/.package-lock.json on install: newer than the lock file means nothing to do.
+    if [[ ! -f $JS_DIR/node_modules/.package-lock.json || $JS_DIR/package-lock.json -nt $JS_DIR/node_modules/.package-lock.json ]]; then
+        if (cd "$JS_DIR" && npm ci --no-audit --no-fund --loglevel=error >/dev/null 2>&1); then
+            did="installed tests/js packages"
+        else
+            missing node "$t" "npm ci in tests/js failed (run it there to see why)"; return
+        fi
+    fi
+    report node "$t" "$did, node $(node --version)"
 }
 
 for part in "${ALL_PARTS[@]}"; do
