@@ -284,6 +284,16 @@ def test_a_stalled_viewer_slows_neither_the_robot_nor_a_live_viewer(cloud, robot
         stalled.close()
 
 
+def test_a_client_on_another_cloud_process_reaches_the_robot_through_the_channel_layer(cloud, robot, tmp_path) -> None:
+    with another_daphne(tmp_path / "second.log") as (second, _):
+        address = f"{second.ws_url}/ws/rosbridge/{robot.id}/"
+        with raw(address, additional_headers={"Authorization": f"Token {robot.api_token}"}) as websocket:
+            websocket.send(json.dumps({"op": "subscribe", "topic": "/chatter"}))
+            assert next_op(websocket, "publish")["msg"]["data"].startswith("robot ")
+            websocket.send(json.dumps({"op": "call_service", "id": "x", "service": "/trigger"}))
+            assert next_op(websocket, "service_response")["values"]["message"] == "robot"
+
+
 # ---------------------------------------------------------------------- who gets in
 
 
