@@ -9,6 +9,7 @@ from django.conf import settings
 from django.http.request import validate_host
 
 from dashboard.routing import websocket_urlpatterns as client_routes
+from robots.routing import CROSS_ORIGIN_PATHS
 from robots.routing import websocket_urlpatterns as robot_routes
 
 websocket_urlpatterns = [*robot_routes, *client_routes]
@@ -26,6 +27,8 @@ class BrowserOriginValidator:
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> Any:
         origin = dict(scope.get("headers", [])).get(b"origin")
+        if scope.get("path", "").startswith(CROSS_ORIGIN_PATHS):
+            return await self.application(scope, receive, send)
         if origin is not None and not self.allowed(origin.decode("latin-1")):
             await send({"type": "websocket.close", "code": 4003})
             return None

@@ -306,6 +306,16 @@ BRIDGEOS = {
     "CLIENT_FRAME_BURST": env_float("BRIDGEOS_CLIENT_FRAME_BURST", 200.0),
     # Lifetime of an API token from /api/auth; /api/auth/renew extends it by as much.
     "API_TOKEN_TTL_S": env_float("BRIDGEOS_API_TOKEN_TTL_S", 24 * 3600.0),
+    # Bridges (/ws/rosbridge/<robot>/, /ws/foxglove/<robot>/): a browser's ticket lives this long and serves once;
+    # each client gets at most this many bytes per second (its robot-side queues drop the oldest past it),
+    # this many frames queued in the cloud (the oldest dropped past it), and may send frames this large,
+    # this often.
+    "BRIDGE_TICKET_TTL_S": env_float("BRIDGEOS_BRIDGE_TICKET_TTL_S", 60.0),
+    "BRIDGE_CLIENT_BYTES_PER_S": env_int("BRIDGEOS_BRIDGE_CLIENT_BYTES_PER_S", 8 * 1024 * 1024),
+    "BRIDGE_CLIENT_QUEUE": env_int("BRIDGEOS_BRIDGE_CLIENT_QUEUE", 1000),
+    "BRIDGE_MAX_FRAME_BYTES": env_int("BRIDGEOS_BRIDGE_MAX_FRAME_BYTES", 1024 * 1024),
+    "BRIDGE_CLIENT_FRAMES_PER_S": env_float("BRIDGEOS_BRIDGE_CLIENT_FRAMES_PER_S", 500.0),
+    "BRIDGE_CLIENT_FRAME_BURST": env_float("BRIDGEOS_BRIDGE_CLIENT_FRAME_BURST", 1000.0),
     # How long a client's command waits for the robot's reply.
     "COMMAND_WAIT_S": env_float("BRIDGEOS_COMMAND_WAIT_S", 5.0),
     # A ROS master the cloud runs for robots that have none (ws://... not; http://HOST:11311).

@@ -29,6 +29,7 @@ from skills.cloud.reporting import cloud_reports_for
 from skills.cloud.volumes import CloudVolumes, QuotaExceeded
 
 from . import dedup, services
+from .bridges import RobotBridges, deliver, register_local
 from .dedup import applied_ids
 from .presence import get_presence
 
@@ -40,6 +41,8 @@ CHUNK_WAIT_S = 30.0
 MAX_OPEN_REQUESTS = 1000
 CLOSE_REPLACED = 4009
 CLOSE_REVOKED = 4004
+# How the agent's encoder starts a bridge event: such frames skip the robot's report rate limit.
+BRIDGE_FRAME_PREFIX = '{"event":"bridge_'
 
 saving_failures = LogOnce(log, "saving applied frame ids in Redis before acking", traceback=True)
 
@@ -89,6 +92,8 @@ class RobotConsumer(ProtocolConsumer):
         self.volumes: CloudVolumes | None = None
         self.volume_scanner: asyncio.Future | None = None
         self.chunk_requests: dict[str, asyncio.Future[Envelope]] = {}
+        self.bridges = RobotBridges("")
+        register_local(self)
         await super().connect()
 
     async def send_reliably(self, envelope: Envelope) -> None:
@@ -104,6 +109,21 @@ class RobotConsumer(ProtocolConsumer):
 
     async def handle_frame(self, envelope: Envelope) -> None:
         await self.dispatch_envelope(envelope)
+
+    async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
+        # A bridge client's data is live and already capped per client by the agent: not counted
+        # against the robot's own frame rate, which is sized for its reports.
+        if text_data is not None and self.authenticated and text_data.startswith(BRIDGE_FRAME_PREFIX):
+            if self.closing:
+                return
+            try:
+                envelope = protocol.decode(text_data, direction=self.direction)
+            except protocol.ProtocolError as exc:
+                await self.fail(exc.message, reply_to=None, field=exc.field, code=exc.code)
+                return
+            await self.dispatch_envelope(envelope)
+            return
+        await super().receive(text_data, bytes_data)
 
     async def dispatch_envelope(self, envelope: Envelope) -> None:
         """Route one valid frame from the robot to its handler."""
@@ -189,6 +209,7 @@ class RobotConsumer(ProtocolConsumer):
         if presence is not None:
             presence.consumers.add(self)
         self.robot_id = connected.robot
+        self.bridges.robot_id = connected.robot
         self.dedup.load(await applied_ids().load(connected.robot))
         if connected.replaced_channel:
             await self.channel_layer.send(connected.replaced_channel, {"type": "robot.replaced"})
@@ -272,6 +293,14 @@ class RobotConsumer(ProtocolConsumer):
         reply_channel, _ = self.requests.pop(envelope.reply_to)
         await self.channel_layer.send(reply_channel, {"type": "robot.reply", "frame": protocol.encode(envelope)})
 
+    async def robot_bridge(self, message: dict[str, Any]) -> None:
+        """Pass a bridge client's frame (or its session's opening or end) to the robot."""
+        if self.robot_id is None or self.closing:
+            if message.get("open"):
+                await deliver(message["open"], {"type": "bridge.closed", "offline": True})
+            return
+        await self.bridges.from_client(message, self.send_text)
+
     async def robot_revoked(self, message: dict[str, Any]) -> None:
         """Close this connection: the robot's token was rotated or the robot deleted."""
         await self.close_with(CLOSE_REVOKED, "credentials revoked")
@@ -305,6 +334,7 @@ class RobotConsumer(ProtocolConsumer):
         for reply_channel, _ in self.requests.values():
             await self.channel_layer.send(reply_channel, {"type": "robot.reply", "offline": True})
         self.requests.clear()
+        await self.bridges.robot_left()
         if self.robot_id is not None:
             reason = getattr(self, "close_reason", None) or f"connection closed (code {code})"
             await applied_ids().flush()
@@ -498,6 +528,12 @@ async def on_volume_chunks_get(consumer: RobotConsumer, envelope: Envelope, p: A
 @handles(Event.VOLUME_CHUNKS)
 async def on_volume_chunks(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
     # A late answer to a chunk request that timed out: nothing waits for it any more.
+    return False
+
+
+@handles(Event.BRIDGE_FRAME, Event.BRIDGE_CLOSE)
+async def on_bridge(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
+    await consumer.bridges.from_robot(envelope.event, p)
     return False
 
 

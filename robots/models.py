@@ -102,3 +102,18 @@ class ApiToken(models.Model):
     @property
     def expired(self) -> bool:
         return self.expires_at <= timezone.now()
+
+
+class BridgeTicket(models.Model):
+    """A browser's single-use pass to one robot's bridge WebSockets: stored hashed, short-lived."""
+
+    key_hash = models.CharField(max_length=64, unique=True, editable=False)
+    user = models.ForeignKey(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="bridge_tickets")
+    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="bridge_tickets")
+    expires_at = models.DateTimeField()
+
+    class Meta:
+        indexes = [models.Index(fields=["expires_at"])]
+
+    def __str__(self) -> str:
+        return f"bridge ticket of {self.user} for {self.robot_id} until {self.expires_at:%H:%M:%S}"

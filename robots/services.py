@@ -30,7 +30,7 @@ from monitoring.live import publish_all_on_commit, publish_on_commit
 from monitoring.services import record_event, record_events
 
 from .choices import RobotStatus
-from .models import ApiToken, Robot, hash_token
+from .models import ApiToken, BridgeTicket, Robot, hash_token
 from .signals import cloud_relays_wanted, credentials_rotated, ros2_discovery_wanted, ros_master_wanted
 
 
@@ -483,6 +483,67 @@ def _api_token_by_hash(key_hash: str) -> ApiToken | None:
         connection.alias, user_fields, row[len(token_fields) :]
     )
     return token
+
+
+BRIDGE_TICKET_PREFIX = "bbt_"
+
+
+def issue_bridge_ticket(user: AbstractBaseUser, robot: Robot) -> tuple[str, datetime]:
+    """Give a user a single-use ticket to one of their robot's bridges; return it (shown now only) and its expiry."""
+    key = BRIDGE_TICKET_PREFIX + secrets.token_urlsafe(32)
+    now = timezone.now()
+    expires_at = now + timedelta(seconds=settings.BRIDGEOS["BRIDGE_TICKET_TTL_S"])
+    with transaction.atomic():
+        # Tickets are issued one click at a time: sweeping the expired ones here keeps the table tiny.
+        BridgeTicket.objects.filter(expires_at__lte=now).delete()
+        BridgeTicket.objects.create(key_hash=hash_token(key), user=user, robot=robot, expires_at=expires_at)
+    return key, expires_at
+
+
+def redeem_bridge_ticket(key: str, robot_id: str) -> AbstractBaseUser | None:
+    """Spend a ticket for a robot: return its user if it was unexpired, unused, for this robot and still allowed."""
+    if not key.startswith(BRIDGE_TICKET_PREFIX) or len(key) > 100:
+        return None
+    with transaction.atomic():
+        ticket = (
+            BridgeTicket.objects.select_for_update()
+            .select_related("user")
+            .filter(key_hash=hash_token(key), robot_id=robot_id)
+            .first()
+        )
+        if ticket is None:
+            return None
+        ticket.delete()  # used once, even when it turns out expired
+    user = ticket.user
+    if ticket.expires_at <= timezone.now() or not user.is_active or not can_see(user, robot_id):
+        return None
+    return user
+
+
+@dataclass(frozen=True)
+class BridgeAccess:
+    """Who opened a bridge to a robot, and the channel of the robot's connection ("" when offline)."""
+
+    user_id: int
+    robot_id: str
+    channel: str
+
+
+def open_bridge(robot_id: str, *, token: str | None = None, ticket: str | None = None) -> BridgeAccess | None:
+    """Check a bridge client's API token or ticket for a robot; None when refused (the robot may not exist)."""
+    user = None
+    if token:
+        found = api_token(token)
+        user = found.user if found is not None and can_see(found.user, robot_id) else None
+    elif ticket:
+        user = redeem_bridge_ticket(ticket, robot_id)
+    if user is None:
+        return None
+    row = Robot.objects.filter(id=robot_id).values_list("connected", "channel").first()
+    if row is None:
+        return None
+    connected, channel = row
+    return BridgeAccess(user.pk, robot_id, channel if connected else "")
 
 
 def renew_api_token(token: ApiToken) -> ApiToken:

@@ -103,3 +103,10 @@ class FleetQuerySerializer(serializers.Serializer):
                 f"Unknown field(s): {', '.join(repr(f) for f in unknown)}; choose from {', '.join(FLEET_FIELDS)}."
             )
         return fields
+
+
+class BridgeTicketSerializer(serializers.Serializer):
+    ticket = serializers.CharField(help_text="Single use: spent by the first WebSocket that presents it.")
+    expires_at = serializers.DateTimeField()
+    rosbridge_url = serializers.CharField(help_text="rosbridge v2 WebSocket of the robot, with the ticket.")
+    foxglove_url = serializers.CharField(help_text="Foxglove WebSocket of the robot, with the ticket.")

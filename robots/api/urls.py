@@ -18,6 +18,7 @@ urlpatterns = [
     path("robot/<slug:robot_id>", views.RobotDetailView.as_view(), name="robot-detail"),
     path("robot/<slug:robot_id>/info", views.RobotInfoView.as_view(), name="robot-info"),
     path("robot/<slug:robot_id>/token", views.RobotTokenView.as_view(), name="robot-token"),
+    path("robot/<slug:robot_id>/bridge-ticket", views.BridgeTicketView.as_view(), name="robot-bridge-ticket"),
     path("robot/<slug:robot_id>/start", views.RobotCommandView.as_view(event=Event.ROBOT_START), name="robot-start"),
     path("robot/<slug:robot_id>/stop", views.RobotCommandView.as_view(event=Event.ROBOT_STOP), name="robot-stop"),
     path("robot/<slug:robot_id>/shutdown", views.RobotCommandView.as_view(event=Event.SHUTDOWN), name="robot-shutdown"),

@@ -29,6 +29,7 @@ from ..models import ApiToken, Robot
 from .commands import relay, relay_to_fleet, wait_seconds
 from .serializers import (
     AuthTokenSerializer,
+    BridgeTicketSerializer,
     CommandResultSerializer,
     FleetCommandSerializer,
     FleetQuerySerializer,
@@ -222,6 +223,24 @@ class RobotTokenView(APIView):
     @extend_schema(request=None, responses={200: RobotTokenSerializer, 404: OpenApiResponse()})
     def post(self, request: Request, robot_id: str) -> Response:
         return Response({"token": services.rotate_token(robot_of(request, robot_id))})
+
+
+class BridgeTicketView(APIView):
+    """Get a ticket for one of your robot's bridges: for browsers, which cannot send an Authorization header."""
+
+    @extend_schema(request=None, responses={200: BridgeTicketSerializer, 404: OpenApiResponse()})
+    def post(self, request: Request, robot_id: str) -> Response:
+        robot = robot_of(request, robot_id)
+        ticket, expires_at = services.issue_bridge_ticket(request.user, robot)
+        base = request.build_absolute_uri("/").replace("http", "ws", 1).rstrip("/")
+        return Response(
+            {
+                "ticket": ticket,
+                "expires_at": expires_at,
+                "rosbridge_url": f"{base}/ws/rosbridge/{robot.id}/?ticket={ticket}",
+                "foxglove_url": f"{base}/ws/foxglove/{robot.id}/?ticket={ticket}",
+            }
+        )
 
 
 class RobotCommandView(APIView):

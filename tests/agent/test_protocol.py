@@ -150,6 +150,10 @@ SAMPLES: dict[Event, dict[str, Any]] = {
         "decided_at": 1700000000.5,
         "duration_s": 0.25,
     },
+    # bridges
+    Event.BRIDGE_OPEN: {"session": "s3ss10n-a", "kind": "foxglove", "bytes_per_s": 1_000_000},
+    Event.BRIDGE_FRAME: {"session": "s3ss10n-a", "binary": "AAEC", "more": True},
+    Event.BRIDGE_CLOSE: {"session": "s3ss10n-a", "reason": "the client left"},
 }
 
 
@@ -169,8 +173,9 @@ def rejection(text: str | bytes, **kwargs: Any) -> ProtocolError:
 def test_samples_cover_every_event_and_table() -> None:
     assert set(SAMPLES) == set(Event) == set(PAYLOADS) == set(DIRECTIONS)
     # Table 3.3's 31 events, ack, the three of Skill volume sync, the manager's decision log and the
-    # cloud copies' Components API relay (request and reply), and the event log's live entries.
-    assert len(Event) == 39
+    # cloud copies' Components API relay (request and reply), the event log's live entries, and the
+    # three of the bridges (a rosbridge/Foxglove client relayed over the robot's link).
+    assert len(Event) == 42
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
     # Requests are named *_get, but for the relayed Components API call, which may POST.
     requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {Event.COMPONENTS_API}

@@ -13,6 +13,7 @@ import asyncio
 import functools
 import importlib.util
 import logging
+import os
 import time
 from collections.abc import Callable, Coroutine, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -20,6 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from bridgeos_agent import handlers
+from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph
+from bridgeos_agent.bridges.relay import BridgeRelay
 from bridgeos_agent.cloudrole import CloudRole
 from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.metrics import AgentMetrics
@@ -160,8 +163,11 @@ class RobotController:
             on_refused=self.placement.on_refused,
             stop=self.stop,
             stopped=self.stopped,
+            on_disconnect=self._on_disconnect,
         )
         self.connected = self.session.connected
+        # The cloud's rosbridge/Foxglove clients of this robot, relayed over the link (bridges.relay).
+        self.bridges = BridgeRelay(self.emit, self._bridge_graph)
         robot = (settings.simulated or SimulatedRobot()) if settings.simulate else SystemRobot()
         self.monitor = ResourceMonitor(robot)
 
@@ -201,6 +207,7 @@ class RobotController:
             task.cancel()
         await asyncio.gather(*self._loops, return_exceptions=True)
         await self.tasks.close()
+        await self.bridges.shutdown()
         for record in self.skills.values():
             if record.supervisor is not None:
                 await record.supervisor.close()
@@ -301,6 +308,25 @@ class RobotController:
             self.ros2_discovery_server = server
             if server:
                 self.say(f"ROS 2: the robot's cloud graph is found through the discovery server {server}")
+
+    def _on_disconnect(self) -> None:
+        """End the bridge sessions: their clients were on the link that dropped."""
+        self.spawn(self.bridges.close_sessions())
+
+    async def _bridge_graph(self) -> BridgeGraph:
+        """Join the robot's graph for the bridges: its ROS master's (ROS 1), else its ROS 2 graph."""
+        if self.ros_master:
+            from bridgeos_agent.bridges.ros1graph import Ros1Graph
+
+            host = os.environ.get("ROS_IP") or os.environ.get("ROS_HOSTNAME") or "127.0.0.1"
+            graph = Ros1Graph(self.ros_master, name="/bridgeos_cloud_bridge", host=host)
+            await graph.start()
+            return graph
+        if self.ros2_graph is not None:
+            from bridgeos_agent.bridges.ros2graph import Ros2BridgeGraph
+
+            return Ros2BridgeGraph(self.ros2_graph, asyncio.get_running_loop(), name="bridgeos_cloud_bridge")
+        raise BridgeError("this robot has no ROS graph: no ROS master was found and ROS 2 routing is off")
 
     def _use_ros_master(self, offered: str | None) -> None:
         """Take the ROS master the cloud named for this robot (ours, or one it runs)."""

@@ -295,6 +295,22 @@ async def call_components_api(
             return answer.status, {"error": (await answer.text())[:2000]}
 
 
+@handles(Event.BRIDGE_OPEN)
+async def on_bridge_open(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # Joining the graph takes a moment: the session starts in the background, its frames queue meanwhile.
+    controller.bridges.open(p.session, p.kind, p.bytes_per_s)
+
+
+@handles(Event.BRIDGE_FRAME)
+async def on_bridge_frame(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    controller.bridges.receive(p)
+
+
+@handles(Event.BRIDGE_CLOSE)
+async def on_bridge_close(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    await controller.bridges.end(p.session)
+
+
 def _first_error(exc: ValueError) -> str:
     errors = field_errors(exc) if isinstance(exc, ValidationError) else None
     if errors:

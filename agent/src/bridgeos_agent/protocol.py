@@ -31,11 +31,14 @@ from pydantic import (
     Strict,
     StringConstraints,
     ValidationError,
+    model_validator,
 )
 
 from bridgeos_agent.skillconfig import SLUG_PATTERN
 
 __all__ = [
+    "BRIDGE_KINDS",
+    "BRIDGE_PART_CHARS",
     "COMMANDS",
     "DIRECTIONS",
     "EVENTS",
@@ -49,6 +52,9 @@ __all__ = [
     "AuthenticationFailure",
     "AuthenticationRobot",
     "AuthenticationSuccess",
+    "BridgeClose",
+    "BridgeFrame",
+    "BridgeOpen",
     "ComponentInformation",
     "ComponentLocation",
     "ComponentMigrate",
@@ -166,6 +172,10 @@ class Event(enum.StrEnum):
     COMPONENTS_API_REPLY = "components_api_reply"
     # Not in the thesis: an entry of the cloud's event log, pushed to dashboards as it is written (issue 21).
     LOG_EVENT = "log_event"
+    # bridges: a rosbridge or Foxglove WebSocket client of the cloud, relayed over the robot's link (issue 19).
+    BRIDGE_OPEN = "bridge_open"
+    BRIDGE_FRAME = "bridge_frame"
+    BRIDGE_CLOSE = "bridge_close"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -688,6 +698,48 @@ class Ack(Payload):
     """Acknowledge the frame named by the envelope's ``reply_to``."""
 
 
+# --------------------------------------------------------------------------- bridges
+# A client of /ws/rosbridge/<robot>/ or /ws/foxglove/<robot>/ is one bridge session on the robot's
+# own link: the cloud opens it, both sides carry its WebSocket frames, either side closes it. Live
+# data, so none is acked or resent: a session dies with the link and its client reconnects.
+
+BRIDGE_KINDS = ("rosbridge", "foxglove")
+# A client frame larger than this crosses the link in parts (``more``), so an envelope stays well
+# under MAX_FRAME_BYTES even when JSON escaping multiplies a text part's size.
+BRIDGE_PART_CHARS = 128 * 1024
+BridgeSessionId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
+
+
+class BridgeOpen(Payload):
+    """Open a bridge session of a kind for one client, sending at most ``bytes_per_s`` to it."""
+
+    session: BridgeSessionId
+    kind: Literal["rosbridge", "foxglove"]
+    bytes_per_s: Annotated[int, Strict(), Field(ge=1024)] | None = None
+
+
+class BridgeFrame(Payload):
+    """Carry (a part of) one WebSocket frame of a bridge session: ``text``, or ``binary`` in base64."""
+
+    session: BridgeSessionId
+    text: Annotated[str, StringConstraints(max_length=BRIDGE_PART_CHARS)] | None = None
+    binary: Annotated[str, StringConstraints(max_length=(BRIDGE_PART_CHARS * 4) // 3 + 4)] | None = None
+    more: bool = False  # more parts of this frame follow
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> BridgeFrame:
+        if (self.text is None) == (self.binary is None):
+            raise ValueError("a bridge frame carries exactly one of text and binary")
+        return self
+
+
+class BridgeClose(Payload):
+    """End a bridge session, saying why (told to its client)."""
+
+    session: BridgeSessionId
+    reason: Annotated[str, StringConstraints(max_length=500)] = ""
+
+
 PAYLOADS: Mapping[str, type[Payload]] = {
     Event.AUTHENTICATION_CLIENT: AuthenticationClient,
     Event.AUTHENTICATION_ROBOT: AuthenticationRobot,
@@ -728,6 +780,9 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.COMPONENTS_API: ComponentsApi,
     Event.COMPONENTS_API_REPLY: ComponentsApiReply,
     Event.LOG_EVENT: LogEvent,
+    Event.BRIDGE_OPEN: BridgeOpen,
+    Event.BRIDGE_FRAME: BridgeFrame,
+    Event.BRIDGE_CLOSE: BridgeClose,
 }
 
 
@@ -781,6 +836,9 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.COMPONENTS_API: frozenset({_C2R}),
     Event.COMPONENTS_API_REPLY: frozenset({_R2C}),
     Event.LOG_EVENT: frozenset({_C2K}),
+    Event.BRIDGE_OPEN: frozenset({_C2R}),
+    Event.BRIDGE_FRAME: frozenset({_R2C, _C2R}),
+    Event.BRIDGE_CLOSE: frozenset({_R2C, _C2R}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,

@@ -77,6 +77,7 @@ class Session:
         on_refused: Callable[[Envelope, str], None],
         stop: Callable[[int], None],
         stopped: asyncio.Event,
+        on_disconnect: Callable[[], None] | None = None,
     ) -> None:
         self.settings = settings
         self.network = network
@@ -90,6 +91,7 @@ class Session:
         self._on_refused = on_refused
         self._stop = stop
         self._stopped = stopped
+        self._on_disconnected = on_disconnect
         self.local_ros_master: str | None = None  # told to the cloud when authenticating
         self.local_ros2: dict[str, Any] | None = None  # the robot's ROS 2 graph, told to the cloud too
         self.ws: Any = None
@@ -268,6 +270,8 @@ class Session:
         self._count_evicted()
         # Everything unacked is sent again, in order, from the outbox on the next connection.
         self.reliable = self._new_reliable()
+        if self._on_disconnected is not None:
+            self._on_disconnected()
 
     # ------------------------------------------------------------------ sending
 

@@ -1,0 +1,296 @@
+"""The cloud's bridge clients served over the robot's own link: one engine session per client.
+
+The cloud opens a session (``bridge_open``) for each client of ``/ws/rosbridge/<robot>/`` or
+``/ws/foxglove/<robot>/`` and carries its WebSocket frames both ways (``bridge_frame``); either
+side ends it (``bridge_close``). Every session of a kind shares one engine, and every engine the
+agent's one graph, so a topic is subscribed in the graph once however many clients watch it.
+
+Flow: each session writes through a byte budget (the cloud's per-client cap). A client over its
+cap makes its session's writer wait, so its engine queues fill and drop their oldest messages
+(counted), while the robot's graph and the other sessions go on at their own pace.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import functools
+import importlib
+import logging
+import time
+from collections.abc import Awaitable, Callable, Mapping
+from typing import Any, Protocol
+
+from bridgeos_agent.bridges.graph import BridgeGraph
+from bridgeos_agent.protocol import BRIDGE_PART_CHARS, Event
+
+__all__ = ["ENGINES", "BridgeRelay", "ByteBudget", "FrameAssembler", "frame_parts"]
+
+logger = logging.getLogger(__name__)
+
+# Where each kind's engine lives: a class taking the graph, whose .session(send) serves one client.
+ENGINES: Mapping[str, tuple[str, str]] = {
+    "rosbridge": ("bridgeos_agent.bridges.rosbridge", "Rosbridge"),
+    "foxglove": ("bridgeos_agent.bridges.foxglove", "Foxglove"),
+}
+MAX_SESSIONS = 64  # clients of one robot at once
+MAX_INBOX = 1_000  # client frames waiting for their session; more is a flood and ends the session
+MAX_CLIENT_FRAME = 16 << 20  # a client frame reassembled from parts may not exceed this
+
+SendEvent = Callable[[Event, dict[str, Any]], Awaitable[Any]]
+Send = Callable[[str | bytes], Awaitable[None]]
+
+
+class EngineSession(Protocol):
+    async def receive(self, frame: str | bytes) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+class Engine(Protocol):
+    def session(self, send: Send) -> EngineSession: ...
+
+    async def close(self) -> None: ...
+
+
+class ByteBudget:
+    """A token bucket over bytes: how long to wait before sending a frame of some size."""
+
+    def __init__(self, rate: float, burst: float, now: float) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.tokens = burst
+        self.at = now
+
+    def delay(self, size: int, now: float) -> float:
+        """Spend ``size`` bytes; return how many seconds to wait first (a big frame goes into debt)."""
+        self.tokens = min(self.burst, self.tokens + (now - self.at) * self.rate)
+        self.at = now
+        wait = 0.0 if self.tokens >= 0 else -self.tokens / self.rate
+        self.tokens -= size
+        return wait
+
+
+class _Session:
+    """One client's session: its engine session, the frames waiting for it, its writer's budget."""
+
+    def __init__(self, relay: BridgeRelay, ident: str, bytes_per_s: int | None) -> None:
+        self.relay = relay
+        self.ident = ident
+        self.engine_session: EngineSession | None = None
+        self.inbox: asyncio.Queue[str | bytes] = asyncio.Queue()
+        self.assembler = FrameAssembler(MAX_CLIENT_FRAME)
+        self.budget = ByteBudget(bytes_per_s, bytes_per_s, time.monotonic()) if bytes_per_s else None
+        self.tasks: list[asyncio.Task[Any]] = []
+        self.sent_bytes = 0
+        self.closed = False
+
+    async def send(self, frame: str | bytes) -> None:
+        """Send one engine frame to the client, in parts when large, within the client's byte budget."""
+        if self.closed:
+            return
+        if self.budget is not None:
+            wait = self.budget.delay(len(frame), time.monotonic())
+            if wait > 0:
+                await asyncio.sleep(wait)
+        self.sent_bytes += len(frame)
+        for data in frame_parts(self.ident, frame):
+            await self.relay.send_event(Event.BRIDGE_FRAME, data)
+
+    async def read(self) -> None:
+        """Feed the client's frames to its engine session one at a time, in order."""
+        assert self.engine_session is not None
+        while True:
+            frame = await self.inbox.get()
+            await self.engine_session.receive(frame)
+
+
+class FrameAssembler:
+    """Put a frame back together from its bridge_frame parts, refusing one larger than ``limit`` bytes."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.parts: list[Any] = []
+        self.size = 0
+
+    def take(self, data: Any) -> str | bytes | None:
+        """Add a part (a BridgeFrame); return the whole frame after its last part (ValueError: too big)."""
+        part: str | bytes = data.text if data.text is not None else base64.b64decode(data.binary)
+        self.size += len(part)
+        if self.size > self.limit:
+            self.parts, self.size = [], 0
+            raise ValueError(f"a frame exceeds {self.limit} bytes")
+        if data.more:
+            self.parts.append(part)
+            return None
+        parts, self.parts, self.size = self.parts, [], 0
+        if not parts:
+            return part
+        parts.append(part)
+        return "".join(parts) if isinstance(part, str) else b"".join(parts)
+
+
+def frame_parts(ident: str, frame: str | bytes) -> list[dict[str, Any]]:
+    """Split a session's frame into bridge_frame payloads small enough for one envelope each."""
+    size = BRIDGE_PART_CHARS if isinstance(frame, str) else (BRIDGE_PART_CHARS // 4) * 3
+    pieces = [frame[i : i + size] for i in range(0, len(frame), size)] or [frame]
+    out = []
+    for index, piece in enumerate(pieces):
+        data: dict[str, Any] = {"session": ident, "more": index < len(pieces) - 1}
+        if isinstance(piece, str):
+            data["text"] = piece
+        else:
+            data["binary"] = base64.b64encode(piece).decode()
+        out.append(data)
+    return out
+
+
+class BridgeRelay:
+    """Serve the cloud's bridge sessions on this robot's graph, opened on the first client."""
+
+    def __init__(
+        self,
+        send_event: SendEvent,
+        open_graph: Callable[[], Awaitable[BridgeGraph]],
+        *,
+        engines: Mapping[str, tuple[str, str]] = ENGINES,
+        engine_options: Mapping[str, Mapping[str, Any]] | None = None,
+        max_sessions: int = MAX_SESSIONS,
+    ) -> None:
+        self.send_event = send_event
+        self._open_graph = open_graph
+        self.engine_specs = engines
+        self.engine_options = dict(engine_options or {})
+        self.max_sessions = max_sessions
+        self.graph: BridgeGraph | None = None
+        self.engines: dict[str, Engine] = {}
+        self.sessions: dict[str, _Session] = {}
+        self._setup = asyncio.Lock()
+        self._background: set[asyncio.Future[Any]] = set()  # starts and ends in the background, owned until done
+
+    def open(self, ident: str, kind: str, bytes_per_s: int | None = None) -> None:
+        """Start a client's session of a kind; its frames queue until the engine is ready."""
+        if ident in self.sessions:
+            return
+        if len(self.sessions) >= self.max_sessions:
+            self._spawn(self._refuse(ident, f"the robot serves at most {self.max_sessions} bridge clients at once"))
+            return
+        # Registered now, before the graph is joined, so the frames right behind the open wait for it.
+        session = self.sessions[ident] = _Session(self, ident, bytes_per_s)
+        self._spawn(self._start(session, kind))
+
+    async def _start(self, session: _Session, kind: str) -> None:
+        try:
+            engine = await self._engine(kind)
+        except Exception as exc:
+            if not session.closed:
+                await self.end(session.ident, str(exc) or type(exc).__name__, tell=True)
+            return
+        if session.closed:  # closed by the cloud while the graph was being joined
+            return
+        session.engine_session = engine.session(session.send)
+        loop = asyncio.get_running_loop()
+        session.tasks.append(loop.create_task(session.read(), name=f"bridge {session.ident} reader"))
+        run = getattr(session.engine_session, "run", None)
+        if run is not None:
+            session.tasks.append(loop.create_task(run(), name=f"bridge {session.ident} writer"))
+        for task in session.tasks:
+            task.add_done_callback(functools.partial(self._task_ended, session.ident))
+
+    def receive(self, data: Any) -> None:
+        """Queue a client frame (or part of one) for its session, in arrival order."""
+        session = self.sessions.get(data.session)
+        if session is None or session.closed:
+            return  # closed here already; the cloud hears of it from our bridge_close
+        try:
+            frame = session.assembler.take(data)
+        except ValueError as exc:
+            self._close_soon(data.session, str(exc))
+            return
+        if frame is None:
+            return
+        if session.inbox.qsize() >= MAX_INBOX:
+            self._close_soon(data.session, f"more than {MAX_INBOX} client frames waiting: flooding")
+            return
+        session.inbox.put_nowait(frame)
+
+    async def end(self, ident: str, reason: str = "", *, tell: bool = False) -> None:
+        """End one session (and tell the cloud, when the robot ends it)."""
+        session = self.sessions.pop(ident, None)
+        if session is None or session.closed:
+            return
+        session.closed = True
+        current = asyncio.current_task()
+        for task in session.tasks:
+            if task is not current:
+                task.cancel()
+        for task in session.tasks:
+            if task is not current:
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+        if session.engine_session is not None:
+            await session.engine_session.close()
+        if tell:
+            await self._refuse(ident, reason)
+
+    async def close_sessions(self) -> None:
+        """End every session: the link they travelled on is gone."""
+        for ident in list(self.sessions):
+            await self.end(ident)
+
+    async def shutdown(self) -> None:
+        """End every session, the engines and the graph (the agent stops)."""
+        await self.close_sessions()
+        for task in list(self._background):
+            task.cancel()
+        for engine in self.engines.values():
+            with contextlib.suppress(Exception):
+                await engine.close()
+        self.engines.clear()
+        if self.graph is not None:
+            with contextlib.suppress(Exception):
+                await self.graph.close()
+            self.graph = None
+
+    def stats(self) -> dict[str, int]:
+        """Return how many sessions are open and the bytes sent to their clients."""
+        return {"sessions": len(self.sessions), "sent_bytes": sum(s.sent_bytes for s in self.sessions.values())}
+
+    # ------------------------------------------------------------------ internals
+
+    async def _engine(self, kind: str) -> Engine:
+        async with self._setup:
+            engine = self.engines.get(kind)
+            if engine is not None:
+                return engine
+            spec = self.engine_specs.get(kind)
+            if spec is None:
+                raise ValueError(f"this robot's agent has no {kind} engine")
+            try:
+                engine_class = getattr(importlib.import_module(spec[0]), spec[1])
+            except (ImportError, AttributeError):
+                raise ValueError(f"this robot's agent has no {kind} engine (upgrade bridgeos-agent)") from None
+            if self.graph is None:
+                self.graph = await self._open_graph()
+            engine = self.engines[kind] = engine_class(self.graph, **self.engine_options.get(kind, {}))
+            return engine
+
+    async def _refuse(self, ident: str, reason: str) -> None:
+        await self.send_event(Event.BRIDGE_CLOSE, {"session": ident, "reason": reason[:500]})
+
+    def _close_soon(self, ident: str, reason: str) -> None:
+        self._spawn(self.end(ident, reason, tell=True))
+
+    def _spawn(self, coroutine: Awaitable[Any]) -> None:
+        task = asyncio.ensure_future(coroutine)
+        self._background.add(task)
+        task.add_done_callback(self._background.discard)
+
+    def _task_ended(self, ident: str, task: asyncio.Task[Any]) -> None:
+        if task.cancelled():
+            return
+        exc = task.exception()
+        if exc is not None:
+            logger.error("bridge session %s failed: %s", ident, exc, exc_info=exc)
+            self._close_soon(ident, f"the robot's bridge failed: {type(exc).__name__}: {exc}")
