@@ -9,17 +9,17 @@ from . import views
 urlpatterns = [
     path("robot/<slug:robot_id>/recordings", views.RecordingListView.as_view(), name="recording-list"),
     path(
-        "robot/<slug:robot_id>/recordings/<uuid:recording_id>",
+        "robot/<slug:robot_id>/recordings/<slug:recording_id>",
         views.RecordingDetailView.as_view(),
         name="recording-detail",
     ),
     path(
-        "robot/<slug:robot_id>/recordings/<uuid:recording_id>/stop",
+        "robot/<slug:robot_id>/recordings/<slug:recording_id>/stop",
         views.RecordingStopView.as_view(),
         name="recording-stop",
     ),
     path(
-        "robot/<slug:robot_id>/recordings/<uuid:recording_id>/download",
+        "robot/<slug:robot_id>/recordings/<slug:recording_id>/download",
         views.RecordingDownloadView.as_view(),
         name="recording-download",
     ),

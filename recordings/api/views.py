@@ -33,9 +33,14 @@ REFUSALS = {
 }
 
 
-def recording_of(request: Request, robot_id: str, recording_id: UUID) -> Recording:
-    """Return a recording of one of the user's robots; anyone else's is a 404."""
-    return get_object_or_404(services.recordings_of(robot_of(request, robot_id)), id=recording_id)
+def recording_of(request: Request, robot_id: str, recording_id: str) -> Recording:
+    """Return a recording of one of the user's robots (named by its 32 hex digits); anyone else's is a 404."""
+    robot = robot_of(request, robot_id)
+    try:
+        key = UUID(hex=recording_id)
+    except ValueError:
+        raise Http404(f"No recording {recording_id!r}.") from None
+    return get_object_or_404(services.recordings_of(robot), id=key)
 
 
 def on_robot(action: Callable[[], T], robot_id: str) -> T | Response:
@@ -79,12 +84,12 @@ class RecordingDetailView(APIView):
     """Read or delete one recording."""
 
     @extend_schema(responses={200: RecordingSerializer, 404: OpenApiResponse()})
-    def get(self, request: Request, robot_id: str, recording_id: UUID) -> Response:
+    def get(self, request: Request, robot_id: str, recording_id: str) -> Response:
         recording = recording_of(request, robot_id, recording_id)
         return Response(RecordingSerializer(recording, context={"request": request}).data)
 
     @extend_schema(responses={204: OpenApiResponse(description="Deleted"), **REFUSALS})
-    def delete(self, request: Request, robot_id: str, recording_id: UUID) -> Response:
+    def delete(self, request: Request, robot_id: str, recording_id: str) -> Response:
         recording = recording_of(request, robot_id, recording_id)
         on_robot(lambda: services.delete_recording(recording), robot_id)
         return Response(status=status.HTTP_204_NO_CONTENT)
@@ -94,7 +99,7 @@ class RecordingStopView(APIView):
     """End a running recording; the robot sends its last chunks and the file is assembled."""
 
     @extend_schema(request=None, parameters=[WAIT], responses={200: RecordingSerializer, **REFUSALS})
-    def post(self, request: Request, robot_id: str, recording_id: UUID) -> Response:
+    def post(self, request: Request, robot_id: str, recording_id: str) -> Response:
         recording = recording_of(request, robot_id, recording_id)
         wait = wait_seconds(request)
         stopped = on_robot(lambda: services.stop_recording(recording, wait=wait), robot_id)
@@ -113,7 +118,7 @@ class RecordingDownloadView(APIView):
             409: OpenApiResponse(description="Not assembled yet"),
         }
     )
-    def get(self, request: Request, robot_id: str, recording_id: UUID) -> FileResponse | Response:
+    def get(self, request: Request, robot_id: str, recording_id: str) -> FileResponse | Response:
         recording = recording_of(request, robot_id, recording_id)
         path = recording.path
         if path is None:

@@ -160,6 +160,7 @@ class McapRecording:
         max_duration_ns: int,
         started_ns: int,
         chunk_bytes: int = RECORDING_CHUNK_BYTES,
+        mcap_chunk_size: int = MCAP_CHUNK_SIZE,
     ) -> None:
         from mcap.writer import CompressionType, Writer
 
@@ -174,7 +175,7 @@ class McapRecording:
         self._sink = _Sink()
         self._writer = Writer(
             self._sink,  # type: ignore[arg-type]  # write/tell/flush is all it uses
-            chunk_size=MCAP_CHUNK_SIZE,
+            chunk_size=mcap_chunk_size,
             compression=CompressionType.ZSTD,
         )
         self._writer.start(profile=ros, library="bridgeos-agent")
@@ -258,9 +259,20 @@ class _Active:
 class Recordings:
     """The robot's MCAP recordings: start and stop on the cloud's orders, limits, chunks to the cloud."""
 
-    def __init__(self, host: RecorderHost, *, clock: Callable[[], int] = time.time_ns) -> None:
+    def __init__(
+        self,
+        host: RecorderHost,
+        *,
+        clock: Callable[[], int] = time.time_ns,
+        chunk_bytes: int = RECORDING_CHUNK_BYTES,
+        mcap_chunk_size: int = MCAP_CHUNK_SIZE,
+    ) -> None:
+        if not 0 < chunk_bytes <= RECORDING_CHUNK_BYTES:
+            raise ValueError(f"chunk_bytes must be 1..{RECORDING_CHUNK_BYTES}")
         self.host = host
         self.clock = clock
+        self.chunk_bytes = chunk_bytes
+        self.mcap_chunk_size = mcap_chunk_size
         self.active: dict[str, _Active] = {}
         self.done: set[str] = set()  # ids of recordings this agent ended (a late stop is then a no-op)
         self.tasks = TaskOwner()
@@ -367,6 +379,8 @@ class Recordings:
                 max_bytes=order.max_bytes,
                 max_duration_ns=int(order.max_duration_s * 1e9),
                 started_ns=started,
+                chunk_bytes=self.chunk_bytes,
+                mcap_chunk_size=self.mcap_chunk_size,
             ),
             started / 1e9,
         )
