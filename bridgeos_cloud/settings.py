@@ -90,6 +90,7 @@ INSTALLED_APPS = [
     "monitoring.apps.MonitoringConfig",
     "dashboard.apps.DashboardConfig",
     "network.apps.NetworkConfig",
+    "recordings.apps.RecordingsConfig",
 ]
 
 MIDDLEWARE = [
@@ -343,6 +344,8 @@ BRIDGEOS = {
     "CLOUD_ROS_NETWORK": env_str("BRIDGEOS_CLOUD_ROS_NETWORK", "host"),
     "CLOUD_START_TIMEOUT_S": env_float("BRIDGEOS_CLOUD_START_TIMEOUT_S", 60.0),
     "CLOUD_VOLUMES_DIR": env_str("BRIDGEOS_CLOUD_VOLUMES_DIR", str(DATA_DIR / "cloud" / "volumes")),
+    # Robots' MCAP recordings: one folder per recording (its chunks while they arrive, then one .mcap file).
+    "RECORDINGS_DIR": env_str("BRIDGEOS_RECORDINGS_DIR", str(DATA_DIR / "recordings")),
     # What one robot's Skill volumes may hold in the cloud, all together; volume sync past it is refused.
     "VOLUME_QUOTA_BYTES": env_int("BRIDGEOS_VOLUME_QUOTA_MB", 1024) * 1024 * 1024,
     # A crashed cloud component is restarted after 1, 2, 4 ... s (at most this), and given up on

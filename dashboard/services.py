@@ -22,6 +22,7 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_cloud.errors import NotFound
 from monitoring.models import Metric
 from monitoring.services import latest_metrics
+from recordings.models import Recording
 from robots.models import Robot
 from robots.services import robot_config, update_robot_config, visible_robots
 from skills.models import Component, Skill, SkillTemplate
@@ -204,3 +205,8 @@ def answer_from_database(event: str, robot_id: str, p: Any) -> tuple[Event, dict
         )
         return Event.METRICS, {"robot": robot_id, "metrics": points}
     raise NotFound(f"event {event!r} is not a request clients can make", field="event")
+
+
+def robot_recordings(robot_id: str, *, limit: int = 50) -> list[Recording]:
+    """Return a robot's newest MCAP recordings (the caller checked the user may see the robot)."""
+    return list(Recording.objects.filter(robot_id=robot_id).order_by("-created_at")[:limit])

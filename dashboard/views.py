@@ -34,7 +34,12 @@ def robot(request: HttpRequest, robot_id: str) -> HttpResponse:
     return render(
         request,
         "dashboard/robot.html",
-        {"page": "fleet", "robot": state, "choices": services.robot_config_choices()},
+        {
+            "page": "fleet",
+            "robot": state,
+            "choices": services.robot_config_choices(),
+            "recordings": services.robot_recordings(robot_id),
+        },
     )
 
 

@@ -129,6 +129,11 @@ SAMPLES: dict[Event, dict[str, Any]] = {
         "message": "Robot reported: no room",
         "data": {"code": "no_room"},
     },
+    # recordings
+    Event.RECORDING_START: {"recording": "0" * 32, "topics": ["/chatter"], "max_bytes": 1 << 20, "max_duration_s": 60},
+    Event.RECORDING_STOP: {"recording": "0" * 32},
+    Event.RECORDING_CHUNK: {"recording": "0" * 32, "seq": 0, "data": "iU1DQVAw"},
+    Event.RECORDING_STATUS: {"recording": "0" * 32, "status": "finished", "messages": 3, "bytes": 90, "chunks": 1},
     Event.OFFLOADING_DECISION: {
         "skill": "people-detector",
         "component": "detector",
@@ -173,9 +178,10 @@ def rejection(text: str | bytes, **kwargs: Any) -> ProtocolError:
 def test_samples_cover_every_event_and_table() -> None:
     assert set(SAMPLES) == set(Event) == set(PAYLOADS) == set(DIRECTIONS)
     # Table 3.3's 31 events, ack, the three of Skill volume sync, the manager's decision log and the
-    # cloud copies' Components API relay (request and reply), the event log's live entries, and the
-    # three of the bridges (a rosbridge/Foxglove client relayed over the robot's link).
-    assert len(Event) == 42
+    # cloud copies' Components API relay (request and reply), the event log's live entries, the three
+    # of the bridges (a rosbridge/Foxglove client relayed over the robot's link) and the four of MCAP
+    # recordings.
+    assert len(Event) == 46
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
     # Requests are named *_get, but for the relayed Components API call, which may POST.
     requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {Event.COMPONENTS_API}

@@ -22,6 +22,7 @@ from typing import Any
 
 from bridgeos_agent import handlers
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph
+from bridgeos_agent.bridges.recorder import Recordings
 from bridgeos_agent.bridges.relay import BridgeRelay
 from bridgeos_agent.cloudrole import CloudRole
 from bridgeos_agent.logonce import LogOnce
@@ -138,6 +139,7 @@ class RobotController:
         self._stats_failures = LogOnce(logger, "measuring the components' usage")
         self.state = StateFile(self.data_dir / "state.json", self._collect_state)
         self.volumes = VolumeSync(self)
+        self.recordings = Recordings(self)  # MCAP recordings of the robot's topics (bridges.recorder)
         self.network = CloudNetwork(
             master=settings.master,
             robot=settings.robot,
@@ -203,6 +205,8 @@ class RobotController:
 
     async def _shutdown(self) -> None:
         self.say("stopping")
+        # Before the link's loops go: a recording's last chunks reach the outbox, sent on the next run.
+        await self.recordings.close()
         for task in self._loops:
             task.cancel()
         await asyncio.gather(*self._loops, return_exceptions=True)

@@ -269,6 +269,16 @@ async def on_metrics_get(controller: RobotController, envelope: Envelope, p: Any
     return Event.METRICS, {"metrics": points[: p.limit or len(points)]}
 
 
+@handles(Event.RECORDING_START)
+async def on_recording_start(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    await controller.recordings.start(p)
+
+
+@handles(Event.RECORDING_STOP)
+async def on_recording_stop(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    await controller.recordings.stop(p.recording)
+
+
 @handles(Event.COMPONENTS_API)
 async def on_components_api(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
     record = controller.skills.get(p.skill)

@@ -45,6 +45,7 @@ __all__ = [
     "MAX_FRAME_BYTES",
     "MAX_METRICS_PER_FRAME",
     "PAYLOADS",
+    "RECORDING_CHUNK_BYTES",
     "REPLIES",
     "REQUIRES_ACK",
     "Ack",
@@ -86,6 +87,11 @@ __all__ = [
     "Payload",
     "Pending",
     "ProtocolError",
+    "RecordingChunk",
+    "RecordingStart",
+    "RecordingStatus",
+    "RecordingStatusName",
+    "RecordingStop",
     "Reliable",
     "RobotConfigGet",
     "RobotConfigPayload",
@@ -176,6 +182,11 @@ class Event(enum.StrEnum):
     BRIDGE_OPEN = "bridge_open"
     BRIDGE_FRAME = "bridge_frame"
     BRIDGE_CLOSE = "bridge_close"
+    # recordings: MCAP recordings of a robot's topics, kept by the cloud (issue 19).
+    RECORDING_START = "recording_start"
+    RECORDING_STOP = "recording_stop"
+    RECORDING_CHUNK = "recording_chunk"
+    RECORDING_STATUS = "recording_status"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -694,6 +705,69 @@ class LogEvent(RobotScoped):
     data: dict[str, Any]
 
 
+# --------------------------------------------------------------------------- recordings
+
+RecordingId = Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{32}$")]
+# An absolute ROS name (ROS 1 and ROS 2 alike): "/" then letters, digits, "_" and "/".
+RosTopic = Annotated[str, StringConstraints(pattern=r"^/[A-Za-z0-9_/]{1,255}$")]
+MAX_RECORDING_TOPICS = 64
+# MCAP bytes per chunk frame: base64 makes 256 KiB into ~350 KB, well under MAX_FRAME_BYTES.
+RECORDING_CHUNK_BYTES = 256 * 1024
+MIN_RECORDING_BYTES = 1024
+MAX_RECORDING_BYTES = 4 * 1024**3
+MAX_RECORDING_DURATION_S = 86_400.0
+
+
+class RecordingStatusName(enum.StrEnum):
+    """Name the states of a recording, as the robot reports them and the cloud keeps them."""
+
+    STARTING = "starting"
+    RECORDING = "recording"
+    STOPPING = "stopping"
+    FINISHED = "finished"
+    FAILED = "failed"
+
+
+class RecordingStart(RobotScoped):
+    """Order a robot to record topics of its ROS 1 or ROS 2 graph into MCAP, within limits."""
+
+    recording: RecordingId
+    topics: Annotated[list[RosTopic], Field(min_length=1, max_length=MAX_RECORDING_TOPICS)]
+    # Which graph: "ros1", "ros2", or None for the one that has every topic.
+    ros: Literal["ros1", "ros2"] | None = None
+    # Message bytes recorded at most, and seconds: reaching either ends the recording cleanly.
+    max_bytes: Annotated[int, Strict(), Field(ge=MIN_RECORDING_BYTES, le=MAX_RECORDING_BYTES)]
+    max_duration_s: Annotated[float, Field(gt=0, le=MAX_RECORDING_DURATION_S, allow_inf_nan=False)]
+
+
+class RecordingStop(RobotScoped):
+    """Order a robot to end a recording."""
+
+    recording: RecordingId
+
+
+class RecordingChunk(RobotScoped):
+    """Carry the next bytes of a recording's MCAP file, base64-encoded; ``seq`` counts from 0."""
+
+    recording: RecordingId
+    seq: Annotated[int, Strict(), Field(ge=0, le=MAX_RECORDING_BYTES // RECORDING_CHUNK_BYTES + 1)]
+    data: Annotated[str, StringConstraints(min_length=1, max_length=(RECORDING_CHUNK_BYTES * 4) // 3 + 4)]
+
+
+class RecordingStatus(RobotScoped):
+    """Report a recording's state; ``finished`` and ``failed`` carry its totals and how many chunks it has."""
+
+    recording: RecordingId
+    status: RecordingStatusName
+    ros: Literal["ros1", "ros2"] | None = None
+    message: Message | None = None
+    started_at: Timestamp | None = None
+    stopped_at: Timestamp | None = None
+    messages: Annotated[int, Strict(), Field(ge=0)] = 0
+    bytes: Annotated[int, Strict(), Field(ge=0)] = 0
+    chunks: Annotated[int, Strict(), Field(ge=0)] | None = None
+
+
 class Ack(Payload):
     """Acknowledge the frame named by the envelope's ``reply_to``."""
 
@@ -783,6 +857,11 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.BRIDGE_OPEN: BridgeOpen,
     Event.BRIDGE_FRAME: BridgeFrame,
     Event.BRIDGE_CLOSE: BridgeClose,
+    # recordings
+    Event.RECORDING_START: RecordingStart,
+    Event.RECORDING_STOP: RecordingStop,
+    Event.RECORDING_CHUNK: RecordingChunk,
+    Event.RECORDING_STATUS: RecordingStatus,
 }
 
 
@@ -839,6 +918,11 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.BRIDGE_OPEN: frozenset({_C2R}),
     Event.BRIDGE_FRAME: frozenset({_R2C, _C2R}),
     Event.BRIDGE_CLOSE: frozenset({_R2C, _C2R}),
+    # recordings
+    Event.RECORDING_START: frozenset({_C2R}),
+    Event.RECORDING_STOP: frozenset({_C2R}),
+    Event.RECORDING_CHUNK: frozenset({_R2C}),
+    Event.RECORDING_STATUS: frozenset({_R2C}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,
@@ -867,6 +951,11 @@ REQUIRES_ACK: frozenset[Event] = frozenset(
         Event.METRICS,
         Event.VOLUME_CHANGES,
         Event.OFFLOADING_DECISION,
+        # recordings
+        Event.RECORDING_START,
+        Event.RECORDING_STOP,
+        Event.RECORDING_CHUNK,
+        Event.RECORDING_STATUS,
     }
 )
 
@@ -883,6 +972,9 @@ COMMANDS: frozenset[Event] = frozenset(
         Event.COMPONENT_START,
         Event.COMPONENT_STOP,
         Event.COMPONENT_MIGRATE,
+        # recordings
+        Event.RECORDING_START,
+        Event.RECORDING_STOP,
     }
 )
 
