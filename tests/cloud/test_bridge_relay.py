@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import importlib.util
 import json
 import os
 import shutil
 import socket
+import struct
 import subprocess
 import threading
 import time
@@ -34,6 +34,7 @@ from websockets.sync.client import ClientConnection, connect
 from bridgeos_agent.controller import AgentSettings, RobotController
 from robots.models import BridgeTicket, Robot
 from robots.services import create_robot, issue_api_token
+from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
 from tests.conftest import ROOT, Server, another_daphne
 
@@ -375,24 +376,35 @@ def test_an_offline_robot_says_so_and_closes(cloud, robot) -> None:
     assert caught.value.rcvd.code == 4010
 
 
-def test_the_foxglove_door_speaks_foxglove_or_says_the_robot_has_no_engine(cloud, robot) -> None:
+def test_the_foxglove_door_takes_either_subprotocol_and_speaks_foxglove(cloud, robot) -> None:
     headers = {"Authorization": f"Token {robot.api_token}"}
     assert refused(url(cloud, robot.id, "foxglove"), additional_headers=headers) == 403  # no subprotocol offered
-    with raw(
-        url(cloud, robot.id, "foxglove"), additional_headers=headers, subprotocols=["foxglove.websocket.v1"]
-    ) as ws:
-        assert ws.subprotocol == "foxglove.websocket.v1"
-        first = json.loads(ws.recv(timeout=10))
-        if importlib.util.find_spec("bridgeos_agent.bridges.foxglove") is not None:
-            assert first["op"] == "serverInfo"
-            return
-        assert first["op"] == "status" and first["level"] == 2
-        assert first["message"].startswith("this robot's agent has no foxglove engine")
-        with pytest.raises(ConnectionClosed) as caught:
-            ws.recv(timeout=5)
-        assert caught.value.rcvd.code == 4011
-    with raw(url(cloud, robot.id, "foxglove"), additional_headers=headers, subprotocols=["foxglove.sdk.v1"]) as ws:
-        assert ws.subprotocol == "foxglove.sdk.v1"
+    for subprotocol in ("foxglove.websocket.v1", "foxglove.sdk.v1"):
+        with raw(url(cloud, robot.id, "foxglove"), additional_headers=headers, subprotocols=[subprotocol]) as ws:
+            assert ws.subprotocol == subprotocol
+            assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+
+
+def test_foxgloves_own_client_subscribes_through_the_cloud_with_a_ticket(cloud, robot) -> None:
+    if not node_client_ready():
+        pytest.skip("node or tests/js/foxglove/node_modules is missing: run scripts/services.sh node")
+    client = FoxgloveClient(ticket(cloud, robot.id, robot.api_token)["foxglove_url"])
+    try:
+        assert client.wait("serverInfo")["info"]["name"]
+        channel = client.channel("/chatter")
+        assert (channel["encoding"], channel["schemaName"], channel["schemaEncoding"]) == (
+            "ros1",
+            "std_msgs/String",
+            "ros1msg",
+        )
+        client.command("subscribe", topic="/chatter")
+        subscription = client.wait("subscribed")["subscriptionId"]
+        for _ in range(3):
+            data = base64.b64decode(client.wait("message", lambda e: e["subscriptionId"] == subscription)["data"])
+            (length,) = struct.unpack_from("<I", data)  # ROS 1 std_msgs/String: a length, then the bytes
+            assert data[4 : 4 + length].decode().startswith("robot ")
+    finally:
+        client.close()
 
 
 def test_bad_input_gets_a_status_naming_it_and_the_connection_keeps_working(cloud, robot) -> None:
