@@ -22,8 +22,10 @@ with no change of conditions in between).
 After the changing phases the script holds one long stable phase (``--stable-s``): a moderate load
 that leaves one component near its decision boundary, with three times the noise. Conditions do not
 change in it, so every move there after its first SETTLE_S seconds (the adaptation goal) is noise:
-``stable_moves_per_10min`` counts them (goal <= 1 per 10 minutes). ``cost_over_oracle`` and
-``flaps_per_10min`` cover the changing phases, as before the stable phase existed; ``adapt_s`` covers
+``stable_moves_per_10min`` counts them (goal <= 1 per 10 minutes), and so does ``flaps_per_10min``, as
+issue 22 asks (flapping counted over a long stable phase, not over phase changes; every move there
+counts, reversed or not). ``flaps_changing_per_10min`` counts the moves reversed within 60 s in the
+changing phases. ``cost_over_oracle`` covers the changing phases; ``adapt_s`` covers
 every change, the one into the stable phase included.
 
 The misdeclared scenario (issue 22) runs beside it, in the same run, on two more robots with the
@@ -707,7 +709,7 @@ def main() -> None:
     mean_adapt = sum(adapt_values) / len(adapt_values)
     print(f"time to adapt: max {max(adapt_values):.1f} s, mean {mean_adapt:.1f} s   goal <= 10 s")
     print(f"migrations: {len(run.moves)} seen ({moved} logged as moved, {failed} failed in the cloud's event log)")
-    print(f"flaps: {len(flapped)} in {minutes:.1f} min of changes = {flaps_per_10min:.2f} per 10 min   goal <= 1")
+    print(f"flaps: {len(flapped)} in {minutes:.1f} min of changes = {flaps_per_10min:.2f} per 10 min")
     if stable_per_10min is not None:
         print(
             f"stable phase: {len(noise_moves)} moves in {stable_minutes:.1f} min after its first {SETTLE_S:.0f} s"
@@ -751,7 +753,9 @@ def main() -> None:
                 "estimate_only_over_oracle_misdeclared": _round(misdeclared["estimate"]),
                 "learned_decisions_share": round(learned_share, 4),
                 "adapt_s": round(max(adapt_values), 2),
-                "flaps_per_10min": round(flaps_per_10min, 3),
+                # Issue 22: flapping over the long stable phase (every move there), else over the changes.
+                "flaps_per_10min": round(stable_per_10min if stable_per_10min is not None else flaps_per_10min, 3),
+                "flaps_changing_per_10min": round(flaps_per_10min, 3),
                 "migrations": len(run.moves),
                 "adapt_mean_s": round(mean_adapt, 2),
                 "best_static_over_oracle": round(statics[best_static] / oracle, 4),
