@@ -14,7 +14,9 @@ from django.utils import timezone
 from drf_spectacular.generators import SchemaGenerator
 
 from monitoring.models import Metric
-from robots.models import ApiToken, Robot, hash_token
+from recordings.choices import RecordingStatus
+from recordings.models import Recording
+from robots.models import ApiToken, BridgeTicket, Robot, hash_token
 from robots.services import issue_api_token
 from skills.models import Component, Skill, SkillTemplate
 from skills.services import create_template
@@ -26,6 +28,7 @@ pytestmark = pytest.mark.django_db(transaction=True)
 ROBOT = "/api/robot/{robot_id}"
 SKILL_PATH = ROBOT + "/skill/{skill_id}"
 COMPONENT = SKILL_PATH + "/component/{component_id}"
+RECORDING = ROBOT + "/recordings/{recording_id}"
 REFUSED = {401, 403, 404}
 
 
@@ -69,6 +72,15 @@ ROUTES = [
     Route("GET", ROBOT + "/info", 200, 404, 200),
     Route("POST", ROBOT + "/token", 200, 404, 200),
     Route("GET", ROBOT + "/volumes", 200, 404, 200),
+    # A browser's ticket for the robot's rosbridge and Foxglove doors in the cloud.
+    Route("POST", ROBOT + "/bridge-ticket", 200, 404, 200),
+    # Recordings: each robot has a finished one (no file kept); starting one needs the robot connected.
+    Route("GET", ROBOT + "/recordings", 200, 404, 200),
+    Route("POST", ROBOT + "/recordings", 409, 404, 409, body={"topics": ["/chatter"]}),
+    Route("GET", RECORDING, 200, 404, 200),
+    Route("POST", RECORDING + "/stop", 400, 404, 400),
+    Route("GET", RECORDING + "/download", 409, 404, 409),
+    Route("DELETE", RECORDING, 204, 404, 204),
     # This cloud offers no VPN (BRIDGEOS_VPN_REMOTE unset): 409 to those who may ask.
     Route("GET", ROBOT + "/vpn", 409, 404, 409, robot=409),
     # Commands reach the robot only when it is connected; here it is not.
@@ -103,6 +115,7 @@ class World:
     tokens: dict[str, str]
     robot_token: str
     template_id: int
+    recordings: dict[str, str]  # robot id -> its finished recording's id
 
 
 @pytest.fixture
@@ -121,7 +134,13 @@ def world(daphne_server) -> World:
         Metric(robot_id=robot_id, name="cpu", value=0.5, ts=a_minute_ago) for robot_id in ("alice-bot", "bob-bot")
     )
     template = create_template(name="People counting", config=new_template_config())
-    return World(daphne_server, tokens, robot_token, template.pk)
+    recordings = {
+        robot_id: Recording.objects.create(
+            robot_id=robot_id, topics=["/chatter"], status=RecordingStatus.FINISHED, max_bytes=1, max_duration_s=1
+        ).id.hex
+        for robot_id in ("alice-bot", "alice-spare", "bob-bot")
+    }
+    return World(daphne_server, tokens, robot_token, template.pk, recordings)
 
 
 def fill(value: Any, ids: dict[str, Any]) -> Any:
@@ -141,6 +160,7 @@ def call(world: World, route: Route, role: str, token: str | None, robot_id: str
         "skill_id": SKILL,
         "component_id": "sampler",
         "template_id": world.template_id,
+        "recording_id": world.recordings[robot_id],
         "role": role,
         "new_config": new_template_config(),
     }
@@ -155,6 +175,8 @@ def snapshot() -> list:
         list(Skill.objects.order_by("id").values_list("robot_id", "skill_id", "status", "config")),
         list(Component.objects.order_by("id").values_list("component_id", "status", "active_location")),
         list(SkillTemplate.objects.order_by("id").values_list("id", "name")),
+        list(Recording.objects.order_by("id").values_list("id", "status")),
+        BridgeTicket.objects.count(),
     ]
 
 
