@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from datetime import UTC, datetime
@@ -29,10 +30,13 @@ __all__ = [
     "delete_recording",
     "recordings_of",
     "report_recording_status",
+    "salvage_mcap",
     "start_recording",
     "stop_recording",
     "store_recording_chunk",
 ]
+
+log = logging.getLogger(__name__)
 
 DEFAULT_MAX_BYTES = 100 * 1024 * 1024
 DEFAULT_MAX_DURATION_S = 600.0
@@ -208,11 +212,17 @@ def _assemble(recording: Recording) -> None:
             with part.open("rb") as chunk:
                 shutil.copyfileobj(chunk, out)
     os.replace(partial, target)
+    salvaged = salvage_mcap(target)
+    if salvaged is not None:
+        # Cut short (the robot's agent died mid-recording): the totals are what the file holds.
+        recording.message_count, recording.data_bytes, duration = salvaged
+        if duration is not None:
+            recording.duration_s = duration
     shutil.rmtree(folder / "chunks", ignore_errors=True)
     recording.file = str(target.relative_to(settings.BRIDGEOS["RECORDINGS_DIR"]))
     recording.size_bytes = target.stat().st_size
     recording.status = recording.outcome or RecordingStatus.FINISHED
-    recording.save(update_fields=["file", "size_bytes", "status"])
+    recording.save(update_fields=["file", "size_bytes", "status", "message_count", "data_bytes", "duration_s"])
     record_event(
         f"Recording {recording.id.hex} of robot {recording.robot_id} {recording.status}: "
         f"{recording.message_count} message(s), {recording.size_bytes} bytes ({recording.message or 'ended'})",
@@ -221,3 +231,56 @@ def _assemble(recording: Recording) -> None:
         kind="recording_finished",
         data={"recording": recording.id.hex, "messages": recording.message_count, "bytes": recording.size_bytes},
     )
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def salvage_mcap(path: Path) -> tuple[int, int, float | None] | None:
+    """Rewrite a cut-off MCAP file whole from its complete records; None if it was whole already.
+
+    Returns the messages kept, their bytes and the seconds between the first and the last.
+    """
+    from mcap.records import Channel, Header, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import CompressionType, Writer
+
+    with path.open("rb") as file:
+        file.seek(max(0, path.stat().st_size - len(MCAP_MAGIC)))
+        if file.read() == MCAP_MAGIC:
+            return None
+    partial = path.with_suffix(".salvage")
+    messages = data_bytes = 0
+    first = last = None
+    with path.open("rb") as source, partial.open("wb") as out:
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        started = False
+        try:
+            for record in StreamReader(source).records:
+                if isinstance(record, Header) and not started:
+                    writer.start(profile=record.profile, library=record.library or "bridgeos-cloud salvage")
+                    started = True
+                elif isinstance(record, Schema) and record.id not in schemas:
+                    schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+                elif isinstance(record, Channel) and record.id not in channels and record.schema_id in schemas:
+                    channels[record.id] = writer.register_channel(
+                        record.topic, record.message_encoding, schemas[record.schema_id], record.metadata
+                    )
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    writer.add_message(
+                        channels[record.channel_id], record.log_time, record.data, record.publish_time, record.sequence
+                    )
+                    messages += 1
+                    data_bytes += len(record.data)
+                    first = record.log_time if first is None else min(first, record.log_time)
+                    last = record.log_time if last is None else max(last, record.log_time)
+        except Exception:
+            log.info("recording %s: kept %d message(s) before the cut", path.parent.name, messages)
+        if not started:
+            writer.start(profile="", library="bridgeos-cloud salvage")
+        writer.finish()
+    os.replace(partial, path)
+    duration = (last - first) / 1e9 if first is not None and last is not None else None
+    return messages, data_bytes, duration

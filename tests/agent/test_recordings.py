@@ -377,3 +377,62 @@ async def test_a_ros2_recording_carries_cdr_with_its_ros2msg_schema(cloud, tmp_p
         assert "string data" in schema.data.decode()
     finally:
         nodes.kill_all()
+
+
+@needs_ros1
+async def test_a_recording_cut_short_by_an_agent_crash_is_ended_on_restart_from_the_chunks_it_sent(
+    cloud, tmp_path, monkeypatch
+):
+    from mcap_ros1.decoder import DecoderFactory
+
+    token, owner, _ = await make_robot("rec-4")
+    with private_rosmaster(tmp_path) as master:
+        monkeypatch.setenv("ROS_MASTER_URI", master)
+        nodes = Nodes(master, tmp_path)
+        nodes.run("talker", "talker", "--topic", "/cut", "--tag", "k", "--rate", "40", "--size", "200")
+        try:
+            async with api(cloud, owner) as client:
+                async with agent(cloud, "rec-4", token, tmp_path / "agent", ros2="off") as controller:
+                    recording = (await start_once_known(client, "rec-4", topics=["/cut"], max_duration_s=120))["id"]
+
+                    def sent() -> int:
+                        active = controller.recordings.active.get(recording)
+                        return active.seq if active is not None else 0
+
+                    await eventually(lambda: sent() >= 4, what="chunks sent to the cloud")
+                    cloud.stop()  # more chunks wait in the outbox, then the agent dies with them there
+                    await eventually(lambda: chunk_frames_held(controller) >= 3, what="chunks kept on disk while away")
+
+                    held = chunk_frames_held(controller)
+
+                    async def killed() -> None:
+                        # What a SIGKILL leaves: no last chunks, no final status; the senders just stop.
+                        await controller.recordings.tasks.close()
+                        for graph in controller.recordings._graphs.values():
+                            await graph.close()  # only so this test process does not keep the node
+
+                    controller.recordings.close = killed  # type: ignore[method-assign]
+                assert (tmp_path / "agent" / "recordings" / f"{recording}.json").exists()
+
+                cloud.start()
+                async with agent(cloud, "rec-4", token, tmp_path / "agent", ros2="off") as restarted:
+                    done = await finished(client, "rec-4", recording)
+                    assert not (tmp_path / "agent" / "recordings" / f"{recording}.json").exists()
+                    await eventually(lambda: chunk_frames_held(restarted) == 0, what="the outbox emptied")
+                assert done["status"] == "failed" and done["message"].startswith("cut short"), done
+                assert held >= 3
+                data = await download(client, "rec-4", recording)
+                assert len(data) == done["size_bytes"]
+                # A second stop is refused: the recording has ended.
+                answer = await client.post(f"/api/robot/rec-4/recordings/{recording}/stop?wait=5")
+                assert answer.status_code == 400, answer.text
+
+            header, messages = read_back(data, DecoderFactory())
+            assert header.profile == "ros1"
+            got = seqs(messages, "k")
+            # Whatever reached the outbox, from the recording's first message on, without a hole.
+            assert len(got) == done["message_count"] > 20, (len(got), done)
+            assert got == list(range(got[0], got[0] + len(got)))
+            assert done["duration_s"] is not None and done["duration_s"] > 0.3
+        finally:
+            nodes.kill_all()

@@ -178,6 +178,7 @@ class RobotController:
     async def run(self) -> int:
         """Run until stopped (signal, shutdown command or a refused token); return the exit code."""
         await self._restore()
+        await self.recordings.recover()  # recordings a killed run left open: cut short, their chunks kept
         if self.settings.detect_ros_master:
             self.local_ros_master = self.ros_master = await asyncio.to_thread(find_ros_master)
         self.say(f"ROS master: {self.ros_master or 'none found here; asking the cloud for one'}")

@@ -8,6 +8,11 @@ recording crosses a disconnection whole: every chunk stays on disk until the clo
 
 ``McapRecording`` is the part without I/O (messages in, chunks out, limits); ``Recordings`` joins
 it to the graphs and to the cloud link.
+
+An agent killed mid-recording cannot finish its file, but its chunks are in the outbox already. A
+small journal per running recording (``<data dir>/recordings/<id>.json``: how many chunks reached
+the outbox) lets the next run end it: it reports the recording ``failed``, cut short, with that
+many chunks, and the cloud assembles and repairs the file from them.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import base64
 import contextlib
 import glob
 import importlib.util
+import json
 import logging
 import os
 import re
@@ -235,6 +241,7 @@ class RecorderHost(Protocol):
 
     ros_master: str | None
     ros2_graph: Any
+    data_dir: Path
 
     async def emit(self, event: Event, data: Mapping[str, Any], *, reply_to: str | None = None) -> Envelope:
         """Send a frame to the cloud, kept on disk until acked."""
@@ -278,6 +285,7 @@ class Recordings:
         self.tasks = TaskOwner()
         self._graphs: dict[str, BridgeGraph] = {}
         self._opening = asyncio.Lock()
+        self.journal = Path(host.data_dir) / "recordings"
 
     # ------------------------------------------------------------------ graphs
 
@@ -393,6 +401,7 @@ class Recordings:
                 subscription.close()
             raise ProtocolError(str(exc), field="data.topics") from None
         self.active[order.recording] = active
+        self._write_journal(active, chunks=0)
         active.sender = self.tasks.spawn(self._send(active), name=f"recording {order.recording}")
         active.timer = self.tasks.spawn(self._expire(active, order.max_duration_s))
         active.queue.put_nowait(
@@ -474,8 +483,67 @@ class Recordings:
         try:
             while (item := await active.queue.get()) is not None:
                 await self.host.emit(*item)
+                event, data = item
+                if event == Event.RECORDING_CHUNK:
+                    self._write_journal(active, chunks=data["seq"] + 1)  # after the outbox holds it, never before
+                elif data.get("status") in (RS.FINISHED, RS.FAILED):
+                    self._journal_path(active.id).unlink(missing_ok=True)
         finally:
             self.active.pop(active.id, None)
+
+    # ------------------------------------------------------------------ the journal of running recordings
+
+    def _journal_path(self, recording: str) -> Path:
+        return self.journal / f"{recording}.json"
+
+    def _write_journal(self, active: _Active, *, chunks: int) -> None:
+        """Note how many of a running recording's chunks the outbox holds (read by the next run if we die)."""
+        entry = {
+            "recording": active.id,
+            "ros": active.ros,
+            "started_at": active.started_at,
+            "chunks": chunks,
+            "messages": active.mcap.messages,
+            "bytes": active.mcap.bytes,
+        }
+        self.journal.mkdir(parents=True, exist_ok=True)
+        path = self._journal_path(active.id)
+        partial = path.with_suffix(".tmp")
+        partial.write_text(json.dumps(entry))
+        os.replace(partial, path)
+
+    async def recover(self) -> int:
+        """End the recordings a previous run left running (it was killed): cut short, with the chunks it sent."""
+        ended = 0
+        for path in sorted(self.journal.glob("*.json")) if self.journal.is_dir() else []:
+            try:
+                entry = json.loads(path.read_text())
+                status = {
+                    "recording": str(entry["recording"]),
+                    "status": str(RS.FAILED),
+                    "ros": entry.get("ros"),
+                    "message": (
+                        "cut short: the agent stopped without ending it; "
+                        f"the file holds what reached the cloud ({int(entry['chunks'])} chunk(s))"
+                    ),
+                    "started_at": entry.get("started_at"),
+                    "stopped_at": path.stat().st_mtime,
+                    "messages": int(entry.get("messages", 0)),
+                    "bytes": int(entry.get("bytes", 0)),
+                    "chunks": int(entry["chunks"]),
+                }
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                logger.warning("recording journal %s is unreadable (%s); removed", path.name, exc)
+                path.unlink(missing_ok=True)
+                continue
+            await self.host.emit(Event.RECORDING_STATUS, status)
+            path.unlink(missing_ok=True)
+            self.done.add(status["recording"])
+            ended += 1
+            logger.warning(
+                "recording %s was cut short by the agent's restart: %s", status["recording"], status["message"]
+            )
+        return ended
 
     # ------------------------------------------------------------------ life cycle
 
