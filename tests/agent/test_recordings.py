@@ -251,9 +251,8 @@ async def test_limits_end_a_recording_and_bad_input_or_another_user_changes_noth
         try:
             async with agent(cloud, "rec-2", token, tmp_path / "agent", ros2="off"), api(cloud, owner) as client:
                 # The size limit: each message is ~120 bytes, so 3000 bytes hold about 25 of them.
-                answer = await start(client, "rec-2", topics=["/steady"], max_bytes=3000)
-                assert answer.status_code == 201, answer.text
-                by_size = await finished(client, "rec-2", answer.json()["id"])
+                started = await start_once_known(client, "rec-2", topics=["/steady"], max_bytes=3000)
+                by_size = await finished(client, "rec-2", started["id"])
                 assert by_size["status"] == "finished" and by_size["message"] == "size limit reached", by_size
                 assert 0 < by_size["data_bytes"] <= 3000 and by_size["message_count"] >= 20
                 _, messages = read_back(await download(client, "rec-2", by_size["id"]), DecoderFactory())
