@@ -154,6 +154,7 @@ async def open_client(url: str, headers: dict[str, str] | None = None, subprotoc
         subprotocols=subprotocols,  # type: ignore[arg-type]
         max_size=None,
         open_timeout=15,
+        close_timeout=1,  # a viewer leaving a flood does not wait for the cloud to drain its queue
         ping_interval=None,
         compression=None,
     )
@@ -161,7 +162,9 @@ async def open_client(url: str, headers: dict[str, str] | None = None, subprotoc
 
 async def rosbridge_subscribe(url: str, headers: dict[str, str] | None, topic: str) -> Any:
     websocket = await open_client(url, headers)
-    await websocket.send(json.dumps({"op": "subscribe", "topic": topic, "type": "std_msgs/String", "queue_length": 1000}))
+    await websocket.send(
+        json.dumps({"op": "subscribe", "topic": topic, "type": "std_msgs/String", "queue_length": 1000})
+    )
     return websocket
 
 
@@ -379,7 +382,7 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
     rosbridge_cloud = f"{cloud}/ws/rosbridge/bench-bridges/"
     foxglove_cloud = f"{cloud}/ws/foxglove/bench-bridges/"
     figures: dict[str, Any] = {}
-    seconds, warmup = (4.0, 1.5) if args.quick else (10.0, 2.0)
+    seconds, warmup = (3.0, 1.0) if args.quick else (10.0, 2.0)
 
     # 1. Throughput to one viewer: the talker flat out, each door in turn.
     talker = ros.talker("string", "/flood", 0)
@@ -426,7 +429,8 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
     figures["cloud_added_latency_p50_ms"] = round(percentile(added, 50) or 0, 2)
     figures["cloud_added_latency_p95_ms"] = round(percentile(added, 95) or 0, 2)
     log(
-        f"latency at {args.latency_rate:g} Hz over {len(both)} messages: local p50 {figures['local_latency_p50_ms']} ms, "
+        f"latency at {args.latency_rate:g} Hz over {len(both)} messages: "
+        f"local p50 {figures['local_latency_p50_ms']} ms, "
         f"cloud p50 {figures['cloud_latency_p50_ms']} ms; added p50 {figures['cloud_added_latency_p50_ms']} ms, "
         f"p95 {figures['cloud_added_latency_p95_ms']} ms"
     )
