@@ -136,7 +136,7 @@ class BridgeConsumer(AsyncWebsocketConsumer):
         self.writer = asyncio.ensure_future(self.write())
         self.opened = asyncio.get_running_loop().call_later(OPEN_TIMEOUT_S, self.open_timed_out)
         cap = settings.BRIDGEOS["BRIDGE_CLIENT_BYTES_PER_S"]
-        data = {"session": self.session, "kind": self.kind, "bytes_per_s": cap}
+        data = {"session": self.session, "kind": self.kind, "bytes_per_s": cap, "batches": True}
         message = {
             "type": "robot.bridge",
             "session": self.session,
@@ -210,7 +210,7 @@ class BridgeConsumer(AsyncWebsocketConsumer):
             self.opened = None
 
     async def bridge_frame(self, message: dict[str, Any]) -> None:
-        """Queue a frame (part) from the robot for the client, dropping the oldest when the queue is full."""
+        """Queue a frame (part, or batch of frames) from the robot for the client, dropping the oldest when full."""
         try:
             frame = self.assembler.take(protocol.BridgeFrame.model_validate(message["data"]))
         except ValueError as exc:
@@ -218,9 +218,10 @@ class BridgeConsumer(AsyncWebsocketConsumer):
             return
         if frame is None:
             return
-        if len(self.queue) == self.queue.maxlen:
-            self.dropped += 1
-        self.queue.append(frame)
+        for whole in frame if isinstance(frame, list) else [frame]:
+            if len(self.queue) == self.queue.maxlen:
+                self.dropped += 1
+            self.queue.append(whole)
         self.wake.set()
 
     async def bridge_closed(self, message: dict[str, Any]) -> None:

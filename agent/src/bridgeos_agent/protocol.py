@@ -37,6 +37,7 @@ from pydantic import (
 from bridgeos_agent.skillconfig import SLUG_PATTERN
 
 __all__ = [
+    "BRIDGE_BINARY_CHARS",
     "BRIDGE_KINDS",
     "BRIDGE_PART_CHARS",
     "COMMANDS",
@@ -781,6 +782,7 @@ BRIDGE_KINDS = ("rosbridge", "foxglove")
 # A client frame larger than this crosses the link in parts (``more``), so an envelope stays well
 # under MAX_FRAME_BYTES even when JSON escaping multiplies a text part's size.
 BRIDGE_PART_CHARS = 128 * 1024
+BRIDGE_BINARY_CHARS = (BRIDGE_PART_CHARS * 4) // 3 + 4  # a binary part's base64
 BridgeSessionId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
 
 
@@ -790,20 +792,38 @@ class BridgeOpen(Payload):
     session: BridgeSessionId
     kind: Literal["rosbridge", "foxglove"]
     bytes_per_s: Annotated[int, Strict(), Field(ge=1024)] | None = None
+    # The cloud takes several whole frames in one bridge_frame (``texts``/``binaries``); an agent
+    # that is not told so sends one frame per bridge_frame.
+    batches: bool = False
 
 
 class BridgeFrame(Payload):
-    """Carry (a part of) one WebSocket frame of a bridge session: ``text``, or ``binary`` in base64."""
+    """Carry (a part of) one WebSocket frame of a bridge session, or several whole ones in order.
+
+    One of: ``text``; ``binary`` in base64; ``texts``, whole text frames; ``binaries``, whole
+    binary frames in base64. Batches (only to a cloud that opened the session with ``batches``)
+    spare a busy topic one envelope per message; their frames together stay within one part's size.
+    """
 
     session: BridgeSessionId
     text: Annotated[str, StringConstraints(max_length=BRIDGE_PART_CHARS)] | None = None
-    binary: Annotated[str, StringConstraints(max_length=(BRIDGE_PART_CHARS * 4) // 3 + 4)] | None = None
+    binary: Annotated[str, StringConstraints(max_length=BRIDGE_BINARY_CHARS)] | None = None
+    texts: Annotated[list[str], Field(min_length=1)] | None = None
+    binaries: Annotated[list[str], Field(min_length=1)] | None = None
     more: bool = False  # more parts of this frame follow
 
     @model_validator(mode="after")
     def _one_kind(self) -> BridgeFrame:
-        if (self.text is None) == (self.binary is None):
-            raise ValueError("a bridge frame carries exactly one of text and binary")
+        kinds = (self.text, self.binary, self.texts, self.binaries)
+        if sum(kind is not None for kind in kinds) != 1:
+            raise ValueError("a bridge frame carries exactly one of text and binary (or a batch: texts or binaries)")
+        batch = self.texts if self.texts is not None else self.binaries
+        if batch is not None:
+            if self.more:
+                raise ValueError("a batch of bridge frames carries whole frames only (no 'more')")
+            limit = BRIDGE_PART_CHARS if self.texts is not None else BRIDGE_BINARY_CHARS
+            if sum(len(frame) for frame in batch) > limit:
+                raise ValueError(f"a batch of bridge frames may carry at most {limit} characters")
         return self
 
 

@@ -5,6 +5,10 @@ The cloud opens a session (``bridge_open``) for each client of ``/ws/rosbridge/<
 side ends it (``bridge_close``). Every session of a kind shares one engine, and every engine the
 agent's one graph, so a topic is subscribed in the graph once however many clients watch it.
 
+Batches: when the cloud takes them, the frames a session's engine writes in one go (a busy topic's
+queue, drained) travel as one ``bridge_frame`` (``texts``/``binaries``) instead of one envelope
+each, which is most of the per-message cost on both ends of the link.
+
 Flow: each session writes through a byte budget (the cloud's per-client cap). A client over its
 cap makes its session's writer wait, so its engine queues fill and drop their oldest messages
 (counted), while the robot's graph and the other sessions go on at their own pace.
@@ -23,9 +27,9 @@ from collections.abc import Awaitable, Callable, Mapping
 from typing import Any, Protocol
 
 from bridgeos_agent.bridges.graph import BridgeGraph
-from bridgeos_agent.protocol import BRIDGE_PART_CHARS, Event
+from bridgeos_agent.protocol import BRIDGE_BINARY_CHARS, BRIDGE_PART_CHARS, Event
 
-__all__ = ["ENGINES", "BridgeRelay", "ByteBudget", "FrameAssembler", "frame_parts"]
+__all__ = ["ENGINES", "BridgeRelay", "ByteBudget", "FrameAssembler", "frame_parts", "whole_frames"]
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +41,7 @@ ENGINES: Mapping[str, tuple[str, str]] = {
 MAX_SESSIONS = 64  # clients of one robot at once
 MAX_INBOX = 1_000  # client frames waiting for their session; more is a flood and ends the session
 MAX_CLIENT_FRAME = 16 << 20  # a client frame reassembled from parts may not exceed this
+BATCH_FRAME_BYTES = 16 * 1024  # a frame larger than this goes alone (in parts if need be), not batched
 
 SendEvent = Callable[[Event, dict[str, Any]], Awaitable[Any]]
 Send = Callable[[str | bytes], Awaitable[None]]
@@ -75,8 +80,13 @@ class ByteBudget:
 class _Session:
     """One client's session: its engine session, the frames waiting for it, its writer's budget."""
 
-    def __init__(self, relay: BridgeRelay, ident: str, bytes_per_s: int | None) -> None:
+    def __init__(self, relay: BridgeRelay, ident: str, bytes_per_s: int | None, batches: bool = False) -> None:
         self.relay = relay
+        self.batches = batches
+        self.pending: list[str | bytes] = []  # whole frames of one type waiting for the next batch
+        self.pending_chars = 0
+        self.flushing: asyncio.Task[None] | None = None
+        self.sending = asyncio.Lock()  # batches and lone frames leave in the order they were written
         self.ident = ident
         self.engine_session: EngineSession | None = None
         self.inbox: asyncio.Queue[str | bytes] = asyncio.Queue()
@@ -95,7 +105,33 @@ class _Session:
             if wait > 0:
                 await asyncio.sleep(wait)
         self.sent_bytes += len(frame)
-        for data in frame_parts(self.ident, frame):
+        if not self.batches or len(frame) > BATCH_FRAME_BYTES:
+            await self.flush()
+            async with self.sending:
+                for data in frame_parts(self.ident, frame):
+                    await self.relay.send_event(Event.BRIDGE_FRAME, data)
+            return
+        chars = len(frame) if isinstance(frame, str) else (len(frame) + 2) // 3 * 4
+        limit = BRIDGE_PART_CHARS if isinstance(frame, str) else BRIDGE_BINARY_CHARS
+        if self.pending and (type(frame) is not type(self.pending[0]) or self.pending_chars + chars > limit):
+            await self.flush()
+        self.pending.append(frame)
+        self.pending_chars += chars
+        if self.flushing is None or self.flushing.done():
+            # Runs once the engine's writer yields: everything it wrote until then goes as one batch.
+            self.flushing = asyncio.ensure_future(self.flush())
+
+    async def flush(self) -> None:
+        """Send the frames waiting for a batch as one bridge_frame."""
+        async with self.sending:
+            if not self.pending or self.closed:
+                return
+            frames, self.pending, self.pending_chars = self.pending, [], 0
+            data: dict[str, Any] = {"session": self.ident}
+            if isinstance(frames[0], str):
+                data["texts"] = frames
+            else:
+                data["binaries"] = [base64.b64encode(frame).decode() for frame in frames if isinstance(frame, bytes)]
             await self.relay.send_event(Event.BRIDGE_FRAME, data)
 
     async def read(self) -> None:
@@ -114,8 +150,17 @@ class FrameAssembler:
         self.parts: list[Any] = []
         self.size = 0
 
-    def take(self, data: Any) -> str | bytes | None:
-        """Add a part (a BridgeFrame); return the whole frame after its last part (ValueError: too big)."""
+    def take(self, data: Any) -> str | bytes | list[str] | list[bytes] | None:
+        """Add a part (a BridgeFrame); return the whole frame after its last part, or a batch's frames.
+
+        ValueError: the frame is too big, or a batch cut into a frame's parts.
+        """
+        whole = whole_frames(data)
+        if whole is not None:
+            if self.parts:
+                self.parts, self.size = [], 0
+                raise ValueError("a batch of frames came between the parts of a frame")
+            return whole
         part: str | bytes = data.text if data.text is not None else base64.b64decode(data.binary)
         self.size += len(part)
         if self.size > self.limit:
@@ -129,6 +174,15 @@ class FrameAssembler:
             return part
         parts.append(part)
         return "".join(parts) if isinstance(part, str) else b"".join(parts)
+
+
+def whole_frames(data: Any) -> list[str] | list[bytes] | None:
+    """Return a batch bridge_frame's frames in order (binary ones decoded), or None for a lone frame."""
+    if data.texts is not None:
+        return list(data.texts)
+    if data.binaries is not None:
+        return [base64.b64decode(frame) for frame in data.binaries]
+    return None
 
 
 def frame_parts(ident: str, frame: str | bytes) -> list[dict[str, Any]]:
@@ -169,15 +223,18 @@ class BridgeRelay:
         self._setup = asyncio.Lock()
         self._background: set[asyncio.Future[Any]] = set()  # starts and ends in the background, owned until done
 
-    def open(self, ident: str, kind: str, bytes_per_s: int | None = None) -> None:
-        """Start a client's session of a kind; its frames queue until the engine is ready."""
+    def open(self, ident: str, kind: str, bytes_per_s: int | None = None, *, batches: bool = False) -> None:
+        """Start a client's session of a kind; its frames queue until the engine is ready.
+
+        ``batches``: the cloud takes several whole frames in one bridge_frame.
+        """
         if ident in self.sessions:
             return
         if len(self.sessions) >= self.max_sessions:
             self._spawn(self._refuse(ident, f"the robot serves at most {self.max_sessions} bridge clients at once"))
             return
         # Registered now, before the graph is joined, so the frames right behind the open wait for it.
-        session = self.sessions[ident] = _Session(self, ident, bytes_per_s)
+        session = self.sessions[ident] = _Session(self, ident, bytes_per_s, batches)
         self._spawn(self._start(session, kind))
 
     async def _start(self, session: _Session, kind: str) -> None:
@@ -210,10 +267,11 @@ class BridgeRelay:
             return
         if frame is None:
             return
-        if session.inbox.qsize() >= MAX_INBOX:
-            self._close_soon(data.session, f"more than {MAX_INBOX} client frames waiting: flooding")
-            return
-        session.inbox.put_nowait(frame)
+        for whole in frame if isinstance(frame, list) else [frame]:
+            if session.inbox.qsize() >= MAX_INBOX:
+                self._close_soon(data.session, f"more than {MAX_INBOX} client frames waiting: flooding")
+                return
+            session.inbox.put_nowait(whole)
 
     async def end(self, ident: str, reason: str = "", *, tell: bool = False) -> None:
         """End one session (and tell the cloud, when the robot ends it)."""
@@ -221,6 +279,8 @@ class BridgeRelay:
         if session is None or session.closed:
             return
         session.closed = True
+        if session.flushing is not None:
+            session.flushing.cancel()
         current = asyncio.current_task()
         for task in session.tasks:
             if task is not current:
