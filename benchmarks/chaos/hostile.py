@@ -65,6 +65,7 @@ class World:
     sessions: dict[str, str]  # alice, bob -> session key
     template_id: int
     copy_tokens: dict[str, str]  # robot id -> launch token of its cloud copy of the sampler
+    recording_id: str  # a finished recording of alice-bot's
 
 
 def make_world(http: str, ws: str) -> World:
@@ -117,8 +118,14 @@ def make_world(http: str, ws: str) -> World:
 
     SkillTemplate.objects.filter(name="Hostile counting").delete()
     template = create_template(name="Hostile counting", config=template_config)
+    from recordings.choices import RecordingStatus
+    from recordings.models import Recording
+
+    recording = Recording.objects.create(
+        robot_id="alice-bot", topics=["/chatter"], status=RecordingStatus.FINISHED, max_bytes=1, max_duration_s=1
+    )
     connection.close()
-    return World(http, ws, tokens, robot_tokens, sessions, template.pk, copy_tokens)
+    return World(http, ws, tokens, robot_tokens, sessions, template.pk, copy_tokens, recording.id.hex)
 
 
 def daphne_errors(log_text: str) -> int:
@@ -508,10 +515,21 @@ def fuzz_door(world: World, door: Door, frames: int, seed: int, primed: Callable
 
 
 def websocket_routes() -> list[str]:
-    """Every WebSocket route the cloud serves, read from its routing."""
+    """Every WebSocket route of the cloud's own protocol (event, id and data frames), read from its routing."""
     from bridgeos_cloud.routing import websocket_urlpatterns
 
-    return [str(p.pattern) for p in websocket_urlpatterns]
+    return [str(p.pattern) for p in websocket_urlpatterns if "robot_id" not in str(p.pattern)]
+
+
+def bridge_routes() -> list[str]:
+    """The rosbridge and Foxglove doors of a robot: authorised at the handshake, their frames the robot's to read.
+
+    Their bad input and floods are tested against a real agent (tests/cloud/test_bridge_relay.py);
+    here every intruder's handshake on Alice's robot must be refused.
+    """
+    from bridgeos_cloud.routing import websocket_urlpatterns
+
+    return [str(p.pattern) for p in websocket_urlpatterns if "robot_id" in str(p.pattern)]
 
 
 def doors(world: World) -> dict[str, Door]:
@@ -755,8 +773,28 @@ def fill_route(route: str, world: World, robot: str, copy_token: str) -> str:
         "template_id": str(world.template_id),
         "token": copy_token,
         "path": "status",
+        "recording_id": world.recording_id,
     }
     return "/" + re.sub(r"<(?:\w+:)?(\w+)>", lambda m: values[m.group(1)], route)
+
+
+def bridge_handshakes(world: World, route: str, tally: Tenancy, callers: dict[str, dict[str, str]]) -> None:
+    """Open a bridge door of alice-bot as each caller (and with a forged ticket): each must be refused."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    url = world.ws + "/" + re.sub(r"<(?:\w+:)?robot_id>", "alice-bot", route)
+    tries = [(who, url, headers) for who, headers in callers.items()]
+    tries.append(("a forged ticket", url + "?ticket=" + "f" * 43, {}))
+    for who, address, headers in tries:
+        try:
+            with connect(
+                address, additional_headers=headers, subprotocols=["foxglove.websocket.v1"], open_timeout=10
+            ) as websocket:
+                allowed, detail = True, f"opened ({websocket.subprotocol})"
+        except InvalidStatus as exc:
+            allowed, detail = exc.response.status_code not in REFUSED, f"{exc.response.status_code}"
+        tally.judge("bridge", f"WS /{route} of alice-bot as {who}", allowed, detail)
 
 
 def destructive_rank(call: tuple[str, str]) -> int:
@@ -826,6 +864,8 @@ def cross_tenant(world: World, alice_robot: RecordingRobot, intruder: str = "bob
                 attempt("rest", method, url, bob_robot, json=body)
             else:
                 attempt("page", method, url, client=session)
+        for route in bridge_routes():
+            bridge_handshakes(world, route, tally, {"bob": bob_api, "bob-bot": bob_robot, "nobody": {}})
         for route, callback in http_routes():
             if "robot_id" in route:
                 continue
