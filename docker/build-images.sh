@@ -119,8 +119,9 @@ PARENT_ros2=base
 # the cloud build on it, the cloud adding its own dependencies in one more layer. Dependencies are
 # listed from the pyproject files, so a code change rebuilds only the layers that copy code.
 AGENT_SOURCES=(../agent/pyproject.toml ../agent/src)
-CLOUD_SOURCES=(../pyproject.toml ../manage.py ../scripts/daphne ../bridgeos_cloud ../robots ../skills
-               ../monitoring ../dashboard ../network ../templates ../static)
+# The cloud's Django project and apps: what its image copies, and what decides when it is rebuilt.
+CLOUD_TREES=(bridgeos_cloud robots skills monitoring dashboard network recordings templates static)
+CLOUD_SOURCES=(../pyproject.toml ../manage.py ../scripts/daphne "${CLOUD_TREES[@]/#/../}")
 
 requirements() {  # pyproject.toml: its [project] dependencies, one a line, without our own packages
     "${PYTHON:-python3}" -c '
@@ -145,8 +146,8 @@ cloud_context() {
     cp -r "$DOCKER_DIR/cloud/." "$1/" && stage_agent "$1" || return
     requirements "$DOCKER_DIR/../pyproject.toml" >"$1/requirements-cloud.txt" || return
     mkdir -p "$1/src/scripts"
-    (cd "$DOCKER_DIR/.." && find manage.py pyproject.toml bridgeos_cloud robots skills monitoring dashboard network \
-        templates static -type f -not -path '*/__pycache__/*' -exec cp --parents {} "$1/src/" \;)
+    (cd "$DOCKER_DIR/.." && find manage.py pyproject.toml "${CLOUD_TREES[@]}" \
+        -type f -not -path '*/__pycache__/*' -exec cp --parents {} "$1/src/" \;)
     cp "$DOCKER_DIR/../scripts/daphne" "$1/src/scripts/"
 }
 
