@@ -95,14 +95,14 @@ def run_agent(args: argparse.Namespace) -> int:
             logging.getLogger("bridgeos_agent").info("metrics on http://%s/metrics", args.metrics)
         doors: list[Any] = []
         # Before the controller runs: the robot's ROS 2 Context must be made before any cloud graph's.
-        for option, address, ros, serve_door in (
-            ("rosbridge", args.rosbridge, args.rosbridge_ros, _serve_rosbridge),
-            ("foxglove", args.foxglove, args.foxglove_ros, _serve_foxglove),
+        for option, address, ros in (
+            ("rosbridge", args.rosbridge, args.rosbridge_ros),
+            ("foxglove", args.foxglove, args.foxglove_ros),
         ):
             if not address:
                 continue
             try:
-                doors.append(await serve_door(address, ros))
+                doors.append(await _serve_door(option, address, ros))
             except Exception as exc:  # no master, no rclpy, port taken: say which and stop
                 logging.getLogger("bridgeos_agent").error("cannot serve %s on %s: %s", option, address, exc)
                 for door in doors:
@@ -121,42 +121,24 @@ def run_agent(args: argparse.Namespace) -> int:
     return asyncio.run(main())
 
 
-async def _serve_rosbridge(address: str, ros: str) -> Any:
-    """Serve rosbridge v2 for the robot's ROS 1 or ROS 2 graph (auto: ROS 1 when a master answers)."""
-    from bridgeos_agent.bridges.server import RosbridgeServer, open_graph, parse_address
+async def _serve_door(kind: str, address: str, ros: str) -> Any:
+    """Serve a robot-local door (rosbridge or foxglove) on the ROS 1 or 2 graph (auto: ROS 1 if a master answers)."""
+    from bridgeos_agent.bridges.server import FoxgloveServer, RosbridgeServer, open_graph, parse_address
 
     host, port = parse_address(address)
     if ros == "auto":
         ros = "ros1" if find_ros_master() else "ros2"
-    graph = await open_graph(ros)
-    server = RosbridgeServer(graph)
+    rosbridge = kind == "rosbridge"
+    graph = await open_graph(ros) if rosbridge else await open_graph(ros, name="bridgeos_foxglove")
+    server = RosbridgeServer(graph) if rosbridge else FoxgloveServer(graph)
+    what = "rosbridge v2" if rosbridge else "Foxglove WebSocket"
     try:
         await server.start(host, port)
     except BaseException:
         await graph.close()
         raise
     logging.getLogger("bridgeos_agent").info(
-        "rosbridge v2 for the robot's %s graph on ws://%s:%d (unauthenticated)", ros.upper(), host, server.port
-    )
-    return server
-
-
-async def _serve_foxglove(address: str, ros: str) -> Any:
-    """Serve the Foxglove WebSocket protocol for the robot's ROS 1 or ROS 2 graph (auto as for rosbridge)."""
-    from bridgeos_agent.bridges.server import FoxgloveServer, open_graph, parse_address
-
-    host, port = parse_address(address)
-    if ros == "auto":
-        ros = "ros1" if find_ros_master() else "ros2"
-    graph = await open_graph(ros, name="bridgeos_foxglove")
-    server = FoxgloveServer(graph)
-    try:
-        await server.start(host, port)
-    except BaseException:
-        await graph.close()
-        raise
-    logging.getLogger("bridgeos_agent").info(
-        "Foxglove WebSocket for the robot's %s graph on ws://%s:%d (unauthenticated)", ros.upper(), host, server.port
+        "%s for the robot's %s graph on ws://%s:%d (unauthenticated)", what, ros.upper(), host, server.port
     )
     return server
 

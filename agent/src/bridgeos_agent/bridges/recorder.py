@@ -20,13 +20,10 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
-import glob
 import importlib.util
 import json
 import logging
 import os
-import re
-import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -34,6 +31,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphSubscription, Sample
+from bridgeos_agent.bridges.ros2defs import message_definition
 from bridgeos_agent.protocol import (
     RECORDING_CHUNK_BYTES,
     Envelope,
@@ -44,7 +42,7 @@ from bridgeos_agent.protocol import (
 from bridgeos_agent.protocol import RecordingStatusName as RS
 from bridgeos_agent.tasks import TaskOwner
 
-__all__ = ["McapRecording", "RecorderHost", "Recordings", "ros2_schema"]
+__all__ = ["McapRecording", "RecorderHost", "Recordings"]
 
 logger = logging.getLogger("bridgeos_agent")
 
@@ -52,79 +50,6 @@ logger = logging.getLogger("bridgeos_agent")
 MCAP_CHUNK_SIZE = 64 * 1024
 # How long a ROS 2 graph joined just now is given to discover the topics asked for.
 DISCOVERY_S = 3.0
-_ROS2_PRIMITIVES = {
-    "bool",
-    "byte",
-    "char",
-    "float32",
-    "float64",
-    "int8",
-    "uint8",
-    "int16",
-    "uint16",
-    "int32",
-    "uint32",
-    "int64",
-    "uint64",
-    "string",
-    "wstring",
-}
-_SEPARATOR = "=" * 80 + "\n"
-
-
-# --------------------------------------------------------------------------- schemas
-
-
-def _msg_roots() -> list[Path]:
-    roots = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-    roots += [Path(sys.prefix), *(Path(p) for p in sorted(glob.glob("/opt/ros/*")))]
-    return list(dict.fromkeys(roots))
-
-
-def _msg_text(package: str, name: str) -> str:
-    for root in _msg_roots():
-        path = root / "share" / package / "msg" / f"{name}.msg"
-        if path.is_file():
-            return path.read_text()
-    raise BridgeError(f"no .msg definition of {package}/msg/{name} is installed on this robot")
-
-
-def _used_types(text: str, package: str) -> list[tuple[str, str]]:
-    """Return the (package, Type) of every message type a .msg text uses, in order."""
-    used: list[tuple[str, str]] = []
-    for line in text.splitlines():
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        type_ = re.split(r"\s+", line, maxsplit=1)[0]
-        base = re.sub(r"\[[^\]]*\]$", "", type_).split("<=", 1)[0]
-        if base in _ROS2_PRIMITIVES:
-            continue
-        parts = base.split("/")
-        if len(parts) == 3:  # pkg/msg/Type
-            parts = [parts[0], parts[2]]
-        found = (parts[0], parts[1]) if len(parts) == 2 else (package, parts[0])
-        if found not in used:
-            used.append(found)
-    return used
-
-
-def ros2_schema(type_: str) -> str:
-    """Return a ROS 2 type's ``ros2msg`` schema: its .msg text, then each type it uses, as rosbag2 writes it."""
-    package, _, name = type_.split("/")
-    top = _msg_text(package, name)
-    parts = [top]
-    seen = {(package, name)}
-    queue = _used_types(top, package)
-    while queue:
-        dep = queue.pop(0)
-        if dep in seen:
-            continue
-        seen.add(dep)
-        text = _msg_text(*dep)
-        parts.append(f"{_SEPARATOR}MSG: {dep[0]}/msg/{dep[1]}\n{text}")
-        queue.extend(_used_types(text, dep[0]))
-    return "\n".join(part.rstrip("\n") for part in parts) + "\n"
 
 
 # --------------------------------------------------------------------------- MCAP without I/O
@@ -355,7 +280,7 @@ class Recordings:
         def schema() -> Schema:
             if ros == "ros1":
                 return "ros1msg", graph.types.definition(type_)[0]  # type: ignore[attr-defined]
-            return "ros2msg", ros2_schema(type_)
+            return "ros2msg", message_definition(type_)
 
         return schema
 
