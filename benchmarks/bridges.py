@@ -10,7 +10,8 @@ rosmaster with rospy talkers (Debian's ROS 1), and WebSocket clients speaking ea
 Figures: 100-byte std_msgs/String messages/s to one viewer through the cloud (rosbridge and
 Foxglove) beside the same at the robot's local door; the latency the cloud adds over the local
 door (stamped by the talker, paired per message); a 1 MB PointCloud2 at 10 Hz to 10 viewers
-through the cloud's Foxglove door (p95 lag); JSON vs CBOR for a 640x480 image through the
+through the cloud's Foxglove door (p95 lag, and the robot-link bytes over the bytes delivered:
+each cloud crosses the link once, as a blob, however many viewers get it); JSON vs CBOR for a 640x480 image through the
 rosbridge engine (rosbridge_suite issue #367: JSON 269 ms / 11.5 MB, CBOR 1.5 ms / 0.92 MB); the
 recorder's MCAP write MB/s. The last stdout line is one JSON object of them.
 """
@@ -27,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.request
 import xmlrpc.client
 from pathlib import Path
 from typing import Any
@@ -439,12 +441,18 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
     talker = ros.talker("cloud", "/points", 10)
     try:
         viewers = [await foxglove_subscribe(foxglove_cloud, headers, "/points") for _ in range(args.viewers)]
+        before = bridge_counters(cloud)
         lags: list[float] = []
         received = await asyncio.gather(*(cloud_lags(v, seconds, warmup, lags) for v in viewers))
+        after = bridge_counters(cloud)
         for viewer in viewers:
             await viewer.close()
     finally:
         stop(talker)
+    # What crossed the robot's link for the viewers (each cloud once, as a blob) over what they got.
+    delivered = after["bridgeos_bridge_bytes_total"] - before["bridgeos_bridge_bytes_total"]
+    shared = after["bridgeos_bridge_blob_bytes_total"] - before["bridgeos_bridge_blob_bytes_total"]
+    figures["pointcloud_link_over_delivered"] = round(shared / delivered, 3) if delivered else None
     expected = 10 * seconds * args.viewers
     figures["pointcloud_10_viewers_p50_ms"] = round(percentile(lags, 50) or 0, 1)
     figures["pointcloud_10_viewers_p95_ms"] = round(percentile(lags, 95) or 0, 1)
@@ -454,6 +462,17 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
         f"p95 {figures['pointcloud_10_viewers_p95_ms']} ms; {sum(received)} of ~{expected:.0f} delivered"
     )
     return figures
+
+
+def bridge_counters(cloud: str) -> dict[str, float]:
+    """Return the cloud's bridge byte counters from its /metrics."""
+    text = urllib.request.urlopen(cloud.replace("ws://", "http://") + "/metrics", timeout=10).read().decode()
+    found = {"bridgeos_bridge_bytes_total": 0.0, "bridgeos_bridge_blob_bytes_total": 0.0}
+    for line in text.splitlines():
+        name = line.split("{", 1)[0].split(" ", 1)[0]
+        if name in found:
+            found[name] += float(line.rsplit(" ", 1)[1])
+    return found
 
 
 def table(figures: dict[str, Any]) -> None:
@@ -466,6 +485,7 @@ def table(figures: dict[str, Any]) -> None:
         ("latency added by the cloud p95 (ms)", "cloud_added_latency_p95_ms", ""),
         ("1 MB PointCloud2 10 Hz, 10 viewers, lag p95 (ms)", "pointcloud_10_viewers_p95_ms", "<= 200 (issue 19)"),
         ("  delivered share", "pointcloud_delivered_ratio", ""),
+        ("  robot-link bytes over bytes delivered", "pointcloud_link_over_delivered", "0.1 = one copy for 10"),
         ("640x480 image JSON (ms)", "image_json_ms", "269 (rosbridge_suite #367)"),
         ("640x480 image JSON (MB)", "image_json_mb", "11.5 (rosbridge_suite #367)"),
         ("640x480 image CBOR (ms)", "image_cbor_ms", "1.5 (rosbridge_suite #367)"),

@@ -312,8 +312,10 @@ BRIDGEOS = {
     # this many frames queued in the cloud (the oldest dropped past it), and may send frames this large,
     # this often.
     "BRIDGE_TICKET_TTL_S": env_float("BRIDGEOS_BRIDGE_TICKET_TTL_S", 60.0),
-    "BRIDGE_CLIENT_BYTES_PER_S": env_int("BRIDGEOS_BRIDGE_CLIENT_BYTES_PER_S", 8 * 1024 * 1024),
+    # Enough for a 1 MB point cloud at 10 Hz with room to catch up after a hiccup.
+    "BRIDGE_CLIENT_BYTES_PER_S": env_int("BRIDGEOS_BRIDGE_CLIENT_BYTES_PER_S", 16 * 1024 * 1024),
     "BRIDGE_CLIENT_QUEUE": env_int("BRIDGEOS_BRIDGE_CLIENT_QUEUE", 1000),
+    "BRIDGE_CLIENT_QUEUE_BYTES": env_int("BRIDGEOS_BRIDGE_CLIENT_QUEUE_BYTES", 32 * 1024 * 1024),
     "BRIDGE_MAX_FRAME_BYTES": env_int("BRIDGEOS_BRIDGE_MAX_FRAME_BYTES", 1024 * 1024),
     "BRIDGE_CLIENT_FRAMES_PER_S": env_float("BRIDGEOS_BRIDGE_CLIENT_FRAMES_PER_S", 500.0),
     "BRIDGE_CLIENT_FRAME_BURST": env_float("BRIDGEOS_BRIDGE_CLIENT_FRAME_BURST", 1000.0),

@@ -86,6 +86,35 @@ LIVE_DROPS = Counter(
     "live_drops", "Live-feed messages that could not be sent (the values are dropped).", namespace=NAMESPACE
 )
 
+# --------------------------------------------------------------------------- rosbridge and Foxglove clients
+
+BRIDGE_DROP_PLACES = ("robot_queue", "cloud_queue", "channel_full", "blob_missing")
+BRIDGE_CLIENTS = Gauge(
+    "bridge_clients",
+    "rosbridge and Foxglove clients connected through the cloud, by protocol.",
+    ["kind"],
+    namespace=NAMESPACE,
+    multiprocess_mode="livesum",
+)
+BRIDGE_FRAMES = Counter(
+    "bridge_frames", "Frames sent to rosbridge and Foxglove clients, by protocol.", ["kind"], namespace=NAMESPACE
+)
+BRIDGE_BYTES = Counter(
+    "bridge_bytes", "Bytes sent to rosbridge and Foxglove clients, by protocol.", ["kind"], namespace=NAMESPACE
+)
+BRIDGE_BLOB_BYTES = Counter(
+    "bridge_blob_bytes",
+    "Bytes of frames shared by several clients that robots sent once (blobs).",
+    namespace=NAMESPACE,
+)
+BRIDGE_DROPS = Counter(
+    "bridge_drops",
+    "Messages dropped for slow rosbridge and Foxglove clients, by protocol and where: the robot's queue "
+    "for the client, the cloud's, a full channel, or a shared frame that came too late.",
+    ["kind", "where"],
+    namespace=NAMESPACE,
+)
+
 # --------------------------------------------------------------------------- Celery and orchestration
 
 TASKS = Counter("celery_tasks", "Celery tasks finished, by task and outcome.", ["task", "outcome"], namespace=NAMESPACE)
@@ -122,6 +151,17 @@ def frame_received() -> None:
 def points_received(count: int) -> None:
     """Count the metric points of one frame."""
     POINTS_RECEIVED.inc(count)
+
+
+def bridge_dropped(kind: str, where: str, count: int = 1) -> None:
+    """Count messages dropped for a bridge client: where, of BRIDGE_DROP_PLACES."""
+    BRIDGE_DROPS.labels(kind, where).inc(count)
+
+
+def bridge_sent(kind: str, size: int) -> None:
+    """Count one frame sent to a bridge client."""
+    BRIDGE_FRAMES.labels(kind).inc()
+    BRIDGE_BYTES.labels(kind).inc(size)
 
 
 def dedup_hit() -> None:

@@ -14,6 +14,7 @@ second (its engine's queues drop the oldest past it), and here each client has a
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import logging
 import secrets
@@ -32,8 +33,9 @@ from django.conf import settings
 
 from bridgeos_agent import protocol
 from bridgeos_agent.bridges.relay import FrameAssembler, frame_parts
-from bridgeos_agent.protocol import Event
+from bridgeos_agent.protocol import BlobWindow, Event
 from bridgeos_cloud.ratelimit import TokenBucket
+from monitoring import prometheus
 
 from . import services
 
@@ -101,7 +103,10 @@ class BridgeConsumer(AsyncWebsocketConsumer):
         self.session = ""
         self.robot_channel = ""
         self.closing = False
-        self.queue: deque[str | bytes] = deque(maxlen=settings.BRIDGEOS["BRIDGE_CLIENT_QUEUE"])
+        self.queue: deque[str | bytes] = deque()
+        self.queue_frames = settings.BRIDGEOS["BRIDGE_CLIENT_QUEUE"]
+        self.queue_bytes = settings.BRIDGEOS["BRIDGE_CLIENT_QUEUE_BYTES"]
+        self.queued_bytes = 0
         self.dropped = 0
         self.wake = asyncio.Event()
         self.writer: asyncio.Task[None] | None = None
@@ -116,6 +121,7 @@ class BridgeConsumer(AsyncWebsocketConsumer):
         self.bucket.updated = time.monotonic()
         self.flood_strikes = 0
         self.last_refused = 0.0
+        self.counted = False  # in the bridge_clients gauge
         subprotocol = self.choose_subprotocol()
         if subprotocol is False:
             await self.close()  # a Foxglove door without a Foxglove subprotocol: a 403, like any refusal
@@ -133,14 +139,17 @@ class BridgeConsumer(AsyncWebsocketConsumer):
         self.robot_channel = access.channel
         self.session = secrets.token_urlsafe(16)
         register_local(self)
+        prometheus.BRIDGE_CLIENTS.labels(self.kind).inc()
+        self.counted = True
         self.writer = asyncio.ensure_future(self.write())
         self.opened = asyncio.get_running_loop().call_later(OPEN_TIMEOUT_S, self.open_timed_out)
         cap = settings.BRIDGEOS["BRIDGE_CLIENT_BYTES_PER_S"]
-        data = {"session": self.session, "kind": self.kind, "bytes_per_s": cap, "batches": True}
+        data = {"session": self.session, "kind": self.kind, "bytes_per_s": cap, "batches": True, "blobs": True}
         message = {
             "type": "robot.bridge",
             "session": self.session,
             "open": self.channel_name,
+            "kind": self.kind,
             "frame": bridge_envelope(Event.BRIDGE_OPEN, data),
         }
         if not await deliver(self.robot_channel, message):
@@ -211,6 +220,10 @@ class BridgeConsumer(AsyncWebsocketConsumer):
 
     async def bridge_frame(self, message: dict[str, Any]) -> None:
         """Queue a frame (part, or batch of frames) from the robot for the client, dropping the oldest when full."""
+        whole = message.get("whole")
+        if whole is not None:  # a blob's frame, put together by the robot's consumer
+            self.enqueue(whole)
+            return
         try:
             frame = self.assembler.take(protocol.BridgeFrame.model_validate(message["data"]))
         except ValueError as exc:
@@ -218,10 +231,17 @@ class BridgeConsumer(AsyncWebsocketConsumer):
             return
         if frame is None:
             return
-        for whole in frame if isinstance(frame, list) else [frame]:
-            if len(self.queue) == self.queue.maxlen:
-                self.dropped += 1
-            self.queue.append(whole)
+        for one in frame if isinstance(frame, list) else [frame]:
+            self.enqueue(one)
+
+    def enqueue(self, frame: str | bytes) -> None:
+        """Queue a frame for the client; past the queue's frames or bytes, the oldest go (counted)."""
+        self.queue.append(frame)
+        self.queued_bytes += len(frame)
+        while len(self.queue) > 1 and (len(self.queue) > self.queue_frames or self.queued_bytes > self.queue_bytes):
+            self.queued_bytes -= len(self.queue.popleft())
+            self.dropped += 1
+            prometheus.bridge_dropped(self.kind, "cloud_queue")
         self.wake.set()
 
     async def bridge_closed(self, message: dict[str, Any]) -> None:
@@ -237,10 +257,12 @@ class BridgeConsumer(AsyncWebsocketConsumer):
         while not self.closing:
             while self.queue and not self.closing:
                 frame = self.queue.popleft()
+                self.queued_bytes -= len(frame)
                 if isinstance(frame, str):
                     await self.send(text_data=frame)
                 else:
                     await self.send(bytes_data=frame)
+                prometheus.bridge_sent(self.kind, len(frame))
             self.wake.clear()
             await self.wake.wait()
 
@@ -262,6 +284,9 @@ class BridgeConsumer(AsyncWebsocketConsumer):
     async def disconnect(self, code: int) -> None:
         self.closing = True
         self.wake.set()
+        if self.counted:
+            prometheus.BRIDGE_CLIENTS.labels(self.kind).dec()
+            self.counted = False
         if self.opened is not None:
             self.opened.cancel()
         if self.writer is not None:
@@ -292,7 +317,13 @@ class RobotBridges:
     def __init__(self, robot_id: str) -> None:
         self.robot_id = robot_id
         self.clients: dict[str, str] = {}  # session -> the client consumer's channel
-        self.dropped = 0  # frames for clients whose channel was full
+        self.kinds: dict[str, str] = {}  # session -> rosbridge or foxglove
+        self.dropped = 0  # frames for clients whose channel was full, or naming a blob no longer here
+        # The robot's latest blobs (frames several clients share), as the agent counts them.
+        self.window = BlobWindow()
+        self.blobs: dict[int, str | bytes] = {}
+        self.blob_parts: list[bytes] = []  # the parts so far of the blob being received
+        self.blob_size = 0
 
     async def from_client(self, message: dict[str, Any], send_text: Any) -> None:
         """Pass a client's frame to the robot; an open records the session, a close forgets it."""
@@ -304,12 +335,39 @@ class RobotBridges:
                 await deliver(opening, {"type": "bridge.closed", "reason": reason})
                 return
             self.clients[session] = opening
+            self.kinds[session] = message.get("kind", "rosbridge")
             await deliver(opening, {"type": "bridge.opened"})
         elif session not in self.clients:
             return  # a late frame of a session that ended
         if message.get("close"):
             self.clients.pop(session, None)
+            self.kinds.pop(session, None)
         await send_text(message["frame"])
+
+    def take_blob(self, message: bytes) -> None:
+        """Keep a blob (or a part of one) the robot sent; ProtocolError if it is malformed."""
+        blob, text, more, body = protocol.decode_bridge_blob(message)
+        prometheus.BRIDGE_BLOB_BYTES.inc(len(body))
+        self.blob_parts.append(body)
+        self.blob_size += len(message)
+        if self.blob_size > protocol.BRIDGE_BLOB_MAX_BYTES + len(self.blob_parts) * 64:
+            self.blob_parts, self.blob_size = [], 0
+            raise protocol.ProtocolError(f"a bridge blob may carry at most {protocol.BRIDGE_BLOB_MAX_BYTES} bytes")
+        if more:
+            return
+        parts, size = self.blob_parts, self.blob_size
+        self.blob_parts, self.blob_size = [], 0
+        data = parts[0] if len(parts) == 1 else b"".join(parts)
+        for gone in self.window.add(blob, size):
+            self.blobs.pop(gone, None)
+        if text:
+            try:
+                self.blobs[blob] = data.decode("utf-8", "surrogatepass")
+            except UnicodeDecodeError:
+                self.blobs.pop(blob, None)
+                raise protocol.ProtocolError("a text bridge blob is not UTF-8") from None
+        else:
+            self.blobs[blob] = data
 
     async def from_robot(self, event: str, payload: Any) -> None:
         """Pass a robot's bridge frame or close to its client."""
@@ -318,13 +376,41 @@ class RobotBridges:
             return
         if event == Event.BRIDGE_CLOSE:
             del self.clients[payload.session]
+            self.kinds.pop(payload.session, None)
             await deliver(channel, {"type": "bridge.closed", "reason": payload.reason})
             return
-        if not await deliver(channel, {"type": "bridge.frame", "data": payload.model_dump(exclude_none=True)}):
+        kind = self.kinds.get(payload.session, "rosbridge")
+        if payload.dropped:
+            prometheus.bridge_dropped(kind, "robot_queue", payload.dropped)
+        if payload.blob is not None:
+            message = self.blob_frame(payload)
+            if message is None:
+                return
+        else:
+            message = {"type": "bridge.frame", "data": payload.model_dump(exclude_none=True)}
+        if not await deliver(channel, message):
             self.dropped += 1
+            prometheus.bridge_dropped(kind, "channel_full")
+
+    def blob_frame(self, payload: Any) -> dict[str, Any] | None:
+        """Put a client's frame together from its head and a blob (None, counted, if the blob left)."""
+        data = self.blobs.get(payload.blob)
+        if data is None or (isinstance(data, str) and payload.head):
+            # Pushed out of the window before this frame named it (the agent counts as we do, so
+            # only a frame that was long in coming), or a head on a text frame: lost, counted.
+            self.dropped += 1
+            prometheus.bridge_dropped(self.kinds.get(payload.session, "rosbridge"), "blob_missing")
+            return None
+        if payload.head:
+            data = base64.b64decode(payload.head) + data  # type: ignore[operator]
+        return {"type": "bridge.frame", "whole": data}
 
     async def robot_left(self) -> None:
         """Tell every client the robot went offline."""
         clients, self.clients = self.clients, {}
+        self.kinds.clear()
+        self.window.clear()
+        self.blobs.clear()
+        self.blob_parts, self.blob_size = [], 0
         for channel in clients.values():
             await deliver(channel, {"type": "bridge.closed", "offline": True})

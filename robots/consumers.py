@@ -123,6 +123,15 @@ class RobotConsumer(ProtocolConsumer):
                 return
             await self.dispatch_envelope(envelope)
             return
+        if bytes_data is not None and self.authenticated and protocol.is_bridge_blob(bytes_data):
+            # A frame several bridge clients share, sent once; their bridge_frames name it next.
+            if self.closing:
+                return
+            try:
+                self.bridges.take_blob(bytes_data)
+            except protocol.ProtocolError as exc:
+                await self.fail(exc.message, reply_to=None, field=exc.field, code=exc.code)
+            return
         await super().receive(text_data, bytes_data)
 
     async def dispatch_envelope(self, envelope: Envelope) -> None:

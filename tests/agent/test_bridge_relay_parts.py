@@ -41,7 +41,7 @@ def test_a_frame_over_the_limit_is_refused_and_the_next_one_starts_clean() -> No
 
 
 def test_a_part_carries_exactly_one_of_text_and_binary() -> None:
-    with pytest.raises(protocol.ProtocolError, match="exactly one of text and binary"):
+    with pytest.raises(protocol.ProtocolError, match="exactly one of text, binary and blob"):
         protocol.make(Event.BRIDGE_FRAME, {"session": "session-1"}, now=0.0)
     with pytest.raises(protocol.ProtocolError):
         protocol.make(Event.BRIDGE_OPEN, {"session": "x", "kind": "rosbridge"}, now=0.0)  # too short an id

@@ -11,12 +11,14 @@ import asyncio
 import base64
 import json
 import os
+import re
 import shutil
 import socket
 import struct
 import subprocess
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -203,6 +205,18 @@ def stalled_client(cloud: Server, path: str, token: str, text: str) -> socket.so
     return sock
 
 
+def counters(cloud: Server, **labels: str) -> Counter[str]:
+    """Return the cloud's bridge counters on /metrics, summed over the series matching ``labels``."""
+    found: Counter[str] = Counter()
+    for line in httpx.get(f"{cloud.url}/metrics", timeout=10).text.splitlines():
+        match = re.match(r"^(bridgeos_bridge_\w+_total)(?:\{([^}]*)\})? (\S+)$", line)
+        if match:
+            series = dict(re.findall(r'(\w+)="([^"]*)"', match.group(2) or ""))
+            if all(series.get(key) == value for key, value in labels.items()):
+                found[match.group(1)] += float(match.group(3))
+    return found
+
+
 def next_op(websocket: ClientConnection, op: str, timeout: float = 10) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
     while True:
@@ -280,6 +294,9 @@ def test_a_stalled_viewer_slows_neither_the_robot_nor_a_live_viewer(cloud, robot
         sessions = list(robot.controller.bridges.sessions.values())
         drops = [s.engine_session.stats().get("/fast", {}).get("dropped", 0) for s in sessions if s.engine_session]
         assert max(drops) > 100, drops
+        # And on the cloud's /metrics, told by the robot with the frames it still sends.
+        where = {"kind": "rosbridge", "where": "robot_queue"}
+        wait_for(lambda: counters(cloud, **where)["bridgeos_bridge_drops_total"] > 100, what="drops on /metrics")
     finally:
         live.close()
         stalled.close()

@@ -308,7 +308,7 @@ async def call_components_api(
 @handles(Event.BRIDGE_OPEN)
 async def on_bridge_open(controller: RobotController, envelope: Envelope, p: Any) -> None:
     # Joining the graph takes a moment: the session starts in the background, its frames queue meanwhile.
-    controller.bridges.open(p.session, p.kind, p.bytes_per_s, batches=p.batches)
+    controller.bridges.open(p.session, p.kind, p.bytes_per_s, batches=p.batches, blobs=p.blobs)
 
 
 @handles(Event.BRIDGE_FRAME)

@@ -17,6 +17,7 @@ import itertools
 import os
 import random as _random
 import re
+import struct
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -38,6 +39,9 @@ from bridgeos_agent.skillconfig import SLUG_PATTERN
 
 __all__ = [
     "BRIDGE_BINARY_CHARS",
+    "BRIDGE_BLOB_MAX_BYTES",
+    "BRIDGE_BLOB_MIN_BYTES",
+    "BRIDGE_HEAD_BYTES",
     "BRIDGE_KINDS",
     "BRIDGE_PART_CHARS",
     "COMMANDS",
@@ -54,6 +58,7 @@ __all__ = [
     "AuthenticationFailure",
     "AuthenticationRobot",
     "AuthenticationSuccess",
+    "BlobWindow",
     "BridgeClose",
     "BridgeFrame",
     "BridgeOpen",
@@ -117,9 +122,12 @@ __all__ = [
     "VolumeFile",
     "ack_frame",
     "decode",
+    "decode_bridge_blob",
     "encode",
+    "encode_bridge_blob",
     "error_frame",
     "is_allowed",
+    "is_bridge_blob",
     "make",
     "new_id",
     "parse_payload",
@@ -785,6 +793,85 @@ BRIDGE_PART_CHARS = 128 * 1024
 BRIDGE_BINARY_CHARS = (BRIDGE_PART_CHARS * 4) // 3 + 4  # a binary part's base64
 BridgeSessionId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
 
+# A large frame that several clients receive (a point cloud to ten viewers) crosses the link once,
+# as binary WebSocket messages of its own (a blob, in parts of at most BRIDGE_BLOB_PART_BYTES), not
+# once per client in base64: each client's bridge_frame then names the blob, behind a few bytes of
+# its own (Foxglove's subscription id and time). The cloud keeps a robot's latest blobs, oldest out
+# first, within a BlobWindow; the agent keeps the same window's account, so it knows which blobs
+# the cloud still holds and sends again one that has left it.
+BRIDGE_BLOB_MAGIC = b"\xb1BOB"
+BRIDGE_BLOB_MIN_BYTES = 64 * 1024  # smaller frames travel inline (batched), as before
+BRIDGE_BLOB_PART_BYTES = 1 << 20  # a binary message of the link, under the transport's 2 MiB ceiling
+BRIDGE_BLOB_MAX_BYTES = 16 << 20
+BRIDGE_BLOB_WINDOW_BYTES = 24 << 20
+BRIDGE_BLOB_WINDOW_COUNT = 64
+BRIDGE_HEAD_BYTES = 64  # the most of a client's own bytes in front of a blob
+_BLOB_HEAD = struct.Struct("<4sIB")  # magic, blob id, flags
+_BLOB_TEXT = 1  # UTF-8 text, sent to its clients as text frames
+_BLOB_MORE = 2  # more parts of this blob follow
+
+
+class BlobWindow:
+    """Which blobs the cloud holds of one robot's link: the latest, within a count and a byte size."""
+
+    def __init__(self, count: int = BRIDGE_BLOB_WINDOW_COUNT, size: int = BRIDGE_BLOB_WINDOW_BYTES) -> None:
+        self.count = count
+        self.size = size
+        self.held: OrderedDict[int, int] = OrderedDict()  # blob id -> bytes, oldest first
+        self.bytes = 0
+
+    def add(self, blob: int, size: int) -> list[int]:
+        """Hold a new blob; return the blobs it pushed out, oldest first (never the new one)."""
+        if blob in self.held:
+            self.bytes -= self.held.pop(blob)
+        self.held[blob] = size
+        self.bytes += size
+        gone = []
+        while len(self.held) > 1 and (len(self.held) > self.count or self.bytes > self.size):
+            old, old_size = self.held.popitem(last=False)
+            self.bytes -= old_size
+            gone.append(old)
+        return gone
+
+    def clear(self) -> None:
+        """Forget every blob (the link they were sent on is gone)."""
+        self.held.clear()
+        self.bytes = 0
+
+
+def encode_bridge_blob(blob: int, data: bytes | bytearray | memoryview | str) -> list[bytes]:
+    """Encode a blob as the binary messages of the robot's link that carry it, in order."""
+    text = isinstance(data, str)
+    body = memoryview(data.encode("utf-8", "surrogatepass") if isinstance(data, str) else data).cast("B")
+    if len(body) > BRIDGE_BLOB_MAX_BYTES:
+        raise ValueError(f"a bridge blob may carry at most {BRIDGE_BLOB_MAX_BYTES} bytes")
+    step = BRIDGE_BLOB_PART_BYTES
+    messages = []
+    for start in range(0, max(len(body), 1), step):
+        flags = (_BLOB_TEXT if text else 0) | (_BLOB_MORE if start + step < len(body) else 0)
+        messages.append(b"".join((_BLOB_HEAD.pack(BRIDGE_BLOB_MAGIC, blob, flags), body[start : start + step])))
+    return messages
+
+
+def is_bridge_blob(message: bytes) -> bool:
+    """Tell whether a binary message of the robot's link carries (part of) a blob."""
+    return message[:4] == BRIDGE_BLOB_MAGIC
+
+
+def decode_bridge_blob(message: bytes) -> tuple[int, bool, bool, bytes]:
+    """Return a blob message's blob id, whether it is text, whether more parts follow, and its bytes.
+
+    ProtocolError: not a blob message, or a part larger than BRIDGE_BLOB_PART_BYTES.
+    """
+    if len(message) < _BLOB_HEAD.size or not is_bridge_blob(message):
+        raise ProtocolError("not a bridge blob", code="invalid_frame")
+    if len(message) - _BLOB_HEAD.size > BRIDGE_BLOB_PART_BYTES:
+        raise ProtocolError(f"a bridge blob part may carry at most {BRIDGE_BLOB_PART_BYTES} bytes", code="too_large")
+    _, blob, flags = _BLOB_HEAD.unpack_from(message)
+    if flags & ~(_BLOB_TEXT | _BLOB_MORE):
+        raise ProtocolError(f"unknown bridge blob flags {flags}", code="invalid_frame")
+    return blob, bool(flags & _BLOB_TEXT), bool(flags & _BLOB_MORE), message[_BLOB_HEAD.size :]
+
 
 class BridgeOpen(Payload):
     """Open a bridge session of a kind for one client, sending at most ``bytes_per_s`` to it."""
@@ -795,14 +882,17 @@ class BridgeOpen(Payload):
     # The cloud takes several whole frames in one bridge_frame (``texts``/``binaries``); an agent
     # that is not told so sends one frame per bridge_frame.
     batches: bool = False
+    # The cloud takes blobs (binary messages of the link) and bridge_frames naming them.
+    blobs: bool = False
 
 
 class BridgeFrame(Payload):
     """Carry (a part of) one WebSocket frame of a bridge session, or several whole ones in order.
 
     One of: ``text``; ``binary`` in base64; ``texts``, whole text frames; ``binaries``, whole
-    binary frames in base64. Batches (only to a cloud that opened the session with ``batches``)
-    spare a busy topic one envelope per message; their frames together stay within one part's size.
+    binary frames in base64; ``blob``, a whole frame sent before as a blob, behind its ``head``.
+    Batches (only to a cloud that opened the session with ``batches``) spare a busy topic one
+    envelope per message; their frames together stay within one part's size.
     """
 
     session: BridgeSessionId
@@ -810,13 +900,24 @@ class BridgeFrame(Payload):
     binary: Annotated[str, StringConstraints(max_length=BRIDGE_BINARY_CHARS)] | None = None
     texts: Annotated[list[str], Field(min_length=1)] | None = None
     binaries: Annotated[list[str], Field(min_length=1)] | None = None
+    blob: Annotated[int, Strict(), Field(ge=0, lt=1 << 32)] | None = None
+    # The client's own bytes in front of the blob, in base64 (binary blobs only).
+    head: Annotated[str, StringConstraints(max_length=(BRIDGE_HEAD_BYTES * 4) // 3 + 4)] | None = None
     more: bool = False  # more parts of this frame follow
+    # Messages the robot dropped for this client since its last report (its queues were full).
+    dropped: Annotated[int, Strict(), Field(ge=0)] | None = None
 
     @model_validator(mode="after")
     def _one_kind(self) -> BridgeFrame:
-        kinds = (self.text, self.binary, self.texts, self.binaries)
+        kinds = (self.text, self.binary, self.texts, self.binaries, self.blob)
         if sum(kind is not None for kind in kinds) != 1:
-            raise ValueError("a bridge frame carries exactly one of text and binary (or a batch: texts or binaries)")
+            raise ValueError(
+                "a bridge frame carries exactly one of text, binary and blob (or a batch: texts or binaries)"
+            )
+        if self.head is not None and self.blob is None:
+            raise ValueError("only a frame naming a blob has a head")
+        if self.blob is not None and self.more:
+            raise ValueError("a frame naming a blob is whole (no 'more')")
         batch = self.texts if self.texts is not None else self.binaries
         if batch is not None:
             if self.more:

@@ -371,6 +371,17 @@ class Session:
         except websockets.ConnectionClosed:
             pass
 
+    async def send_binary(self, message: bytes) -> None:
+        """Send a binary message (a bridge blob's part) once, now, if connected."""
+        ws = self.ws
+        if ws is None:
+            return
+        try:
+            await ws.send(message)
+            self.cloud_bytes[1] += len(message)
+        except websockets.ConnectionClosed:
+            pass
+
     async def request(self, event: Event, data: Mapping[str, Any], timeout: float = 10.0) -> Envelope | None:
         """Ask the cloud something and wait for the answer (None if it does not come in ``timeout`` s)."""
         await self.connected.wait()

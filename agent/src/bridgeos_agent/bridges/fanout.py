@@ -14,10 +14,27 @@ from typing import Protocol
 
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, GraphSubscription, Sample
 
-__all__ = ["DEFAULT_QUEUE", "LINGER_S", "Fanouts", "Outlet", "Publishers", "Reader"]
+__all__ = ["DEFAULT_QUEUE", "LINGER_S", "Fanouts", "Outlet", "Publishers", "Reader", "SharedTail"]
 
 DEFAULT_QUEUE = 100  # messages queued per topic for a client that reads slower than the topic runs
 LINGER_S = 5.0  # how long a topic stays subscribed in the graph after its last client left
+
+
+class SharedTail(bytes):
+    """A client's binary frame: a head of its own, then a message's bytes that other clients' frames share.
+
+    It is the whole frame, as bytes; a door that can (the cloud relay) sends ``tail`` once for every
+    client of the message and only each client's ``head`` besides.
+    """
+
+    head: bytes
+    tail: bytes | memoryview
+
+    def __new__(cls, head: bytes, tail: bytes | memoryview) -> SharedTail:
+        frame = super().__new__(cls, b"".join((head, tail)))
+        frame.head = head
+        frame.tail = tail
+        return frame
 
 
 class Reader(Protocol):

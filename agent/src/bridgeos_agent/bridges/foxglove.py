@@ -30,7 +30,7 @@ from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from bridgeos_agent.bridges.fanout import DEFAULT_QUEUE, LINGER_S, Fanouts, Outlet, Publishers
+from bridgeos_agent.bridges.fanout import DEFAULT_QUEUE, LINGER_S, Fanouts, Outlet, Publishers, SharedTail
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, Sample
 
 __all__ = ["SUBPROTOCOLS", "Foxglove", "FoxgloveSession", "select_subprotocol"]
@@ -643,7 +643,7 @@ class FoxgloveSession:
             subscription.sent += 1
             seconds, nanoseconds = sample.stamp
             head = struct.pack("<BIQ", MESSAGE_DATA, subscription.id, seconds * 1_000_000_000 + nanoseconds)
-            return head + bytes(sample.raw)
+            return SharedTail(head, sample.raw)
         return None
 
     # ------------------------------------------------------------------ end

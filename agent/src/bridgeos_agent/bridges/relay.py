@@ -27,7 +27,16 @@ from collections.abc import Awaitable, Callable, Mapping
 from typing import Any, Protocol
 
 from bridgeos_agent.bridges.graph import BridgeGraph
-from bridgeos_agent.protocol import BRIDGE_BINARY_CHARS, BRIDGE_PART_CHARS, Event
+from bridgeos_agent.protocol import (
+    BRIDGE_BINARY_CHARS,
+    BRIDGE_BLOB_MAX_BYTES,
+    BRIDGE_BLOB_MIN_BYTES,
+    BRIDGE_HEAD_BYTES,
+    BRIDGE_PART_CHARS,
+    BlobWindow,
+    Event,
+    encode_bridge_blob,
+)
 
 __all__ = ["ENGINES", "BridgeRelay", "ByteBudget", "FrameAssembler", "frame_parts", "whole_frames"]
 
@@ -44,6 +53,7 @@ MAX_CLIENT_FRAME = 16 << 20  # a client frame reassembled from parts may not exc
 BATCH_FRAME_BYTES = 16 * 1024  # a frame larger than this goes alone (in parts if need be), not batched
 
 SendEvent = Callable[[Event, dict[str, Any]], Awaitable[Any]]
+SendBinary = Callable[[bytes], Awaitable[Any]]
 Send = Callable[[str | bytes], Awaitable[None]]
 
 
@@ -80,11 +90,15 @@ class ByteBudget:
 class _Session:
     """One client's session: its engine session, the frames waiting for it, its writer's budget."""
 
-    def __init__(self, relay: BridgeRelay, ident: str, bytes_per_s: int | None, batches: bool = False) -> None:
+    def __init__(
+        self, relay: BridgeRelay, ident: str, bytes_per_s: int | None, batches: bool = False, blobs: bool = False
+    ) -> None:
         self.relay = relay
         self.batches = batches
+        self.blobs = blobs
         self.pending: list[str | bytes] = []  # whole frames of one type waiting for the next batch
         self.pending_chars = 0
+        self.pending_dropped = 0
         self.flushing: asyncio.Task[None] | None = None
         self.sending = asyncio.Lock()  # batches and lone frames leave in the order they were written
         self.ident = ident
@@ -95,20 +109,48 @@ class _Session:
         self.tasks: list[asyncio.Task[Any]] = []
         self.sent_bytes = 0
         self.closed = False
+        self.drops_reported = 0  # of the engine session's drops, told to the cloud
+        self.drops_checked = 0.0
+
+    def new_drops(self, now: float) -> int:
+        """Return the engine's drops for this client not yet told to the cloud (looked at once a second)."""
+        if now - self.drops_checked < 1.0 or self.engine_session is None:
+            return 0
+        self.drops_checked = now
+        stats = getattr(self.engine_session, "stats", None)
+        total = sum(topic["dropped"] for topic in stats().values()) if stats is not None else 0
+        new, self.drops_reported = max(0, total - self.drops_reported), total
+        return new
 
     async def send(self, frame: str | bytes) -> None:
         """Send one engine frame to the client, in parts when large, within the client's byte budget."""
         if self.closed:
             return
+        now = time.monotonic()
         if self.budget is not None:
-            wait = self.budget.delay(len(frame), time.monotonic())
+            wait = self.budget.delay(len(frame), now)
             if wait > 0:
                 await asyncio.sleep(wait)
+        dropped = self.new_drops(now)
         self.sent_bytes += len(frame)
+        if self.blobs and BRIDGE_BLOB_MIN_BYTES <= len(frame):
+            head, tail = shared_parts(frame)
+            if len(head) <= BRIDGE_HEAD_BYTES and len(tail) <= BRIDGE_BLOB_MAX_BYTES:
+                await self.flush()
+                async with self.sending:
+                    data: dict[str, Any] = {"session": self.ident, "blob": await self.relay.blob(tail)}
+                    if head:
+                        data["head"] = base64.b64encode(head).decode()
+                    if dropped:
+                        data["dropped"] = dropped
+                    await self.relay.send_event(Event.BRIDGE_FRAME, data)
+                return
         if not self.batches or len(frame) > BATCH_FRAME_BYTES:
             await self.flush()
             async with self.sending:
                 for data in frame_parts(self.ident, frame):
+                    if dropped:
+                        data["dropped"], dropped = dropped, 0
                     await self.relay.send_event(Event.BRIDGE_FRAME, data)
             return
         chars = len(frame) if isinstance(frame, str) else (len(frame) + 2) // 3 * 4
@@ -117,6 +159,7 @@ class _Session:
             await self.flush()
         self.pending.append(frame)
         self.pending_chars += chars
+        self.pending_dropped += dropped
         if self.flushing is None or self.flushing.done():
             # Runs once the engine's writer yields: everything it wrote until then goes as one batch.
             self.flushing = asyncio.ensure_future(self.flush())
@@ -128,6 +171,8 @@ class _Session:
                 return
             frames, self.pending, self.pending_chars = self.pending, [], 0
             data: dict[str, Any] = {"session": self.ident}
+            if self.pending_dropped:
+                data["dropped"], self.pending_dropped = self.pending_dropped, 0
             if isinstance(frames[0], str):
                 data["texts"] = frames
             else:
@@ -185,6 +230,19 @@ def whole_frames(data: Any) -> list[str] | list[bytes] | None:
     return None
 
 
+def shared_parts(frame: str | bytes) -> tuple[bytes, str | bytes | memoryview]:
+    """Split a frame into its client's own head and the tail other clients' frames may share.
+
+    An engine that shares a message's bytes across clients marks its frame a SharedTail; any other
+    frame is all tail, shared when the engine hands every client the same object (rosbridge caches
+    one encoding of a message for all its clients).
+    """
+    tail = getattr(frame, "tail", None)
+    if tail is not None:
+        return frame.head, tail  # type: ignore[union-attr]
+    return b"", frame
+
+
 def frame_parts(ident: str, frame: str | bytes) -> list[dict[str, Any]]:
     """Split a session's frame into bridge_frame payloads small enough for one envelope each."""
     size = BRIDGE_PART_CHARS if isinstance(frame, str) else (BRIDGE_PART_CHARS // 4) * 3
@@ -211,8 +269,10 @@ class BridgeRelay:
         engines: Mapping[str, tuple[str, str]] = ENGINES,
         engine_options: Mapping[str, Mapping[str, Any]] | None = None,
         max_sessions: int = MAX_SESSIONS,
+        send_binary: SendBinary | None = None,
     ) -> None:
         self.send_event = send_event
+        self.send_binary = send_binary
         self._open_graph = open_graph
         self.engine_specs = engines
         self.engine_options = dict(engine_options or {})
@@ -222,11 +282,22 @@ class BridgeRelay:
         self.sessions: dict[str, _Session] = {}
         self._setup = asyncio.Lock()
         self._background: set[asyncio.Future[Any]] = set()  # starts and ends in the background, owned until done
+        # The blobs the cloud holds, as it will count them: by the shared object's id (the entry keeps
+        # the object alive, so the id is not reused), with the future of its sending.
+        self.window = BlobWindow()
+        self._blobs: dict[int, tuple[int, object, asyncio.Future[None]]] = {}
+        self._blob_keys: dict[int, int] = {}  # blob id -> key in _blobs
+        self._next_blob = 0
+        self.blobs_sent = 0
+        self.blob_bytes_sent = 0
 
-    def open(self, ident: str, kind: str, bytes_per_s: int | None = None, *, batches: bool = False) -> None:
+    def open(
+        self, ident: str, kind: str, bytes_per_s: int | None = None, *, batches: bool = False, blobs: bool = False
+    ) -> None:
         """Start a client's session of a kind; its frames queue until the engine is ready.
 
-        ``batches``: the cloud takes several whole frames in one bridge_frame.
+        ``batches``: the cloud takes several whole frames in one bridge_frame; ``blobs``: it takes
+        blobs, so a large frame shared by several clients crosses the link once.
         """
         if ident in self.sessions:
             return
@@ -234,7 +305,7 @@ class BridgeRelay:
             self._spawn(self._refuse(ident, f"the robot serves at most {self.max_sessions} bridge clients at once"))
             return
         # Registered now, before the graph is joined, so the frames right behind the open wait for it.
-        session = self.sessions[ident] = _Session(self, ident, bytes_per_s, batches)
+        session = self.sessions[ident] = _Session(self, ident, bytes_per_s, batches, blobs and bool(self.send_binary))
         self._spawn(self._start(session, kind))
 
     async def _start(self, session: _Session, kind: str) -> None:
@@ -295,9 +366,39 @@ class BridgeRelay:
             await self._refuse(ident, reason)
 
     async def close_sessions(self) -> None:
-        """End every session: the link they travelled on is gone."""
+        """End every session: the link they travelled on is gone, and the cloud's blobs with it."""
         for ident in list(self.sessions):
             await self.end(ident)
+        self.window.clear()
+        self._blobs.clear()
+        self._blob_keys.clear()
+
+    async def blob(self, tail: str | bytes | memoryview) -> int:
+        """Return the id of the blob carrying ``tail``, sending it first unless the cloud holds it."""
+        entry = self._blobs.get(id(tail))
+        if entry is not None and entry[1] is tail:
+            await asyncio.shield(entry[2])  # another client's frame is sending it right now
+            return entry[0]
+        ident = self._next_blob
+        self._next_blob = (ident + 1) & 0xFFFFFFFF
+        messages = encode_bridge_blob(ident, tail)
+        sent = asyncio.get_running_loop().create_future()
+        self._blobs[id(tail)] = (ident, tail, sent)
+        self._blob_keys[ident] = id(tail)
+        for gone in self.window.add(ident, sum(len(message) for message in messages)):
+            key = self._blob_keys.pop(gone, None)
+            if key is not None and self._blobs.get(key, (None,))[0] == gone:
+                del self._blobs[key]
+        try:
+            assert self.send_binary is not None
+            for message in messages:
+                await self.send_binary(message)
+                self.blob_bytes_sent += len(message)
+            self.blobs_sent += 1
+        finally:
+            if not sent.done():
+                sent.set_result(None)
+        return ident
 
     async def shutdown(self) -> None:
         """End every session, the engines and the graph (the agent stops)."""
@@ -315,7 +416,12 @@ class BridgeRelay:
 
     def stats(self) -> dict[str, int]:
         """Return how many sessions are open and the bytes sent to their clients."""
-        return {"sessions": len(self.sessions), "sent_bytes": sum(s.sent_bytes for s in self.sessions.values())}
+        return {
+            "sessions": len(self.sessions),
+            "sent_bytes": sum(s.sent_bytes for s in self.sessions.values()),
+            "blobs_sent": self.blobs_sent,
+            "blob_bytes_sent": self.blob_bytes_sent,
+        }
 
     # ------------------------------------------------------------------ internals
 

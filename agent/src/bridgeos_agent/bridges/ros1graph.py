@@ -21,13 +21,14 @@ PROBE_TIMEOUT = 2.0
 
 
 class _Subscription:
-    def __init__(self, graph: Ros1Graph, topic: str, type_: str) -> None:
+    def __init__(self, graph: Ros1Graph, topic: str, type_: str, deliver: Callable[[Sample], None]) -> None:
         self.graph = graph
         self.topic = topic
         self.type = type_
+        self.deliver = deliver
 
     def close(self) -> None:
-        self.graph.node.unsubscribe(self.topic)
+        self.graph._leave(self)
 
 
 class _Publisher:
@@ -71,6 +72,9 @@ class Ros1Graph:
         self.types = Ros1Types()
         self.node = RosNode(name, master_uri, host=host, on_publisher_header=self._on_header)
         self._service_types: dict[tuple[str, str], str] = {}
+        # The node subscribes a topic once; every bridge subscription of it (rosbridge, Foxglove, the
+        # recorder) hears each message from that one connection.
+        self._listeners: dict[str, list[_Subscription]] = {}
 
     async def start(self) -> None:
         """Register with the master (raises MasterError when it does not answer)."""
@@ -159,6 +163,13 @@ class Ros1Graph:
             raise BridgeError(f"{topic} does not exist; give its type to subscribe before anyone publishes it")
         if known is not None and known != wanted:
             raise BridgeError(f"{topic} is of type {known}, not {wanted}")
+        listeners = self._listeners.get(topic)
+        if listeners:
+            if listeners[0].type != wanted:
+                raise BridgeError(f"{topic} is subscribed as {listeners[0].type}, not {wanted}")
+            subscription = _Subscription(self, topic, wanted, deliver)
+            listeners.append(subscription)
+            return subscription
         with contextlib.suppress(BridgeError):  # a type only the publisher can define is learned from its header
             self.types.ensure_message(wanted)
         name = "{}/msg/{}".format(*wanted.split("/"))
@@ -169,6 +180,8 @@ class Ros1Graph:
                 raise BridgeError(f"no definition of {wanted} is known yet")
             return types.decode(name, raw)
 
+        listeners = self._listeners[topic] = [_Subscription(self, topic, wanted, deliver)]
+
         def received(subscription: Subscription, blob: bytes, count: int, inbound: Inbound) -> None:
             stamp = time.time_ns()
             stamp_pair = (stamp // 1_000_000_000, stamp % 1_000_000_000)
@@ -176,12 +189,28 @@ class Ros1Graph:
             offset = 0
             for one in iter_frames(blob) if count != 1 else (blob,):
                 size = len(one)
-                deliver(Sample(view[offset + 4 : offset + size], decode, stamp_pair))
+                sample = Sample(view[offset + 4 : offset + size], decode, stamp_pair)
+                for listener in listeners:
+                    listener.deliver(sample)
                 offset += size
 
         self.node.subscribe(topic, wanted, received)
-        await self._settle()
-        return _Subscription(self, topic, wanted)
+        try:
+            await self._settle()
+        except BaseException:
+            self._leave(listeners[0])
+            raise
+        return listeners[0]
+
+    def _leave(self, subscription: _Subscription) -> None:
+        """Forget one bridge subscription; the node unsubscribes with the topic's last."""
+        listeners = self._listeners.get(subscription.topic)
+        if listeners is None or subscription not in listeners:
+            return
+        listeners.remove(subscription)
+        if not listeners:
+            del self._listeners[subscription.topic]
+            self.node.unsubscribe(subscription.topic)
 
     async def advertise(self, topic: str, type_: str) -> _Publisher:
         """Publish a topic with the md5sum and definition of its type."""
