@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -29,6 +30,7 @@ __all__ = [
     "RecordingRefused",
     "delete_recording",
     "recordings_of",
+    "remove_files",
     "report_recording_status",
     "salvage_mcap",
     "start_recording",
@@ -137,10 +139,19 @@ def delete_recording(recording: Recording) -> None:
     """Delete a recording and its file; a running one must be stopped first."""
     if recording.running:
         raise RecordingRefused(f"recording {recording.id} is {recording.status}; stop it first", field="status")
-    folder = recording.folder
-    with transaction.atomic():
-        recording.delete()
-        transaction.on_commit(lambda: shutil.rmtree(folder, ignore_errors=True))
+    recording.delete()  # remove_files takes its files once the deletion is committed
+
+
+def remove_files(sender: type[Recording], instance: Recording, **_: Any) -> None:
+    """Remove a deleted recording's chunks and file once the deletion is committed (post_delete)."""
+    folder = instance.folder
+
+    def remove() -> None:
+        shutil.rmtree(folder, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            folder.parent.rmdir()  # the robot's folder, once its last recording went
+
+    transaction.on_commit(remove)
 
 
 # --------------------------------------------------------------------------- what robots send

@@ -425,6 +425,11 @@ async def test_a_recording_cut_short_by_an_agent_crash_is_ended_on_restart_from_
                 # A second stop is refused: the recording has ended.
                 answer = await client.post(f"/api/robot/rec-4/recordings/{recording}/stop?wait=5")
                 assert answer.status_code == 400, answer.text
+                # Deleting the robot deletes its recordings' files with their rows.
+                folder = tmp_path / "recordings" / "rec-4"
+                assert (folder / recording / "recording.mcap").is_file()
+                assert (await client.delete("/api/robot/rec-4")).status_code == 204
+                await eventually(lambda: not folder.exists(), what="the robot's recordings' files deleted")
 
             header, messages = read_back(data, DecoderFactory())
             assert header.profile == "ros1"
