@@ -14,10 +14,8 @@ class RecordingsConfig(AppConfig):
     def ready(self) -> None:
         from django.db.models.signals import post_delete
 
-        from . import models, services
-
-        # The robot door's handlers of recording chunks and statuses.
-        from . import consumers  # noqa: F401
+        # consumers: the robot door's handlers of recording chunks and statuses.
+        from . import consumers, models, services  # noqa: F401
 
         # A deleted recording's files go with it, however it is deleted (its robot's or owner's deletion too).
         post_delete.connect(services.remove_files, sender=models.Recording, dispatch_uid="recordings.remove_files")
