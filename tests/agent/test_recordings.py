@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import io
+import json
 import os
+import shutil
+import subprocess
 import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -22,7 +26,9 @@ from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.conftest import Cloud
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import close_other_sessions
+from tests.conftest import ROOT, close_other_sessions
+
+MCAP_JS = ROOT / "tests" / "js" / "mcap"  # Foxglove's MCAP reader, installed by scripts/services.sh node
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(120)]
 
@@ -97,6 +103,17 @@ async def eventually(check: Callable[[], Any], timeout: float = 30.0, what: str 
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         await asyncio.sleep(0.1)
+
+
+def foxglove_reads(data: bytes, directory: Path) -> dict[str, Any]:
+    """Read an MCAP file with Foxglove's own reader (@mcap/core, zstd by @foxglove/wasm-zstd) under Node."""
+    if not (shutil.which("node") and (MCAP_JS / "node_modules" / "@mcap" / "core").is_dir()):
+        pytest.skip("Node and tests/js/mcap's packages are needed: bash scripts/services.sh node")
+    path = directory / "foxglove-reads.mcap"
+    path.write_bytes(data)
+    done = subprocess.run(["node", str(MCAP_JS / "read.mjs"), str(path)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
 
 
 def api(cloud: Cloud, token: str) -> httpx.AsyncClient:
@@ -235,6 +252,18 @@ async def test_a_ros1_recording_survives_a_cloud_outage_and_reads_back_whole(clo
                 "ros1",
             )
             assert schema.data.decode().strip() == "string data"
+            seen = foxglove_reads(data, tmp_path)
+            assert (seen["profile"], seen["counts"], seen["statistics"]) == (
+                "ros1",
+                {"/counted": 160},
+                {"messageCount": 160},
+            )
+            assert seen["channels"][0]["schema"] == {
+                "name": "std_msgs/String",
+                "encoding": "ros1msg",
+                "data": "string data\n",
+            }
+            assert base64.b64decode(seen["first"]["bytes"]) == messages[0][2].data
         finally:
             nodes.kill_all()
 
@@ -374,6 +403,10 @@ async def test_a_ros2_recording_carries_cdr_with_its_ros2msg_schema(cloud, tmp_p
         schema, channel = messages[0][0], messages[0][1]
         assert (schema.name, schema.encoding, channel.message_encoding) == ("std_msgs/msg/String", "ros2msg", "cdr")
         assert "string data" in schema.data.decode()
+        seen = foxglove_reads(data, tmp_path)
+        assert (seen["profile"], seen["counts"]) == ("ros2", {topic: 60})
+        assert seen["channels"][0]["messageEncoding"] == "cdr"
+        assert seen["channels"][0]["schema"]["name"] == "std_msgs/msg/String"
     finally:
         nodes.kill_all()
 
