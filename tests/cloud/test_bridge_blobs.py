@@ -171,3 +171,32 @@ def test_five_clients_of_a_large_topic_get_it_whole_while_the_link_carries_one_c
     assert delivered > 5 * 8 * SIZE, delivered
     assert shared < 0.55 * delivered, (shared, delivered)
     assert robot.controller.bridges.blobs_sent > 0
+
+
+@pytest.mark.ros
+@pytest.mark.django_db(transaction=True)
+@pytest.mark.timeout(120)
+def test_a_client_on_another_cloud_process_gets_a_shared_frame_through_the_channel_layer(
+    cloud, robot, ros, tmp_path
+) -> None:
+    _, nodes = ros
+    talker = nodes.run("big", "talker", "--topic", "/big", "--rate", "5", "--size", str(SIZE), "--tag", "big")
+    headers = {"Authorization": f"Token {robot.api_token}"}
+    try:
+        with (
+            another_daphne(tmp_path / "second.log") as (second, _),
+            raw(f"{second.ws_url}/ws/rosbridge/{robot.id}/", additional_headers=headers) as far,
+            raw(url(cloud, robot.id), additional_headers=headers) as near,
+        ):
+            for websocket in (far, near):
+                websocket.send(json.dumps({"op": "subscribe", "topic": "/big"}))
+            for websocket in (far, near):
+                deadline = time.monotonic() + 20
+                while True:
+                    message = json.loads(websocket.recv(timeout=max(0.1, deadline - time.monotonic())))
+                    if message.get("op") == "publish":
+                        break
+                assert message["msg"]["data"].startswith("big ") and len(message["msg"]["data"]) > SIZE
+    finally:
+        talker.kill()
+    assert robot.controller.bridges.blobs_sent > 0
