@@ -323,6 +323,7 @@ class RobotBridges:
         self.window = BlobWindow()
         self.blobs: dict[int, str | bytes] = {}
         self.blob_parts: list[bytes] = []  # the parts so far of the blob being received
+        self.blob_id = 0
         self.blob_size = 0
 
     async def from_client(self, message: dict[str, Any], send_text: Any) -> None:
@@ -348,9 +349,13 @@ class RobotBridges:
         """Keep a blob (or a part of one) the robot sent; ProtocolError if it is malformed."""
         blob, text, more, body = protocol.decode_bridge_blob(message)
         prometheus.BRIDGE_BLOB_BYTES.inc(len(body))
+        if self.blob_parts and blob != self.blob_id:
+            self.blob_parts, self.blob_size = [], 0
+            raise protocol.ProtocolError(f"bridge blob {blob} began before blob {self.blob_id} ended")
+        self.blob_id = blob
         self.blob_parts.append(body)
-        self.blob_size += len(message)
-        if self.blob_size > protocol.BRIDGE_BLOB_MAX_BYTES + len(self.blob_parts) * 64:
+        self.blob_size += len(message)  # headers too: the agent's window counts the messages it sent
+        if sum(map(len, self.blob_parts)) > protocol.BRIDGE_BLOB_MAX_BYTES:
             self.blob_parts, self.blob_size = [], 0
             raise protocol.ProtocolError(f"a bridge blob may carry at most {protocol.BRIDGE_BLOB_MAX_BYTES} bytes")
         if more:

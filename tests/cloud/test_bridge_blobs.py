@@ -84,6 +84,26 @@ def test_the_agent_knows_which_blobs_the_cloud_holds_and_sends_a_pushed_out_one_
     assert bytes(shared) == head + big and shared.tail.obj is big  # type: ignore[union-attr]
 
 
+def test_two_clients_sending_large_blobs_at_once_do_not_interleave_their_parts() -> None:
+    sent: list[bytes] = []
+
+    async def send_binary(message: bytes) -> None:
+        await asyncio.sleep(0)  # the link's writer lets other tasks run between messages
+        sent.append(message)
+
+    relay = BridgeRelay(never, never, send_binary=send_binary)
+    one, two = b"1" * 2_500_000, b"2" * 2_500_000  # three parts each
+
+    async def both() -> list[int]:
+        return list(await asyncio.gather(relay.blob(one), relay.blob(two)))
+
+    ids = asyncio.run(both())
+    cloud = RobotBridges("r")
+    for message in sent:
+        cloud.take_blob(message)
+    assert cloud.blobs == {ids[0]: one, ids[1]: two}
+
+
 def test_a_malformed_blob_is_refused_with_the_reason_and_changes_nothing() -> None:
     cloud = RobotBridges("r")
     cloud.take_blob(protocol.encode_bridge_blob(1, b"x" * 100)[0])
@@ -96,6 +116,10 @@ def test_a_malformed_blob_is_refused_with_the_reason_and_changes_nothing() -> No
     for message, reason in bad:
         with pytest.raises(protocol.ProtocolError, match=reason):
             cloud.take_blob(message)
+    first_part = protocol.encode_bridge_blob(5, b"x" * (protocol.BRIDGE_BLOB_PART_BYTES + 1))[0]
+    cloud.take_blob(first_part)
+    with pytest.raises(protocol.ProtocolError, match="began before blob 5 ended"):
+        cloud.take_blob(protocol.encode_bridge_blob(6, b"y")[0])
     assert list(cloud.blobs) == [1]
     with pytest.raises(protocol.ValidationError):
         protocol.BridgeFrame(session="s" * 16, text="x", head="AAAA")  # a head belongs to a blob's frame

@@ -288,6 +288,7 @@ class BridgeRelay:
         self._blobs: dict[int, tuple[int, object, asyncio.Future[None]]] = {}
         self._blob_keys: dict[int, int] = {}  # blob id -> key in _blobs
         self._next_blob = 0
+        self._blob_sending = asyncio.Lock()
         self.blobs_sent = 0
         self.blob_bytes_sent = 0
 
@@ -391,9 +392,10 @@ class BridgeRelay:
                 del self._blobs[key]
         try:
             assert self.send_binary is not None
-            for message in messages:
-                await self.send_binary(message)
-                self.blob_bytes_sent += len(message)
+            async with self._blob_sending:  # one blob's parts at a time: the cloud puts them together in order
+                for message in messages:
+                    await self.send_binary(message)
+                    self.blob_bytes_sent += len(message)
             self.blobs_sent += 1
         finally:
             if not sent.done():
