@@ -22,7 +22,9 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_cloud.errors import NotFound
 from monitoring.models import Metric
 from monitoring.services import latest_metrics
+from recordings.choices import RosProfile
 from recordings.models import Recording
+from recordings.services import DEFAULT_MAX_BYTES, DEFAULT_MAX_DURATION_S
 from robots.models import Robot
 from robots.services import robot_config, update_robot_config, visible_robots
 from skills.models import Component, Skill, SkillTemplate
@@ -210,3 +212,12 @@ def answer_from_database(event: str, robot_id: str, p: Any) -> tuple[Event, dict
 def robot_recordings(robot_id: str, *, limit: int = 50) -> list[Recording]:
     """Return a robot's newest MCAP recordings (the caller checked the user may see the robot)."""
     return list(Recording.objects.filter(robot_id=robot_id).order_by("-created_at")[:limit])
+
+
+def recording_limits() -> dict[str, Any]:
+    """Return what the robot page's recording form offers: the ROS profiles and the default limits."""
+    return {
+        "profiles": list(RosProfile.values),
+        "max_mib": DEFAULT_MAX_BYTES // (1024 * 1024),
+        "max_duration_s": int(DEFAULT_MAX_DURATION_S),
+    }

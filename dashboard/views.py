@@ -39,6 +39,7 @@ def robot(request: HttpRequest, robot_id: str) -> HttpResponse:
             "robot": state,
             "choices": services.robot_config_choices(),
             "recordings": services.robot_recordings(robot_id),
+            "recording_limits": services.recording_limits(),
         },
     )
 

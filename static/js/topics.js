@@ -102,6 +102,8 @@ button?.addEventListener("click", async () => {
     body.replaceChildren(...rows.map(([topic, type]) => row(topic, type)));
     table.hidden = false;
     setText(result, `${rows.length} topic${rows.length === 1 ? "" : "s"}`);
+    // The Recordings card (recordings.js) offers them for a recording.
+    document.dispatchEvent(new CustomEvent("robot-topics", { detail: { topics: rows.map(([topic]) => topic) } }));
   } catch (error) {
     setText(result, error.message);
   }

@@ -29,6 +29,7 @@ from bridgeos_agent.skillconfig import load_sample_skill_config
 from robots.models import Robot
 from robots.services import create_robot, issue_api_token
 from skills.services import add_skill
+from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
 from tests.conftest import BIN
 
 from .simrobot import start_simulated_robot, stop_simulated_robot
@@ -337,3 +338,21 @@ def simulated_robots(daphne_server, transactional_db, tmp_path) -> Iterator[Simu
     robots = SimulatedRobots(daphne_server.ws_url, tmp_path)
     yield robots
     robots.stop_all()
+
+
+# --------------------------------------------------------------------------- a ROS 1 graph
+
+
+@pytest.fixture
+def ros_graph(tmp_path, monkeypatch) -> Iterator[Nodes]:
+    """Run a private rosmaster with a rospy talker on /chatter at 20 Hz; agents started next use it."""
+    if not (Path(HOST_PYTHON).exists() and Path("/usr/bin/rosmaster").exists()):
+        pytest.skip("Debian's ROS 1 (rospy, rosmaster) is not installed")
+    with private_rosmaster(tmp_path) as master:
+        nodes = Nodes(master, tmp_path)
+        nodes.run("talker", "talker", "--topic", "/chatter", "--rate", "20", "--tag", "robot")
+        monkeypatch.setenv("ROS_MASTER_URI", master)  # the agent started next finds this master
+        try:
+            yield nodes
+        finally:
+            nodes.kill_all()

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import pytest
-
-from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
 
 from .conftest import make_robot, make_user
 
@@ -15,20 +12,6 @@ pytestmark = [pytest.mark.browser, pytest.mark.ros, pytest.mark.django_db(transa
 expect = pytest.importorskip(
     "playwright.sync_api", reason="playwright is not installed: pip install -e '.[test]'"
 ).expect
-
-
-@pytest.fixture
-def ros_graph(tmp_path, monkeypatch):
-    if not (Path(HOST_PYTHON).exists() and Path("/usr/bin/rosmaster").exists()):
-        pytest.skip("Debian's ROS 1 (rospy, rosmaster) is not installed")
-    with private_rosmaster(tmp_path) as master:
-        nodes = Nodes(master, tmp_path)
-        nodes.run("talker", "talker", "--topic", "/chatter", "--rate", "20", "--tag", "robot")
-        monkeypatch.setenv("ROS_MASTER_URI", master)  # the agent started next finds this master
-        try:
-            yield nodes
-        finally:
-            nodes.kill_all()
 
 
 def test_the_owner_sees_the_robots_live_topics_types_and_a_measured_rate(browser, agents, ros_graph):
