@@ -8,7 +8,7 @@ from uuid import UUID
 
 from django.http import FileResponse, Http404
 from django.shortcuts import get_object_or_404
-from drf_spectacular.utils import OpenApiResponse, extend_schema
+from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import status
 from rest_framework.exceptions import ValidationError
 from rest_framework.request import Request
@@ -24,6 +24,20 @@ from ..models import Recording
 from .serializers import RecordingSerializer, RecordingStartSerializer
 
 T = TypeVar("T")
+
+MAX_LIMIT = 1000
+LIMIT = OpenApiParameter("limit", int, description=f"Only the newest N recordings (1 to {MAX_LIMIT}).")
+
+
+def list_limit(request: Request) -> int | None:
+    """Read `?limit=` (the newest N recordings), or None for all."""
+    raw = request.query_params.get("limit")
+    if raw is None:
+        return None
+    if not raw.isdigit() or not 1 <= int(raw) <= MAX_LIMIT:
+        raise ValidationError({"limit": [f"A whole number from 1 to {MAX_LIMIT}."]})
+    return int(raw)
+
 
 REFUSALS = {
     400: OpenApiResponse(description="Invalid request (unknown topic, limits out of range, one running already)"),
@@ -60,9 +74,15 @@ def on_robot(action: Callable[[], T], robot_id: str) -> T | Response:
 class RecordingListView(APIView):
     """List a robot's recordings, or start one."""
 
-    @extend_schema(responses={200: RecordingSerializer(many=True), 404: OpenApiResponse()})
+    @extend_schema(
+        parameters=[LIMIT],
+        responses={200: RecordingSerializer(many=True), 400: OpenApiResponse(), 404: OpenApiResponse()},
+    )
     def get(self, request: Request, robot_id: str) -> Response:
         recordings = services.recordings_of(robot_of(request, robot_id))
+        limit = list_limit(request)
+        if limit is not None:
+            recordings = recordings[:limit]
         return Response(RecordingSerializer(recordings, many=True, context={"request": request}).data)
 
     @extend_schema(

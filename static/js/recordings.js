@@ -13,6 +13,7 @@ const robotId = pageData("robot-data").id;
 const base = `/api/robot/${seg(robotId)}/recordings`;
 const MIB = 1024 * 1024;
 const POLL_MS = 1000;
+const LIST_LIMIT = 50; // the newest, as the page renders them
 const WAIT_S = 10; // how long the API waits for the robot's answer to a start or a stop
 const RUNNING = new Set(["starting", "recording"]);
 const ENDED = new Set(["finished", "failed"]);
@@ -158,7 +159,7 @@ async function refresh() {
   clearTimeout(pollTimer);
   pollTimer = null;
   const asked = ++reads;
-  const answer = await get(base);
+  const answer = await get(`${base}?limit=${LIST_LIMIT}`);
   if (asked !== reads) return; // a later read (after an action) answers instead: its list is newer
   if (!answer.ok) {
     say(`Could not read the recordings: ${errorText(answer.data, answer.status)}`, "error");

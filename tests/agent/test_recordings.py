@@ -303,6 +303,11 @@ async def test_limits_end_a_recording_and_bad_input_or_another_user_changes_noth
                 assert running.status_code == 201
                 rid = running.json()["id"]
                 before = (await client.get("/api/robot/rec-2/recordings")).json()
+                newest = (await client.get("/api/robot/rec-2/recordings?limit=1")).json()
+                assert [r["id"] for r in newest] == [before[0]["id"]] and len(before) >= 2
+                for bad in ("0", "1001", "x", "-1"):
+                    answer = await client.get(f"/api/robot/rec-2/recordings?limit={bad}")
+                    assert answer.status_code == 400 and "limit" in answer.json(), answer.text
                 bad = [
                     ({"topics": ["/steady"]}, "non_field_errors", "already running"),
                     ({"topics": []}, "topics", ""),
