@@ -22,6 +22,18 @@ django_asgi_app = PooledASGIHandler(threads=settings.BRIDGEOS["HTTP_THREADS"])
 
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
 
+
+def uncoloured_autobahn_logs() -> None:
+    """Stop autobahn colouring its debug-log arguments: it does so for every frame daphne sends."""
+    # autobahn formats each sent frame's log.debug arguments with click colours before the logger
+    # drops them: 12 % of daphne's CPU under a rosbridge flood (py-spy). Plain, they cost almost nothing.
+    util = sys.modules.get("autobahn.util")
+    if util is not None and hasattr(util, "_HAS_CLICK"):
+        util._HAS_CLICK = False
+
+
+uncoloured_autobahn_logs()
+
 from bridgeos_cloud.routing import BrowserOriginValidator, websocket_urlpatterns  # noqa: E402
 from robots.presence import start_presence  # noqa: E402
 

@@ -158,9 +158,9 @@ def bridge_dropped(kind: str, where: str, count: int = 1) -> None:
     BRIDGE_DROPS.labels(kind, where).inc(count)
 
 
-def bridge_sent(kind: str, size: int) -> None:
-    """Count one frame sent to a bridge client."""
-    BRIDGE_FRAMES.labels(kind).inc()
+def bridge_sent(kind: str, frames: int, size: int) -> None:
+    """Count frames sent to a bridge client, and their bytes."""
+    BRIDGE_FRAMES.labels(kind).inc(frames)
     BRIDGE_BYTES.labels(kind).inc(size)
 
 

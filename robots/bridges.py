@@ -255,6 +255,7 @@ class BridgeConsumer(AsyncWebsocketConsumer):
     async def write(self) -> None:
         """Send queued frames to the client, oldest first."""
         while not self.closing:
+            frames = size = 0
             while self.queue and not self.closing:
                 frame = self.queue.popleft()
                 self.queued_bytes -= len(frame)
@@ -262,7 +263,13 @@ class BridgeConsumer(AsyncWebsocketConsumer):
                     await self.send(text_data=frame)
                 else:
                     await self.send(bytes_data=frame)
-                prometheus.bridge_sent(self.kind, len(frame))
+                frames += 1
+                size += len(frame)
+                if frames == 256:  # counted in runs: a counter per frame costs a busy topic ~10 %
+                    prometheus.bridge_sent(self.kind, frames, size)
+                    frames = size = 0
+            if frames:
+                prometheus.bridge_sent(self.kind, frames, size)
             self.wake.clear()
             await self.wake.wait()
 
