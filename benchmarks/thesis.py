@@ -296,6 +296,7 @@ BENCHMARKS: dict[str, list[Figure]] = {
             goal=200,
             goal_source="issue 19",
         ),
+        _f("pointcloud_link_over_delivered", "robot-link bytes over bytes the 10 viewers got", "ratio"),
         _f("image_json_ms", "640x480 image to rosbridge JSON", "ms", thesis=269, thesis_source="rosbridge_suite #367"),
         _f("image_cbor_ms", "640x480 image to rosbridge CBOR", "ms", thesis=1.5, thesis_source="rosbridge_suite #367"),
         _f("mcap_write_mb_per_s", "MCAP recorder write", "MB/s", better="higher"),
