@@ -116,6 +116,42 @@ def test_network_learns_a_misdeclared_component_and_decides_once_it_beats_the_es
     assert decision.network_error == network and decision.estimate_error == estimate
 
 
+def test_a_tenfold_misdeclaration_is_learnt_from_a_short_stay_on_the_robot() -> None:
+    # offloading_quality's settings (trained after 3 outcomes): its 8 s phases leave a stay of a few decisions.
+    for seed in (1, 2, 3):
+        torch.manual_seed(seed)
+        decider = Decider("detector", delay_manager(trained_after=3))
+        visited_robot(decider, 7)
+        network, estimate = decider.errors("robot")
+        # Held out, the network is within a tenth of the estimate's error (the MLP alone: about half of it).
+        assert decider.trust("robot") and network is not None and estimate is not None and network <= 0.1 * estimate
+        decision = decider.decide(misdeclared("cloud"), now=100.0)
+        assert decision.decided_by == "network" and not decision.migrate, decision.reason
+        # The robot really costs about 31 against the cloud's 22 (the estimate says 3).
+        assert decision.prediction is not None and -13 < decision.prediction < -5
+
+
+def test_each_location_s_baseline_is_the_mean_of_its_outcomes_and_is_saved_with_the_network() -> None:
+    model = DecisionModel(NeuralNetworkConfig())
+    robot = Features(location="robot").vector()
+    cloud = Features(location="cloud").vector()
+    for target in (1.0, 2.0, 3.0):
+        model.record(robot, target)
+    model.record(cloud, 0.0)
+    model.record([0.5] * len(robot), 9.0)  # not at a location (a one-hot of neither): no baseline's
+    assert model.baseline == [pytest.approx(2.0), 0.0] and model.baseline_seen == [3, 1]
+    # A prediction is the location's baseline plus the MLP's own output (the same for both here).
+    mlp_only = Features(location="robot").vector()
+    mlp_only[6] = 0.999  # not exactly at a location: the MLP alone
+    assert model.predict(robot) - model.predict(mlp_only) == pytest.approx(2.0, abs=0.05)
+    again = DecisionModel.from_bytes(model.to_bytes(), NeuralNetworkConfig())
+    assert again.baseline == model.baseline and again.predict(robot) == pytest.approx(model.predict(robot))
+    # The mean of the latest BASELINE_SPAN outcomes once there are more: a location's error can change.
+    for _ in range(200):
+        model.record(robot, -1.0)
+    assert model.baseline[0] == pytest.approx(-1.0, abs=0.01)
+
+
 def test_estimate_only_moves_the_misdeclared_component_back_to_the_robot() -> None:
     decider = Decider("detector", delay_manager(trained_after=1_000_000))
     visited_robot(decider, 20)
