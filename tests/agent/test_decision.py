@@ -402,6 +402,12 @@ def test_a_change_far_past_the_measured_noise_moves_through_the_cooldown_and_noi
     busy = Features(cost_robot=200.0, cost_cloud=20.0)
     jump = decider.decide(at_robot(180.0, features=busy), now=5.5)
     assert jump.migrate and jump.target == "cloud", jump.reason
+    # Arrived where the estimates disagree (a misdeclared component): far past the noise from the first
+    # decision there, without a jump, the cooldown holds it.
+    decider.last_move = 6.0
+    for n in range(3):
+        arrived = decider.decide(DecisionInput(location="cloud", estimated_reward=180.0, features=busy), 6.25 + n / 4)
+        assert not arrived.migrate and "cooling down" in arrived.reason
     # A quiet reward has no measured noise to be past: the cooldown holds whatever the reward.
     quiet = Decider("detector", manager(threshold=2.0, trained_after=1_000_000), hysteresis=3.0, cooldown=4.0)
     for n in range(10):
