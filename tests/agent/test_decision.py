@@ -386,36 +386,6 @@ def test_noise_measured_at_one_level_keeps_its_share_at_that_level() -> None:
     assert decider.reward_noise == pytest.approx(50.0, rel=0.5)
 
 
-def test_a_change_far_past_the_measured_noise_moves_through_the_cooldown_and_noise_does_not() -> None:
-    decider = Decider("detector", manager(threshold=2.0, trained_after=1_000_000), hysteresis=3.0, cooldown=4.0)
-    rng = random.Random(8)
-    features = Features(cost_robot=20.0, cost_cloud=20.0)
-    for n in range(20):
-        decider.decide(at_robot(rng.gauss(-1.0, 3.0), features=features), now=n / 4)
-    decider.last_move = 5.0  # it just arrived here
-    margin = decider.margin
-    assert margin > decider.hysteresis
-    # Within the noise, or past one margin only: the cooldown holds.
-    held = decider.decide(at_robot(2.0 + 1.5 * margin, features=features), now=5.25)
-    assert not held.migrate and "cooling down" in held.reason
-    # The robot's cost jumps tenfold (its free CPU gone): far past the noise, it moves at once.
-    busy = Features(cost_robot=200.0, cost_cloud=20.0)
-    jump = decider.decide(at_robot(180.0, features=busy), now=5.5)
-    assert jump.migrate and jump.target == "cloud", jump.reason
-    # Arrived where the estimates disagree (a misdeclared component): far past the noise from the first
-    # decision there, without a jump, the cooldown holds it.
-    decider.last_move = 6.0
-    for n in range(3):
-        arrived = decider.decide(DecisionInput(location="cloud", estimated_reward=180.0, features=busy), 6.25 + n / 4)
-        assert not arrived.migrate and "cooling down" in arrived.reason
-    # A quiet reward has no measured noise to be past: the cooldown holds whatever the reward.
-    quiet = Decider("detector", manager(threshold=2.0, trained_after=1_000_000), hysteresis=3.0, cooldown=4.0)
-    for n in range(10):
-        quiet.decide(DecisionInput(location="cloud", estimated_reward=19.0), now=n / 4)
-    quiet.last_move = 2.5
-    assert not quiet.decide(DecisionInput(location="cloud", estimated_reward=19.0), now=2.75).migrate
-
-
 def test_noise_margin_is_the_hysteresis_until_the_noise_is_measured_or_when_quiet() -> None:
     decider = Decider("detector", manager(threshold=0.1), hysteresis=0.05, cooldown=0.0)
     assert decider.reward_noise is None and decider.margin == 0.05

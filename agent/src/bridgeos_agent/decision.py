@@ -20,9 +20,8 @@ estimate is not wrong) the estimate decides, as in the thesis before training.
 
 Unlike the thesis, a move needs the reward to clear the threshold by a margin (hysteresis), in three
 decisions running unless it clears it by ``noise_margin`` times the reward's recent noise, and none
-may follow another within a cooldown (unless the reward jumps past ``COOLDOWN_OVERRIDE`` noise margins):
-components do not flap when the reward is noisy, while a real change, whose reward jumps far above
-the noise, moves at once. The noise is measured on the
+may follow another within a cooldown: components do not flap when the reward is noisy, while a
+real change, whose reward jumps far above the noise, moves at once. The noise is measured on the
 reward relative to the level of its two costs and scaled to the current level, so the swings of a
 busy robot's large costs do not hold back the next change at an idle robot's small ones.
 
@@ -82,9 +81,6 @@ NOISE_WINDOW = 20
 NOISE_MIN_SAMPLES = 6
 #: Decisions in a row whose reward must clear threshold + hysteresis when it is within the noise.
 CONFIRMATIONS = 3
-#: A reward that jumped past threshold + this many noise margins since the last decision moves through the
-#: cooldown (a busy robot's cost jumping tenfold right after a move must not wait out the cooldown there).
-COOLDOWN_OVERRIDE = 2.0
 _AT_ROBOT, _AT_CLOUD = FEATURES.index("at_robot"), FEATURES.index("at_cloud")
 #: median |X - Y| of two independent N(0, s) draws is 0.6745 * sqrt(2) * s: this turns it back into s.
 _MEDIAN_DIFFERENCE_TO_SD = 1 / (0.6745 * math.sqrt(2))
@@ -199,8 +195,6 @@ class Decider:
         # does not grow with the costs, as a cost over a busy robot's little free CPU does.
         self._cloud_gains: deque[float] = deque(maxlen=NOISE_WINDOW)
         self._level = self.scale
-        # The location and reward of the last decision (see the cooldown in _conclude).
-        self._previous: tuple[Side, float] | None = None
         # Where the last decisions' rewards cleared threshold + hysteresis, and how many in a row.
         self._cleared: tuple[Side | None, int] = (None, 0)
 
@@ -314,17 +308,6 @@ class Decider:
         margin = self.margin
         gain = reward if given.location == "robot" else -reward
         self._cloud_gains.append(gain / self._level)
-        # The cooldown holds back what may be noise. A reward far past the measured noise that jumped there
-        # since the last decision here is a change of conditions; one that was already there on arrival is
-        # the two locations' estimates disagreeing (a misdeclared component), which the cooldown must hold.
-        before, self._previous = self._previous, (given.location, reward)
-        jumped = (
-            margin > self.hysteresis
-            and reward >= threshold + COOLDOWN_OVERRIDE * margin
-            and before is not None
-            and before[0] == given.location
-            and reward - before[1] >= margin
-        )
         clears = reward >= threshold + self.hysteresis
         at, run = self._cleared
         self._cleared = (given.location, run + 1 if at == given.location else 1) if clears else (None, 0)
@@ -333,7 +316,7 @@ class Decider:
         elif reward < threshold + margin and self._cleared[1] < CONFIRMATIONS:
             # Within the noise of a stable reward: one lucky draw does not move, a run of them does.
             migrate, reason = False, f"{source} above threshold + hysteresis but within the noise, unconfirmed"
-        elif self.last_move is not None and now - self.last_move < self.cooldown and not jumped:
+        elif self.last_move is not None and now - self.last_move < self.cooldown:
             migrate, reason = False, f"{source} above threshold, but cooling down after the last move"
         else:
             migrate, reason = True, f"{source} above threshold + hysteresis"
