@@ -30,7 +30,10 @@ every change, the one into the stable phase included.
 
 The misdeclared scenario (issue 22) runs beside it, in the same run, on two more robots with the
 same script and seed: the detector declares a tenth of the 0.2 cores it burns, and those robots'
-runtimes enforce no cgroup limit (held to its declaration it would be throttled instead). One robot's
+runtimes enforce no cgroup limit (held to its declaration it would be throttled instead), and their
+simulated CPU reading counts what it burns beyond its declaration while it runs on the robot (the
+simulated load otherwise follows declarations, where a real robot's reading, and the costing, follow
+what is burnt). One robot's
 manager decides by the estimate alone (its network never reaches ``trained_after``), the other's
 learns from outcomes (``decision``: the network learns what the component cost where it ran and
 decides once it beats the estimate on held-out outcomes). Both are costed with what the components
@@ -62,6 +65,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -239,6 +243,9 @@ class ScriptedRobot(SimulatedRobot):
     script: Script = field(default_factory=lambda: Script([IDLE_GOOD], 1.0))
     load_noise: float = 0.03  # cores, standard deviation
     link_noise: float = 0.03  # share of the link, standard deviation
+    # Cores the components on the robot burn beyond what they declare (the misdeclared scenario): the
+    # simulated load follows declarations, a real robot's reading what is burnt, as the costing charges it.
+    undeclared: Callable[[], float] | None = None
 
     def bandwidth_now(self, now: float) -> float:
         """Return the link's bandwidth at ``now`` (Mbit/s)."""
@@ -249,6 +256,8 @@ class ScriptedRobot(SimulatedRobot):
         """Read the robot with the scripted background load on top of what its components use."""
         phase = self.script.at(now)
         load = max(0.0, phase.load + self._random.gauss(0, self.load_noise * phase.noise))
+        if self.undeclared is not None:
+            load += self.undeclared()
         sample = SimulatedRobot.sample(self, now, {**used, "cpu": used.get("cpu", 0.0) + load}, cloud_bytes)
         # bandwidth_available is the link to the cloud; components on the robot reach its sensors over the LAN.
         sample.free["bandwidth"] = max(0.0, self.bandwidth - used.get("bandwidth", 0.0))
@@ -391,6 +400,13 @@ async def run_scenario(
         record = await controller.start_skill(config)
         if record.status != "running":
             raise RuntimeError(f"the Skill did not start: {record.status}")
+        hidden = {
+            name: COMPONENTS[name]["cpu"] - component.resources.cpu
+            for name, component in config.components.items()
+            if COMPONENTS[name]["cpu"] > component.resources.cpu
+        }
+        if hidden:
+            robot.undeclared = lambda: sum(c for n, c in hidden.items() if record.locations.get(n) == "robot")
         script.start = time.time()
         log(f"skill running; script of {len(script.phases)} phases x {script.phase_s:.0f} s starts")
         last = None

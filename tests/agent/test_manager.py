@@ -11,7 +11,7 @@ import pytest
 from asgiref.sync import sync_to_async
 
 from bridgeos_agent.controller import RobotController
-from bridgeos_agent.manager import DECISION_METRIC, SkillManager
+from bridgeos_agent.manager import DECISION_METRIC, USAGE_WINDOW, SkillManager
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.traffic import ComponentTraffic
@@ -415,3 +415,54 @@ def test_a_damaged_placement_file_means_no_previous_placement(tmp_path):
     for text in ("{not json", "[1, 2]", '{"a": "mars", "b": "cloud"}'):
         (folder / "placement.json").write_text(text)
         assert previous_placement(tmp_path, "s") == ({"b": "cloud"} if "mars" in text else {})
+
+
+async def test_a_move_in_flight_holds_up_no_other_decision_and_its_component_is_not_decided_for_again(cloud, tmp_path):
+    config = movable_skill(threshold=1e6)
+    token, _ = await make_robot("man-21", config={"offloading": "auto"}, skill=config)
+    controller = RobotController(agent_settings(cloud, "man-21", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        record = await controller.start_skill(parse_skill_config(config))
+        manager = SkillManager(controller, SKILL)
+        manager.recommend("worker-1", "cloud")
+        decisions = {d.component: d for d in await manager.step(wait=False)}
+        assert decisions["worker-1"].migrate and decisions["worker-1"].target == "cloud"
+        # Its cloud copy is still starting: it runs on the robot, and the next decisions are the others' only.
+        assert record.locations["worker-1"] == "robot"
+        assert [d.component for d in await manager.step(wait=False)] == ["worker-0"]
+        await eventually(lambda: record.locations["worker-1"] == "cloud", what="the move landing")
+        await eventually(lambda: not manager._moving, what="the move's task done")
+        assert {d.component for d in await manager.step(wait=False)} == {"worker-0", "worker-1"}
+        moves = await eventually(lambda: moves_logged("man-21"), what="the move logged in the cloud")
+        assert [(m.component, m.data["outcome"]) for m in moves] == [("worker-1", "moved")]
+
+
+async def test_a_component_s_cpu_is_the_mean_of_its_latest_measurements_on_the_robot(cloud, tmp_path):
+    config = movable_skill(threshold=1e6)
+    token, _ = await make_robot("man-22", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-22", token, tmp_path / "agent"), plugins={})
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        await controller.start_skill(parse_skill_config(config))
+        manager = SkillManager(controller, SKILL)
+        key = (SKILL, "worker-0")
+        seen: list[float] = []
+        # The first figure seen of a copy is left out (it may span the copy's start-up).
+        previous = await eventually(lambda: controller.usage.get(key), what="worker-0 measured")
+        assert manager._measured("worker-0", "robot") is None
+        for _ in range(USAGE_WINDOW + 3):
+            # Each of the runtime's measurements (a new one every sample) joins the window once.
+            latest = await eventually(
+                lambda previous=previous: (u := controller.usage.get(key)) is not None and u is not previous and u,
+                what="a new measurement of worker-0",
+            )
+            seen.append(latest.cpu)
+            averaged = manager._measured("worker-0", "robot")
+            assert averaged.cpu == pytest.approx(sum(seen[-USAGE_WINDOW:]) / len(seen[-USAGE_WINDOW:]))
+            # Asked again before a new measurement: the same mean (no measurement counts twice).
+            assert manager._measured("worker-0", "robot").cpu == pytest.approx(averaged.cpu)
+            previous = latest
+        # Moved (here: asked where it runs in the cloud), the robot's figures of the copy it left say nothing.
+        assert manager._measured("worker-0", "cloud") is None
+        assert manager._measured("worker-0", "robot") is None  # back: a copy's first figure is left out

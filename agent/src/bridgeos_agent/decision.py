@@ -21,7 +21,9 @@ estimate is not wrong) the estimate decides, as in the thesis before training.
 Unlike the thesis, a move needs the reward to clear the threshold by a margin (hysteresis), in three
 decisions running unless it clears it by ``noise_margin`` times the reward's recent noise, and none
 may follow another within a cooldown: components do not flap when the reward is noisy, while a
-real change, whose reward jumps far above the noise, moves at once.
+real change, whose reward jumps far above the noise, moves at once. The noise is measured on the
+reward relative to the level of its two costs and scaled to the current level, so the swings of a
+busy robot's large costs do not hold back the next change at an idle robot's small ones.
 
 The network itself and its batched training live in :mod:`bridgeos_agent.decisionmodel`.
 """
@@ -188,19 +190,31 @@ class Decider:
             "robot": deque(maxlen=TRUST_WINDOW),
             "cloud": deque(maxlen=TRUST_WINDOW),
         }
-        # The reward of running in the cloud rather than on the robot, so a move does not flip its sign.
+        # The reward of running in the cloud rather than on the robot (so a move does not flip its sign), over
+        # the level of the two costs it came from (see level): a relative difference of the costs, whose noise
+        # does not grow with the costs, as a cost over a busy robot's little free CPU does.
         self._cloud_gains: deque[float] = deque(maxlen=NOISE_WINDOW)
+        self._level = self.scale
         # Where the last decisions' rewards cleared threshold + hysteresis, and how many in a row.
         self._cleared: tuple[Side | None, int] = (None, 0)
 
+    def level(self, features: Features) -> float:
+        """Return the level of a decision's costs that its reward's noise is measured against."""
+        # The decision's own scale keeps costs near zero from turning a small noise into a large share.
+        return self.scale + (abs(features.cost_robot) + abs(features.cost_cloud)) / 2
+
     @property
     def reward_noise(self) -> float | None:
-        """Return the standard deviation of the estimated reward's recent noise (None until measured)."""
+        """Return the standard deviation of the estimated reward's recent noise at the latest decision's level.
+
+        Measured on the reward over its costs' level, then scaled to the latest level: after a busy robot, whose
+        costs over its little free CPU swing by tens, an idle robot's small costs are not held to that noise.
+        """
         # The median of successive differences: a real change is one large step, not noise.
         if len(self._cloud_gains) < NOISE_MIN_SAMPLES:
             return None
         steps = [abs(b - a) for a, b in pairwise(self._cloud_gains)]
-        return statistics.median(steps) * _MEDIAN_DIFFERENCE_TO_SD
+        return statistics.median(steps) * _MEDIAN_DIFFERENCE_TO_SD * self._level
 
     @property
     def margin(self) -> float:
@@ -290,8 +304,10 @@ class Decider:
         source = "prediction" if trusted else "estimate"
         threshold = self.config.threshold
         # The noise is measured on earlier decisions: the reward that may be a real change is not yet in it.
+        self._level = self.level(given.features)
         margin = self.margin
-        self._cloud_gains.append(reward if given.location == "robot" else -reward)
+        gain = reward if given.location == "robot" else -reward
+        self._cloud_gains.append(gain / self._level)
         clears = reward >= threshold + self.hysteresis
         at, run = self._cleared
         self._cleared = (given.location, run + 1 if at == given.location else 1) if clears else (None, 0)

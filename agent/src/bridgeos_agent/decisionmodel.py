@@ -46,6 +46,11 @@ N_FEATURES = len(FEATURES)
 #: reward (before outcomes were learnt) means something else and is not loaded.
 TARGET = "outcome-residual"
 
+#: The location one-hot's columns: each location has its own baseline (see DecisionModel).
+_LOCATION_COLUMNS = (FEATURES.index("at_robot"), FEATURES.index("at_cloud"))
+#: The baseline is the mean of a location's outcomes, of the latest this many once there are more.
+BASELINE_SPAN = 32
+
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
 
@@ -133,6 +138,10 @@ class DecisionModel:
 
     Its input is the component's situation (:class:`Features`, ``location`` the location whose cost
     is predicted); its output, the measured cost there minus the estimate, both squashed (:func:`squash`).
+    That output is a per-location baseline, the running mean of the outcomes there, plus what the MLP
+    learns of the rest: a component that burns ten times what it declares is off by about the same
+    amount everywhere, which the mean has from the first outcome, while the MLP's gradient steps would
+    take tens of outcomes to reach it (the decision waits for the network to be trusted meanwhile).
     """
 
     def __init__(
@@ -167,6 +176,25 @@ class DecisionModel:
         self.buffer = array("f", bytes(4 * self._row * buffer_size))
         self.buffered = 0
         self._next_row = 0
+        # Per location (robot, cloud): the mean of its outcomes, and how many it holds (see BASELINE_SPAN).
+        self.baseline = [0.0, 0.0]
+        self.baseline_seen = [0, 0]
+
+    def location_of(self, features: Sequence[float]) -> int | None:
+        """Return the index of the location a feature vector is at (None: not a location one-hot)."""
+        if self.n_features != N_FEATURES:
+            return None
+        robot, cloud = (features[c] for c in _LOCATION_COLUMNS)
+        if robot == 1.0 and cloud == 0.0:
+            return 0
+        if robot == 0.0 and cloud == 1.0:
+            return 1
+        return None
+
+    def offset(self, features: Sequence[float]) -> float:
+        """Return the baseline a feature vector's prediction starts from."""
+        where = self.location_of(features)
+        return 0.0 if where is None else self.baseline[where]
 
     @property
     def signature(self) -> tuple[Any, ...]:
@@ -186,6 +214,11 @@ class DecisionModel:
         """Store a sample and tell whether a training step is due (every warmup_train_every until trained)."""
         start = self._next_row * self._row
         self.buffer[start : start + self._row] = array("f", [*features, reward])
+        where = self.location_of(features)
+        if where is not None:
+            self.baseline_seen[where] += 1
+            weight = 1 / min(self.baseline_seen[where], BASELINE_SPAN)
+            self.baseline[where] += weight * (reward - self.baseline[where])
         self._next_row = (self._next_row + 1) % self.buffer_size
         self.buffered = min(self.buffered + 1, self.buffer_size)
         # Training every warm-up sample would cost 2000 components a quarter of a core until trained.
@@ -226,6 +259,8 @@ class DecisionModel:
             "buffer": torch.frombuffer(bytearray(self.buffer), dtype=torch.float32),
             "buffered": self.buffered,
             "next_row": self._next_row,
+            "baseline": list(self.baseline),
+            "baseline_seen": list(self.baseline_seen),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -246,6 +281,9 @@ class DecisionModel:
         self.buffer = array("f", state["buffer"].tolist())
         self.buffered = int(state["buffered"])
         self._next_row = int(state["next_row"])
+        # Saved before baselines: that network learnt the whole error, which a zero baseline leaves to it.
+        self.baseline = [float(v) for v in state.get("baseline", [0.0, 0.0])]
+        self.baseline_seen = [int(v) for v in state.get("baseline_seen", [0, 0])]
 
     def to_bytes(self) -> bytes:
         """Serialise the model (torch.save format, tensors only)."""
@@ -319,7 +357,7 @@ def predict_many(models: Sequence[DecisionModel], features: Sequence[Sequence[fl
             x = torch.tensor([features[i] for i in indices], dtype=torch.float32).unsqueeze(1)
             y = _forward(params, x, group[0].config.activation).reshape(-1).tolist()
             for i, value in zip(indices, y, strict=True):
-                out[i] = value
+                out[i] = value + models[i].offset(features[i])
     return out
 
 
@@ -345,6 +383,13 @@ def train_many(models: Sequence[DecisionModel]) -> list[float]:
             rows.append(ring[torch.randint(max(model.buffered, 1), (model.batch_size,))])
         batch = _stack(rows)
         x, target = batch[..., :-1], batch[..., -1:]
+        if first.n_features == N_FEATURES:
+            # The MLP learns what the location's baseline leaves: rows at a location less its current mean.
+            robot, cloud = (x[..., c : c + 1] for c in _LOCATION_COLUMNS)
+            at_robot = ((robot == 1.0) & (cloud == 0.0)).float()
+            at_cloud = ((robot == 0.0) & (cloud == 1.0)).float()
+            baselines = torch.tensor([m.baseline for m in group], dtype=torch.float32).view(len(group), 1, 2)
+            target = target - at_robot * baselines[..., :1] - at_cloud * baselines[..., 1:]
         params = [_stack(ps).requires_grad_() for ps in zip(*(m.params for m in group), strict=True)]
         per_model = ((_forward(params, x, first.config.activation) - target) ** 2).mean(dim=(1, 2))
         # The models are independent, so the gradient of the sum is each model's own gradient.

@@ -5,7 +5,9 @@ costs each movable component at both locations under the Skill's policy (equatio
 4.1-4.6, ``policies``) from the runtime's measurements, the robot's state and the Skill
 Router's traffic figures, asks each component's decision module (Algorithms 8-9,
 ``decision``) and moves the components whose decision says so through the controller
-(Algorithm 1 for a move to the robot). Each move, done or failed, is logged in the cloud as
+(Algorithm 1 for a move to the robot), without holding up the next decisions while a cloud copy
+starts. A component's CPU is the mean of its latest measurements, so the runtime's coarse
+per-sample figures do not become the reward's noise. Each move, done or failed, is logged in the cloud as
 an ``offloading_decision`` event; each decision to stay is an ``offloading.decision`` metric
 point. Decision models are kept on disk between launches.
 """
@@ -14,10 +16,12 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import functools
 import json
 import logging
 import math
 import time
+from collections import deque
 from typing import TYPE_CHECKING, Any, cast
 
 from bridgeos_agent.componentsapi import ComponentsAPI, MetricStore
@@ -52,6 +56,10 @@ DECISION_METRIC = "offloading.decision"
 # A decision to stay is sent when its reward changed, else at least this often (seconds): 2000
 # components deciding at 1 Hz would otherwise write 2000 rows a second to the cloud.
 STAY_POINT_EVERY = 30.0
+# A component's CPU is averaged over its latest measurements at its location: one sample of a process's
+# CPU time over a quarter second is counted in 10 ms clock ticks (0.04 of a core), noise that would
+# otherwise reach the reward through the cost functions (and be amplified by a busy robot's 1/free CPU).
+USAGE_WINDOW = 8
 
 
 class SkillManager:
@@ -72,6 +80,10 @@ class SkillManager:
         self._estimator: tuple[tuple[Any, ...], PolicyEstimator] | None = None
         self._cost_failures: dict[str, str] = {}  # component -> the cost function error last logged
         self._stays = Reporter(max_interval=STAY_POINT_EVERY, relative=0.05, absolute=0.01)
+        # component -> (location, the measurements averaged there, the last one seen, whether one was); see _measured.
+        self._usage: dict[str, tuple[str, deque[tuple[float, float]], Any, bool]] = {}
+        # component -> its move in flight when run() does not wait for moves (see step).
+        self._moving: dict[str, asyncio.Task[None]] = {}
 
     # ------------------------------------------------------------------ the Components API's view
 
@@ -181,6 +193,30 @@ class SkillManager:
             return None  # the router routes nothing of this component
         return traffic if isinstance(traffic, ComponentTraffic) else None
 
+    def _measured(self, name: str, location: str) -> Any:
+        """Return a component's CPU and RAM averaged over its latest measurements where it runs (None: none yet)."""
+        if location != "robot":
+            # The robot's runtime measures only the robot's copies: a figure left over from the copy that
+            # just moved away must not be taken for the cloud's.
+            self._usage.pop(name, None)
+            return None
+        latest = self.host.usage.get((self.skill_id, name))
+        kept = self._usage.get(name)
+        if kept is None or kept[0] != location:
+            # A move starts another copy: what the old one used says nothing of the new one.
+            kept = self._usage[name] = (location, deque(maxlen=USAGE_WINDOW), None, False)
+        where, window, last, started = kept
+        if latest is not None and latest is not last:  # a new figure (the runtime's are new objects each time)
+            if started:
+                window.append((float(latest.cpu), float(latest.ram)))
+            # The first figure seen of a copy is left out: it may span the copy's start-up (an interpreter
+            # loading, tenths of a core over a quarter second) and would send the component away as it arrives.
+            self._usage[name] = (where, window, latest, True)
+        if not window:
+            return None
+        cpu, ram = _means(window)
+        return _Usage(cpu=cpu, ram=ram)
+
     def _inputs(self, names: list[str]) -> tuple[list[str], list[DecisionInput], dict[str, Any]]:
         """Build each component's decision input; return the components costed, their inputs and costs."""
         host, record = self.host, self.record
@@ -211,7 +247,7 @@ class SkillManager:
                 continue  # movable() returned only running components; nothing runs in between
             location: Side = "cloud" if where == "cloud" else "robot"
             needs = Resources.of(config.resources)
-            measured = host.usage.get((self.skill_id, name))
+            measured = self._measured(name, location)
             # The runtime measures CPU and RAM only: bandwidth, GPU and I/O stay as declared.
             usage = dataclasses.replace(needs, cpu=measured.cpu, ram=measured.ram) if measured else needs
             loss = self.loss.setdefault(name, {"robot": 0.0, "cloud": 0.0})
@@ -332,12 +368,16 @@ class SkillManager:
         )
         return Outcome("robot", estimate.cost_robot, seen, view)
 
-    async def step(self) -> list[Decision]:
-        """Decide once for every movable component and carry out the moves."""
+    async def step(self, *, wait: bool = True) -> list[Decision]:
+        """Decide once for every movable component and carry out the moves.
+
+        wait=False starts the moves and returns: the next decisions do not wait for a slow cloud start,
+        and a component whose move is still in flight is not decided for until it lands.
+        """
         supervisor = self.record.supervisor
         if supervisor is not None and supervisor.context.get("cloud") == "lost":
             return []  # the controller has taken over the cloud's role: nothing moves meanwhile
-        names = self.movable()
+        names = [name for name in self.movable() if name not in self._moving]
         if not names:
             return []
         names, inputs, costs = self._inputs(names)
@@ -380,10 +420,19 @@ class SkillManager:
         if points:
             await self.host.emit(Event.METRICS, {"metrics": points})
         # Moves decided together go together: one component's cloud start does not hold up another's.
-        moves = [self._move(d, costs[d.component], now) for d in decisions if d.migrate]
-        if moves:
-            await asyncio.gather(*moves)
+        moves = {d.component: self._move(d, costs[d.component], now) for d in decisions if d.migrate}
+        if wait:
+            if moves:
+                await asyncio.gather(*moves.values())
+            return decisions
+        for name, move in moves.items():
+            task = self._moving[name] = asyncio.create_task(move, name=f"move {self.skill_id}/{name}")
+            task.add_done_callback(functools.partial(self._landed, name))
         return decisions
+
+    def _landed(self, name: str, _task: asyncio.Task[None]) -> None:
+        """Forget a move once done (landed, failed or cancelled): the component is decided for again."""
+        self._moving.pop(name, None)
 
     async def _move(self, decision: Decision, estimate: PolicyCosts, decided_at: float) -> None:
         """Move a component as decided and log the move, done or failed, in the cloud."""
@@ -447,8 +496,15 @@ class SkillManager:
             while True:
                 await asyncio.sleep(self.record.config.manager.decision_interval)
                 self._share_usage()
-                await self.step()
+                # A cloud start takes up to a second: the other components' decisions do not wait for it.
+                await self.step(wait=False)
         finally:
+            # Stopped mid-move, as a step awaiting its moves was: each move rolls back or lands.
+            moving = list(self._moving.values())
+            for task in moving:
+                task.cancel()
+            if moving:
+                await asyncio.gather(*moving, return_exceptions=True)
             self.save_placement()
             self.save_models()
             if self.api is not None:
@@ -524,6 +580,19 @@ def _finite(value: float) -> float:
 def _optional(value: float | None) -> float | None:
     """Return a finite float or None, as the protocol's optional figures."""
     return float(value) if value is not None and math.isfinite(value) else None
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class _Usage:
+    """A component's averaged CPU (cores) and RAM (MiB)."""
+
+    cpu: float
+    ram: float
+
+
+def _means(window: deque[tuple[float, float]]) -> tuple[float, float]:
+    """Return the mean CPU and RAM of a window of measurements."""
+    return sum(c for c, _ in window) / len(window), sum(r for _, r in window) / len(window)
 
 
 def _share(free: float | None, capacity: float) -> float:
