@@ -316,6 +316,7 @@ class RobotController:
 
     def _on_disconnect(self) -> None:
         """End the bridge sessions: their clients were on the link that dropped."""
+        self.bridges.forget_blobs()  # now, not when the task runs: the next link may come first
         self.spawn(self.bridges.close_sessions())
 
     async def _bridge_graph(self) -> BridgeGraph:

@@ -368,8 +368,12 @@ class BridgeRelay:
 
     async def close_sessions(self) -> None:
         """End every session: the link they travelled on is gone, and the cloud's blobs with it."""
+        self.forget_blobs()
         for ident in list(self.sessions):
             await self.end(ident)
+
+    def forget_blobs(self) -> None:
+        """Forget which blobs the cloud holds: a new link starts with none."""
         self.window.clear()
         self._blobs.clear()
         self._blob_keys.clear()
