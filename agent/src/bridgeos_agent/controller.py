@@ -169,7 +169,7 @@ class RobotController:
         )
         self.connected = self.session.connected
         # The cloud's rosbridge/Foxglove clients of this robot, relayed over the link (bridges.relay).
-        self.bridges = BridgeRelay(self.emit, self._bridge_graph, send_binary=self.session.send_binary)
+        self.bridges = BridgeRelay(self.emit, self._bridge_graph, send_binary=self.session.send_raw)
         robot = (settings.simulated or SimulatedRobot()) if settings.simulate else SystemRobot()
         self.monitor = ResourceMonitor(robot)
 

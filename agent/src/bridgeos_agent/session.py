@@ -329,7 +329,7 @@ class Session:
                 if text is None:
                     self.reliable.on_ack(envelope.id)  # acked (or thinned) meanwhile
                     continue
-                await self.send_text(text)
+                await self.send_raw(text)
 
     async def emit(self, event: Event, data: Mapping[str, Any], *, reply_to: str | None = None) -> Envelope:
         """Send a frame to the cloud; one that changes state is kept on disk until acked."""
@@ -347,32 +347,21 @@ class Session:
                     return envelope
                 # Remembered until acked: if the link drops first, the outbox keeps it in memory if it can.
                 self._unstored[envelope.id] = (text, len(data["metrics"]))
-                await self.send_text(text)
+                await self.send_raw(text)
                 return envelope
             if self.ws is not None and not self._replaying and not self._holding:
                 self.reliable.send(envelope, time.monotonic())
-                await self.send_text(text)
+                await self.send_raw(text)
         else:
             await self.send(envelope)
         return envelope
 
     async def send(self, envelope: Envelope) -> None:
         """Send a frame once, now, if connected."""
-        await self.send_text(protocol.encode(envelope))
+        await self.send_raw(protocol.encode(envelope))
 
-    async def send_text(self, text: str) -> None:
-        """Send encoded text once, now, if connected."""
-        ws = self.ws
-        if ws is None:
-            return
-        try:
-            await ws.send(text)
-            self.cloud_bytes[1] += len(text)
-        except websockets.ConnectionClosed:
-            pass
-
-    async def send_binary(self, message: bytes) -> None:
-        """Send a binary message (a bridge blob's part) once, now, if connected."""
+    async def send_raw(self, message: str | bytes) -> None:
+        """Send an encoded frame (or a binary message: a bridge blob's part) once, now, if connected."""
         ws = self.ws
         if ws is None:
             return
@@ -422,7 +411,7 @@ class Session:
                 return  # still being handled (a migration takes seconds): its answer comes when done
             # A retransmission of something already handled: answer it the same way again.
             answer = self._answers.get(envelope.id) or protocol.ack_text(envelope.id, now=time.time())
-            self.tasks.spawn(self.send_text(answer))
+            self.tasks.spawn(self.send_raw(answer))
             return
         self.tasks.spawn(self._handle(envelope))
 
@@ -490,7 +479,7 @@ class Session:
                 self._remembering.failed(exc)
             else:
                 self._remembering.worked()
-        await self.send_text(text)
+        await self.send_raw(text)
 
 
 class _Connection(websockets.asyncio.client.ClientConnection):
