@@ -26,6 +26,7 @@ from bridgeos_agent.runtime import (
     RuntimeFailure,
     Status,
     create_runtime,
+    usage,
 )
 from bridgeos_agent.runtime.base import RestartBudget
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
@@ -519,3 +520,25 @@ async def test_a_command_the_shell_cannot_find_fails_without_restarts(runtime: P
 
     assert final.exit_code == 127 and final.restarts == 0
     assert "was not found (exit 127)" in final.message
+
+
+@pytest.mark.parametrize("children_lists", [True, False], ids=["proc-children", "process-table"])
+def test_a_component_s_measure_sums_its_whole_process_tree(monkeypatch, children_lists):
+    # A grandchild burns the CPU: found through /proc's children lists, or the process table without them.
+    monkeypatch.setattr(usage, "_PROC_CHILDREN", children_lists and usage._PROC_CHILDREN)
+    burn = "import time\nend = time.process_time() + 0.3\nwhile time.process_time() < end: pass\ntime.sleep(60)"
+    root = psutil.Popen(["sh", "-c", f"sh -c {shlex.quote(shlex.join([sys.executable, '-c', burn]))} & wait"])
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            measured, _ = usage.measure([(("people", "detector"), root.pid, {})])[("people", "detector")]
+            if measured.cpu >= 0.3 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        assert measured.cpu >= 0.3
+        assert measured.ram > 5  # the interpreter's RSS, two levels down
+        assert usage.measure([(("people", "gone"), 2**22 + 7, {})])[("people", "gone")][0].cpu == 0
+    finally:
+        for process in [*root.children(recursive=True), root]:
+            process.kill()
+        root.wait()

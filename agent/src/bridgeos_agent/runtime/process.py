@@ -166,7 +166,7 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         return await asyncio.to_thread(_tail, [path, _backup(path)], tail)
 
     async def stats(self) -> dict[tuple[str, str], Usage]:
-        """Measure every running component's process tree in one pass over the process table."""
+        """Measure every running component's process tree (see usage.measure)."""
         targets = [
             (key, comp.proc.pid, comp.cpu_seen)
             for key, comp in self._records.items()
