@@ -18,13 +18,13 @@ import time
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
-from asgiref.sync import async_to_sync
 from channels.layers import BaseChannelLayer, get_channel_layer
 from django.db import transaction
 
 from bridgeos_agent import protocol
 from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import Event as ProtocolEvent
+from bridgeos_cloud.layersync import layer_sync
 from bridgeos_cloud.loopowned import loop_object
 
 from . import prometheus
@@ -158,7 +158,7 @@ def publish_on_commit(robot_id: str, frame: dict[str, Any], *, using: str | None
     """Publish a state event once the current transaction commits, never if it rolls back."""
 
     def send() -> None:
-        async_to_sync(publish)(robot_id, frame)
+        layer_sync(publish)(robot_id, frame)
 
     # robust: the change is committed already, so a broadcast failure must not fail the caller. (A named
     # function, not a partial: Django logs a robust callback's failure by its __qualname__.)
@@ -174,7 +174,7 @@ def publish_log_event_on_commit(event: Event, *, owner_id: int | None = None) ->
     robot_id, frame = log_event_frame(event)
 
     def send() -> None:
-        async_to_sync(publish)(robot_id, frame, owner_id=owner_id)
+        layer_sync(publish)(robot_id, frame, owner_id=owner_id)
 
     transaction.on_commit(send, using=event._state.db, robust=True)
 
@@ -213,7 +213,7 @@ def publish_all_on_commit(frames: list[tuple[str | None, dict[str, Any]]], *, us
             await layer.group_send(LIVE_GROUP, {"type": "live.events", "events": events})
 
     def send() -> None:
-        async_to_sync(publish_all)()
+        layer_sync(publish_all)()
 
     if frames:
         transaction.on_commit(send, using=using, robust=True)

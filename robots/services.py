@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from asgiref.sync import async_to_sync, sync_to_async
+from asgiref.sync import sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
@@ -24,6 +24,7 @@ from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
 from bridgeos_agent.robotconfig import merge_config_changes
 from bridgeos_cloud import bruteforce
+from bridgeos_cloud.layersync import layer_sync
 from monitoring import prometheus
 from monitoring.choices import Level
 from monitoring.live import publish_all_on_commit, publish_on_commit
@@ -64,7 +65,7 @@ def rotate_token(robot: Robot) -> str:
 def _revoke_on_commit(channel: str) -> None:
     """Close a robot's live connection once the change that revoked its credentials commits."""
     if channel:
-        send = async_to_sync(get_channel_layer().send)
+        send = layer_sync(get_channel_layer().send)
         transaction.on_commit(lambda: send(channel, {"type": "robot.revoked"}), robust=True)
 
 
@@ -317,7 +318,7 @@ def push_to_robot(robot_id: str, event: Event, data: dict[str, Any]) -> bool:
     if channel is None:
         return False
     frame = protocol.encode(protocol.make(event, data, now=time.time()))
-    async_to_sync(get_channel_layer().send)(channel, {"type": "robot.push", "frame": frame})
+    layer_sync(get_channel_layer().send)(channel, {"type": "robot.push", "frame": frame})
     return True
 
 
