@@ -85,7 +85,8 @@ async def test_a_misdeclared_component_is_placed_by_what_it_was_measured_to_cost
                 break
         network, estimate = decider.errors("robot")
         assert decider.trust("robot"), (network, estimate)
-        assert estimate is not None and estimate > 20  # measured ~40, declared 4
+        # Errors on the network's (logarithmic) scale: measured ~40 against the declared 4 is off by about 1.6.
+        assert estimate is not None and estimate > 1.0
         decider.cooldown = 0.0
         # Its measured cost on the robot sends it to the cloud (estimate and network agree there) ...
         first = (await manager.step())[0]

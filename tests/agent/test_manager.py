@@ -12,6 +12,7 @@ from asgiref.sync import sync_to_async
 
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.manager import DECISION_METRIC, USAGE_WINDOW, SkillManager
+from bridgeos_agent.monitor import ResourceMonitor, SimulatedRobot
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.traffic import ComponentTraffic
@@ -466,3 +467,41 @@ async def test_a_component_s_cpu_is_the_mean_of_its_latest_measurements_on_the_r
         # Moved (here: asked where it runs in the cloud), the robot's figures of the copy it left say nothing.
         assert manager._measured("worker-0", "cloud") is None
         assert manager._measured("worker-0", "robot") is None  # back: a copy's first figure is left out
+
+
+async def test_a_reading_wakes_who_waits_for_the_next_one_and_none_times_out():
+    monitor = ResourceMonitor(SimulatedRobot(cpu=2, ram=1024, seed=3))
+    waiting = asyncio.create_task(monitor.next_sample(5.0))
+    await asyncio.sleep(0.05)
+    assert not waiting.done()
+    monitor.sample({})
+    assert await asyncio.wait_for(waiting, 1) is True
+    assert await monitor.next_sample(0.05) is False  # no reading came
+
+
+async def test_the_manager_decides_on_each_fresh_reading_when_it_samples_as_often_as_it_decides(cloud, tmp_path):
+    config = movable_skill(interval=0.2, threshold=1e6)
+    token, _ = await make_robot("man-23", skill=config)
+    controller = RobotController(agent_settings(cloud, "man-23", token, tmp_path / "agent", sample_interval=0.2))
+    readings: list[float] = []
+    sample = controller.monitor.sample
+
+    def counted(*args, **kwargs):
+        readings.append(time.monotonic())
+        return sample(*args, **kwargs)
+
+    controller.monitor.sample = counted
+    async with running(controller):
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        await controller.start_skill(parse_skill_config(config))
+        manager = await eventually(lambda: controller.skills[SKILL].supervisor.context.get("manager"))
+        decided: set[float] = set()  # Decision.at: the manager's clock, time.monotonic
+        while len(decided) < 8:
+            await asyncio.sleep(0.02)
+            if (last := manager.last.get("worker-0")) is not None:
+                decided.add(last.at)
+        await controller.stop_skill(SKILL)
+    # Each decision came right after a reading (not up to a sample interval later), and on a new one each time.
+    lags = [t - max(r for r in readings if r <= t) for t in sorted(decided)]
+    assert sorted(lags)[len(lags) // 2] < 0.1, lags
+    assert len({max(r for r in readings if r <= t) for t in decided}) == len(decided)

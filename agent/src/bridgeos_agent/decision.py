@@ -116,7 +116,8 @@ class DecisionInput:
     free resources for it (only matters for a move to the robot); recommendation: a component's
     pushed recommendation (True migrate, False stay), which wins over everything but a fixed
     location and missing resources; estimated_reward: the policy's expected migration reward;
-    outcome: what the last interval at its location measured, for the network to learn (None: nothing).
+    outcome: what the last interval at its location measured, for the network to learn (None: nothing);
+    moving: a move of the component is in flight, so its outcome is learnt and nothing is decided.
     """
 
     location: Side
@@ -127,6 +128,7 @@ class DecisionInput:
     resources_ok: bool = True
     recommendation: bool | None = None
     outcome: Outcome | None = None
+    moving: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -281,10 +283,12 @@ class Decider:
 
     def _learn(self, outcome: Outcome, held_out: float | None) -> bool:
         """Score the network's held-out prediction of an outcome against the estimate, then record it."""
-        if held_out is not None and math.isfinite(held_out):
-            error = abs(self.corrected(outcome.estimated, held_out) - outcome.realized)
-            self._scores[outcome.location].append((error, abs(outcome.error)))
         target = squash(outcome.realized, self.scale) - squash(outcome.estimated, self.scale)
+        if held_out is not None and math.isfinite(held_out):
+            # Scored on the network's own scale, where the estimate's error is ``target``: in cost units the
+            # few outcomes of a robot turning busy (costs over its little free CPU, hundreds) would outweigh
+            # every other, and a network right by a factor everywhere would look no better than the estimate.
+            self._scores[outcome.location].append((abs(held_out - target), abs(target)))
         return self.model.record(outcome.features.vector(self.scale), target)
 
     def _conclude(self, given: DecisionInput, now: float, predicted: Sequence[float]) -> Decision:
@@ -374,12 +378,23 @@ class Decider:
 
 
 def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], now: float) -> list[Decision]:
-    """Decide for many components: one forward pass for all networks that have trained, one batched training step."""
+    """Decide for many components: one forward pass for all networks that have trained, one batched training step.
+
+    Returns a decision for each input but those of components in the middle of a move (``moving``).
+    """
     if len(deciders) != len(inputs):
         raise ValueError("one input per decider")
-    decisions: list[Decision | None] = [d._precondition(given, now) for d, given in zip(deciders, inputs, strict=True)]
-    # Every outcome is learnt, whoever decides (a manual mode or a recommendation included).
-    learners = [i for i, decision in enumerate(decisions) if decision is None or inputs[i].outcome is not None]
+    deciding = [not given.moving for given in inputs]
+    decisions: list[Decision | None] = [
+        d._precondition(given, now) if decide else None
+        for d, given, decide in zip(deciders, inputs, deciding, strict=True)
+    ]
+    # Every outcome is learnt, whoever decides (a manual mode or a recommendation included), and while a
+    # move is in flight: the copy it leaves still runs, and its seconds of outcomes are what the network
+    # needs before it may decide where the component goes next.
+    learners = [
+        i for i, decision in enumerate(decisions) if (decision is None and deciding[i]) or inputs[i].outcome is not None
+    ]
     # A network still warming up (fewer than trained_after samples) may not decide: neither asked nor
     # scored, so 2000 warming-up components cost no inference.
     asked = [i for i in learners if deciders[i].model.trained]
@@ -397,7 +412,7 @@ def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], n
         # Learnt before deciding: the trust gate counts this outcome's held-out score.
         if given.outcome is not None and decider._learn(given.outcome, outputs[1] if len(outputs) > 1 else None):
             due.append(decider.model)
-        if decisions[i] is None:
+        if decisions[i] is None and deciding[i]:
             decisions[i] = decider._conclude(given, now, outputs)
     # Each model its own number of steps (neural_network.train_steps): one batch per round.
     for round_ in range(max((m.config.train_steps for m in due), default=0)):

@@ -304,7 +304,8 @@ class SkillManager:
                 features,
                 capacity,
             )
-            wanted = self.recommendations.pop(name, None)
+            moving = name in self._moving
+            wanted = None if moving else self.recommendations.pop(name, None)  # kept for its first decision
             costed.append(name)
             inputs.append(
                 DecisionInput(
@@ -316,6 +317,7 @@ class SkillManager:
                     resources_ok=resources_ok,
                     recommendation=None if wanted is None else wanted != location,
                     outcome=outcome,
+                    moving=moving,
                 )
             )
         return costed, inputs, costs
@@ -372,18 +374,18 @@ class SkillManager:
         """Decide once for every movable component and carry out the moves.
 
         wait=False starts the moves and returns: the next decisions do not wait for a slow cloud start,
-        and a component whose move is still in flight is not decided for until it lands.
+        and a component whose move is still in flight is not decided for until it lands (its outcomes
+        where it still runs are learnt meanwhile).
         """
         supervisor = self.record.supervisor
         if supervisor is not None and supervisor.context.get("cloud") == "lost":
             return []  # the controller has taken over the cloud's role: nothing moves meanwhile
-        names = [name for name in self.movable() if name not in self._moving]
-        if not names:
-            return []
-        names, inputs, costs = self._inputs(names)
+        names, inputs, costs = self._inputs(self.movable())
         if not names:
             return []
         decisions = decide_batch([self._decider(name) for name in names], inputs, self.clock())
+        if not decisions:
+            return []
         now = time.time()
         for decision in decisions:
             self.last[decision.component] = decision
@@ -494,7 +496,7 @@ class SkillManager:
                 # Skill's included. Imported in a thread, only the decisions wait for it.
                 await asyncio.to_thread(_load_torch)
             while True:
-                await asyncio.sleep(self.record.config.manager.decision_interval)
+                await self._next_decision()
                 self._share_usage()
                 # A cloud start takes up to a second: the other components' decisions do not wait for it.
                 await self.step(wait=False)
@@ -509,6 +511,21 @@ class SkillManager:
             self.save_models()
             if self.api is not None:
                 await self.api.stop()
+
+    async def _next_decision(self) -> None:
+        """Wait until the next decision is due: on the robot's first reading once the interval is over.
+
+        Deciding on a reading the last decision saw already would only add up to a sample interval to
+        every adaptation (and count one reading as two confirmations); a robot sampled less often than
+        the manager decides is decided for on the interval alone.
+        """
+        interval = self.record.config.manager.decision_interval
+        sampling = self.host.settings.sample_interval
+        if sampling > interval:
+            await asyncio.sleep(interval)
+            return
+        await asyncio.sleep(interval - sampling)
+        await self.host.monitor.next_sample(2 * sampling)
 
     def _share_usage(self) -> None:
         """Offer components the robot's metrics and the runtime's measurements of each of them."""

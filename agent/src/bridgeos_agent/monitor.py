@@ -14,6 +14,7 @@ Per component (with ``skill`` and ``component``): ``cpu`` % of one core, ``ram``
 
 from __future__ import annotations
 
+import asyncio
 import math
 import random
 import re
@@ -197,11 +198,26 @@ class ResourceMonitor:
     def __init__(self, robot: SimulatedRobot | SystemRobot) -> None:
         self.robot = robot
         self.latest: Sample | None = None
+        self._sampled: asyncio.Event | None = None  # set by the next reading (see next_sample)
 
     def sample(self, used: Mapping[str, float], cloud_bytes: tuple[float, float] = (0.0, 0.0)) -> Sample:
         """Take a reading now."""
         self.latest = self.robot.sample(time.time(), used, cloud_bytes)
+        if self._sampled is not None:
+            self._sampled.set()
+            self._sampled = None
         return self.latest
+
+    async def next_sample(self, timeout: float) -> bool:
+        """Wait for the next reading; False if none came within ``timeout`` seconds."""
+        if self._sampled is None:
+            self._sampled = asyncio.Event()
+        try:
+            async with asyncio.timeout(timeout):
+                await self._sampled.wait()
+        except TimeoutError:
+            return False
+        return True
 
     def free(self, used: Mapping[str, float]) -> dict[str, float]:
         """Return the resources free for a new component now."""
