@@ -247,7 +247,34 @@ def test_unusable_prediction_falls_back_to_the_estimate() -> None:
     for param in decider.model.params:
         param.fill_(float("nan"))
     decision = decider.decide(misdeclared("cloud"), now=100.0)
+    assert decision.prediction is None and decision.decided_by == "estimate"
+    # The estimate decides alone, held back by its own held-out error on the robot (see the next test).
+    assert not decision.migrate and "within its held-out error there" in decision.reason
+    exact = Decider("detector", delay_manager())
+    visited_robot(exact, 20, declared_share=1.0)
+    for param in exact.model.params:
+        param.fill_(float("nan"))
+    decision = exact.decide(misdeclared("robot", free=0.5, declared_share=1.0), now=100.0)
     assert decision.prediction is None and decision.decided_by == "estimate" and decision.migrate
+
+
+def test_an_estimate_shown_wrong_at_the_target_moves_a_component_there_only_for_more_than_its_error() -> None:
+    torch.manual_seed(1)
+    decider = Decider("detector", delay_manager(trained_after=1))
+    visited_robot(decider, 3)  # two held-out outcomes on the robot: the network may not decide yet
+    _, estimate = decider.errors("robot")
+    assert not decider.trust("robot") and estimate is not None and estimate > 1.0
+    # In the cloud (22) the estimate says the robot costs 3 (it really costs ~31): a gain of 19 it has been
+    # shown to be wrong by more than.
+    decision = decider.decide(misdeclared("cloud"), now=100.0)
+    assert decision.decided_by == "estimate" and decision.estimated_reward > 2.0 + 3.0 and not decision.migrate
+    assert "within its held-out error there" in decision.reason and "estimate's doubt at the robot" in decision.reason
+    # Over a poor link the cloud costs 70: the robot wins even at ten times the estimate.
+    poor = misdeclared("cloud")
+    features = dataclasses.replace(poor.features, cost_cloud=70.0)
+    estimated_robot = poor.features.cost_robot
+    poor = DecisionInput("cloud", 70.0 - estimated_robot, features=features)
+    assert decider.decide(poor, now=101.0).migrate
 
 
 def test_manual_recommendation_wins_over_the_reward() -> None:

@@ -16,7 +16,9 @@ estimate of the cost at the target location (Algorithm 9's prediction). The netw
 location only once it beats the estimate on held-out outcomes: each outcome is predicted before the
 network trains on it, and over the last ``TRUST_WINDOW`` outcomes at that location its mean error
 must be at most ``TRUST_RATIO`` of the estimate's. Until then (and for a location where the
-estimate is not wrong) the estimate decides, as in the thesis before training.
+estimate is not wrong) the estimate decides, as in the thesis before training, but it does not move
+a component to a location for a gain smaller than its own held-out error there: an estimate that a
+few outcomes showed ten times off does not bring the component back every cooldown meanwhile.
 
 Unlike the thesis, a move needs the reward to clear the threshold by a margin (hysteresis), in three
 decisions running unless it clears it by ``noise_margin`` times the reward's recent noise, and none
@@ -277,6 +279,13 @@ class Decider:
             vectors.append(given.outcome.features.vector(self.scale))
         return vectors
 
+    def doubt(self, estimated: float, error: float) -> float:
+        """Return how far, in cost units, a cost estimated at ``estimated`` may be off by a held-out ``error``."""
+        level = squash(estimated, self.scale)
+        return max(
+            abs(unsquash(level + error, self.scale) - estimated), abs(unsquash(level - error, self.scale) - estimated)
+        )
+
     def corrected(self, estimated: float, predicted: float) -> float:
         """Return the cost the network expects where the estimate says ``estimated``."""
         return unsquash(squash(estimated, self.scale) + predicted, self.scale)
@@ -298,8 +307,8 @@ class Decider:
         """
         target: Side = "cloud" if given.location == "robot" else "robot"
         correction = None
+        there = given.features.cost_cloud if target == "cloud" else given.features.cost_robot
         if predicted and math.isfinite(predicted[0]):
-            there = given.features.cost_cloud if target == "cloud" else given.features.cost_robot
             correction = self.corrected(there, predicted[0]) - there
         # The network's reward: the estimated cost at the target corrected by what it learnt of outcomes there.
         prediction = None if correction is None else given.estimated_reward - correction
@@ -315,8 +324,14 @@ class Decider:
         clears = reward >= threshold + self.hysteresis
         at, run = self._cleared
         self._cleared = (given.location, run + 1 if at == given.location else 1) if clears else (None, 0)
+        network, estimate = self.errors(target)
+        doubt = 0.0 if trusted or estimate is None else self.doubt(there, estimate)
         if not clears:
             migrate, reason = False, f"{source} below threshold + hysteresis"
+        elif reward < threshold + doubt:
+            # The estimate was shown wrong at the target by more than this move gains (a component burning
+            # more than it declares): it does not move the component there alone; the network, once trusted, may.
+            migrate, reason = False, f"{source} above threshold + hysteresis but within its held-out error there"
         elif reward < threshold + margin and self._cleared[1] < CONFIRMATIONS:
             # Within the noise of a stable reward: one lucky draw does not move, a run of them does.
             migrate, reason = False, f"{source} above threshold + hysteresis but within the noise, unconfirmed"
@@ -326,7 +341,8 @@ class Decider:
             migrate, reason = True, f"{source} above threshold + hysteresis"
         if margin > self.hysteresis:
             reason += f" (noise margin {margin:.3g})"
-        network, estimate = self.errors(target)
+        if doubt > self.hysteresis:
+            reason += f" (estimate's doubt at the {target} {doubt:.3g})"
         if trusted:
             reason += f" (network beats the estimate at the {target}: held-out error {network:.3g} vs {estimate:.3g})"
         elif prediction is not None and network is not None and estimate is not None:
