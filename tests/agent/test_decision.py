@@ -275,6 +275,17 @@ def test_an_estimate_shown_wrong_at_the_target_moves_a_component_there_only_for_
     estimated_robot = poor.features.cost_robot
     poor = DecisionInput("cloud", 70.0 - estimated_robot, features=features)
     assert decider.decide(poor, now=101.0).migrate
+    # An estimate shown wrong the other way (the component burnt less than it declares, say starved on a busy
+    # machine) is no reason to stay away: it still moves the component for a gain past the threshold.
+    generous = Decider("detector", delay_manager(trained_after=1))
+    visited_robot(generous, 3, declared_share=4.0)
+    assert generous.errors("robot")[1] > 1.0 and generous.underestimate("robot") == 0.0
+    slow = misdeclared("cloud", free=1.9, declared_share=4.0)  # the robot estimated at 84 from the 0.8 declared
+    slow = DecisionInput(
+        "cloud", 150.0 - slow.features.cost_robot, dataclasses.replace(slow.features, cost_cloud=150.0)
+    )
+    back = generous.decide(slow, now=100.0)
+    assert back.decided_by == "estimate" and back.migrate and "held-out error there" not in back.reason
 
 
 def test_manual_recommendation_wins_over_the_reward() -> None:

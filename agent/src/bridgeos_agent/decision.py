@@ -189,8 +189,9 @@ class Decider:
         self.scale = max(abs(self.config.threshold) + self.hysteresis, 1e-6)
         self._model = model
         self.last_move: float | None = None
-        # Per location, the held-out (network error, estimate error) of the latest outcomes there.
-        self._scores: dict[Side, deque[tuple[float, float]]] = {
+        # Per location, the held-out (network error, estimate error, the estimate's signed error) of the latest
+        # outcomes there; all on the network's scale.
+        self._scores: dict[Side, deque[tuple[float, float, float]]] = {
             "robot": deque(maxlen=TRUST_WINDOW),
             "cloud": deque(maxlen=TRUST_WINDOW),
         }
@@ -232,7 +233,12 @@ class Decider:
         scores = self._scores[location]
         if not scores:
             return None, None
-        return sum(n for n, _ in scores) / len(scores), sum(e for _, e in scores) / len(scores)
+        return sum(n for n, _, _ in scores) / len(scores), sum(e for _, e, _ in scores) / len(scores)
+
+    def underestimate(self, location: Side) -> float:
+        """Return by how much the estimate fell short of the held-out outcomes at a location, on average (0: not)."""
+        scores = self._scores[location]
+        return max(0.0, sum(signed for _, _, signed in scores) / len(scores)) if scores else 0.0
 
     def trust(self, location: Side) -> bool:
         """Tell whether the network decides for a location: trained and beating the estimate on held-out outcomes."""
@@ -279,12 +285,9 @@ class Decider:
             vectors.append(given.outcome.features.vector(self.scale))
         return vectors
 
-    def doubt(self, estimated: float, error: float) -> float:
-        """Return how far, in cost units, a cost estimated at ``estimated`` may be off by a held-out ``error``."""
-        level = squash(estimated, self.scale)
-        return max(
-            abs(unsquash(level + error, self.scale) - estimated), abs(unsquash(level - error, self.scale) - estimated)
-        )
+    def doubt(self, estimated: float, shortfall: float) -> float:
+        """Return, in cost units, how far above ``estimated`` lies a cost the estimate fell ``shortfall`` short of."""
+        return unsquash(squash(estimated, self.scale) + shortfall, self.scale) - estimated
 
     def corrected(self, estimated: float, predicted: float) -> float:
         """Return the cost the network expects where the estimate says ``estimated``."""
@@ -297,7 +300,7 @@ class Decider:
             # Scored on the network's own scale, where the estimate's error is ``target``: in cost units the
             # few outcomes of a robot turning busy (costs over its little free CPU, hundreds) would outweigh
             # every other, and a network right by a factor everywhere would look no better than the estimate.
-            self._scores[outcome.location].append((abs(held_out - target), abs(target)))
+            self._scores[outcome.location].append((abs(held_out - target), abs(target), target))
         return self.model.record(outcome.features.vector(self.scale), target)
 
     def _conclude(self, given: DecisionInput, now: float, predicted: Sequence[float]) -> Decision:
@@ -325,7 +328,9 @@ class Decider:
         at, run = self._cleared
         self._cleared = (given.location, run + 1 if at == given.location else 1) if clears else (None, 0)
         network, estimate = self.errors(target)
-        doubt = 0.0 if trusted or estimate is None else self.doubt(there, estimate)
+        # Only an estimate shown short of what the target costs argues against going there (a component that
+        # burnt less than it declares, say starved on a busy machine, is no reason to stay away).
+        doubt = 0.0 if trusted else self.doubt(there, self.underestimate(target))
         if not clears:
             migrate, reason = False, f"{source} below threshold + hysteresis"
         elif reward < threshold + doubt:
