@@ -9,6 +9,7 @@ import pytest
 from django.contrib.auth import get_user_model
 from django.core.exceptions import ValidationError
 from django.db import IntegrityError, connection, transaction
+from django.test.utils import CaptureQueriesContext
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -99,6 +100,20 @@ def test_bad_subnets_are_refused_and_change_nothing(owner, subnets_, message):
         create_robot("r2", owner, config={"subnets": subnets_})
     assert not Robot.objects.filter(id="r2").exists()
     assert list(Subnet.objects.order_by("id").values_list("robot_id", "kind", "network")) == before
+
+
+def test_a_robot_whose_subnets_are_allocated_as_configured_is_answered_without_the_allocation_lock(owner):
+    robot, _ = create_robot("r1", owner)
+    allocated = nets("r1")
+    with CaptureQueriesContext(connection) as queries:
+        assert subnets(robot) == (allocated["local"], allocated["cloud"])
+    # One read: no lock every robot's cloud starts would queue on.
+    assert len(queries) == 1 and "advisory" not in queries[0]["sql"]
+    # A config asking for other subnets takes the locked way and moves them.
+    robot.config = {**robot.config, "subnets": {"local": "10.64.77.0/24", "cloud": allocated["cloud"]}}
+    with CaptureQueriesContext(connection) as queries:
+        assert subnets(robot) == ("10.64.77.0/24", allocated["cloud"])
+    assert any("pg_advisory_xact_lock" in q["sql"] for q in queries)
 
 
 def test_a_config_without_subnets_keeps_the_allocated_ones(owner):
