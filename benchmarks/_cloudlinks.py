@@ -284,7 +284,7 @@ def _delivered(stats: dict[str, Any]) -> dict[str, int]:
 
 def measure(quick: bool = True) -> dict[str, Any]:
     """Measure before and after on one link; return the ratio and its parts."""
-    warmup, window = (2.0, 5.0) if quick else (5.0, 20.0)
+    warmup, window = (1.0, 3.0) if quick else (5.0, 20.0)
     _netshape.clean()
     with _netshape.Link(_netshape.conditions_for("lan")) as link:
         before = _run(link, False, warmup, window)

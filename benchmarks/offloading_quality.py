@@ -64,6 +64,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -72,7 +73,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _cloudlinks
-from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, log, migrate, setup_django
+from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, log, setup_django
 
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.decisionmodel import _load_torch
@@ -373,9 +374,15 @@ class Run:
 
 
 async def run_scenario(
-    ws_url: str, token: str, script: Script, data_dir: Path, config: SkillConfig, robot_id: str = ROBOT_ID
+    ws_url: str,
+    token: str,
+    script: Script,
+    data_dir: Path,
+    config: SkillConfig,
+    robot_id: str = ROBOT_ID,
+    started: asyncio.Event | None = None,
 ) -> Run:
-    """Run the controller and its manager through the script; record placements and moves."""
+    """Run the controller and its manager through the script; record placements and moves (set ``started``)."""
     robot = ScriptedRobot(cpu=CPU_CORES, ram=4096, bandwidth=LAN_MBITS, seed=7, script=script)
     settings = AgentSettings(
         master=ws_url,
@@ -409,6 +416,8 @@ async def run_scenario(
         if hidden:
             robot.undeclared = lambda: sum(c for n, c in hidden.items() if record.locations.get(n) == "robot")
         script.start = time.time()
+        if started is not None:
+            started.set()
         log(f"skill running; script of {len(script.phases)} phases x {script.phase_s:.0f} s starts")
         last = None
         phase_index = -1
@@ -516,15 +525,43 @@ def reward_noise(run: Run, script: Script) -> dict[str, float]:
 
 
 async def run_all(
-    ws_url: str, tokens: dict[str, str], script: Script, data_dir: Path, scenarios: dict[str, SkillConfig]
+    ws_url: str,
+    tokens: dict[str, str],
+    script: Script,
+    data_dir: Path,
+    scenarios: dict[str, SkillConfig],
+    beside: tuple[float, Callable[[], object]] | None = None,
 ) -> dict[str, Run]:
-    """Run every scenario's robot at once, each through its own copy of the script."""
-    runs = await asyncio.gather(
-        *(
-            run_scenario(ws_url, tokens[robot_id], replace(script), data_dir / f"agent-{robot_id}", config, robot_id)
-            for robot_id, config in scenarios.items()
+    """Run every scenario's robot at once, each through its own copy of the script.
+
+    beside: (t, start) calls ``start`` once the main robot's script has run t seconds.
+    """
+    started = asyncio.Event()  # the main robot's script started
+
+    async def start_beside(at: float, start: Callable[[], object]) -> None:
+        await started.wait()
+        await asyncio.sleep(at)
+        start()
+
+    aside = asyncio.create_task(start_beside(*beside)) if beside is not None else None
+    try:
+        runs = await asyncio.gather(
+            *(
+                run_scenario(
+                    ws_url,
+                    tokens[robot_id],
+                    replace(script),
+                    data_dir / f"agent-{robot_id}",
+                    config,
+                    robot_id,
+                    started if robot_id == ROBOT_ID else None,
+                )
+                for robot_id, config in scenarios.items()
+            )
         )
-    )
+    finally:
+        if aside is not None:
+            aside.cancel()
     return dict(zip(scenarios, runs, strict=True))
 
 
@@ -535,6 +572,31 @@ def over_oracle(run: Run, script: Script, costing: Costing) -> float:
     best = [min(costing.placements(), key=lambda p, ph=phase: costing.rate(p, ph)) for phase in script.phases]
     oracle = sum(costing.rate(best[i], script.phases[i]) * script.phase_s for i in changes)
     return sum(per_phase[i] for i in changes) / oracle
+
+
+def make_robots(args: argparse.Namespace) -> tuple[SkillConfig, dict[str, SkillConfig], dict[str, str]]:
+    """Create each scenario's robot with its Skill; return the main Skill, every robot's, and their tokens."""
+    from django.contrib.auth import get_user_model
+
+    from robots.models import Robot
+    from robots.services import create_robot, update_robot_config
+    from skills.services import add_skill
+
+    config = skill_config(args.noise_margin, args.ros, args.ros_domain)
+    scenarios = {ROBOT_ID: config}
+    if args.misdeclared:
+        scenarios[ESTIMATE_ROBOT] = skill_config(
+            args.noise_margin, args.ros, args.ros_domain, misdeclared=True, learn=False
+        )
+        scenarios[LEARNED_ROBOT] = skill_config(args.noise_margin, args.ros, args.ros_domain, misdeclared=True)
+    owner, _ = get_user_model().objects.get_or_create(username="offload-bench")
+    tokens = {}
+    for robot_id, scenario in scenarios.items():
+        Robot.objects.filter(id=robot_id).delete()
+        robot, tokens[robot_id] = create_robot(robot_id, owner)
+        update_robot_config(robot.id, ROBOT_CONFIG)
+        add_skill(robot, scenario.model_dump(mode="json"))
+    return config, scenarios, tokens
 
 
 def stop_quickly(daphne: Daphne) -> None:
@@ -603,13 +665,18 @@ def main() -> None:
     log(f"machine load {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f} on {os.cpu_count()} cores")
     # Issue 22: bytes on the robot's link with every movable component in the cloud, after cloud-side
     # routing over before (a ROS pipeline of its own on a real link). --quick measures it beside the
-    # scenario to stay under a minute; the full run after it, so nothing else shares the machine.
-    link_figure = None
+    # scenario to stay under a minute, from the change to the poor link on (moves there go to the robot,
+    # which loads no cloud start; it ends before the stable phase); the full run after it, so nothing
+    # else shares the machine.
+    links: list[Callable[[], float | None]] = []
+    beside = None
     if args.quick and not args.no_cloud_links:
-        link_figure = _cloudlinks.figure_beside(quick=True)
+        beside = (2 * phase_s, lambda: links.append(_cloudlinks.figure_beside(quick=True)))
     # An agent imports torch once, at its first movable Skill; here that would eat the first phase
-    # (8 s under load, the managers' decisions waiting for it), so it is imported before the script.
-    _load_torch()
+    # (8 s under load, the managers' decisions waiting for it), so it is imported before the script,
+    # while the database is migrated (--quick stays under a minute).
+    torch_loaded = threading.Thread(target=_load_torch, name="torch")
+    torch_loaded.start()
 
     data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-offloading-"))
     cloud = f"bench-offload-{os.getpid()}"
@@ -624,41 +691,24 @@ def main() -> None:
         "CELERY_TASK_DEFAULT_QUEUE": f"{cloud}-q",
     }
     ensure_postgres_database(args.database_url)
-    migrate(env)
     setup_django(env)
-    from django.contrib.auth import get_user_model
     from django.core.management import call_command
 
-    from monitoring.models import Event
-    from robots.models import Robot
-    from robots.services import create_robot, update_robot_config
-    from skills.services import add_skill
-
-    config = skill_config(args.noise_margin, args.ros, args.ros_domain)
-    scenarios = {ROBOT_ID: config}
-    if args.misdeclared:
-        scenarios[ESTIMATE_ROBOT] = skill_config(
-            args.noise_margin, args.ros, args.ros_domain, misdeclared=True, learn=False
-        )
-        scenarios[LEARNED_ROBOT] = skill_config(args.noise_margin, args.ros, args.ros_domain, misdeclared=True)
-    owner, _ = get_user_model().objects.get_or_create(username="offload-bench")
-    tokens = {}
-    for robot_id, scenario in scenarios.items():
-        Robot.objects.filter(id=robot_id).delete()
-        robot, tokens[robot_id] = create_robot(robot_id, owner)
-        update_robot_config(robot.id, ROBOT_CONFIG)
-        add_skill(robot, scenario.model_dump(mode="json"))
-
+    call_command("migrate", interactive=False, verbosity=0)  # in this process: one Django start less
     daphne = Daphne(env, data_dir / "daphne.log")
     # Two pool processes per robot: the robots' moves at a phase change start their cloud copies at once.
-    celery = CeleryWorker(
-        env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log", concurrency=2 * len(scenarios)
-    )
+    workers = 2 * (3 if args.misdeclared else 1)
+    celery = CeleryWorker(env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log", concurrency=workers)
+
+    from monitoring.models import Event
+
     try:
+        config, scenarios, tokens = make_robots(args)  # while daphne and the worker start
         daphne.wait()
         celery.wait()
+        torch_loaded.join()
         log(f"daphne pid {daphne.pid} on port {daphne.port}, Celery worker pid {celery.process.pid}")
-        runs = asyncio.run(run_all(daphne.ws_url, tokens, script, data_dir, scenarios))
+        runs = asyncio.run(run_all(daphne.ws_url, tokens, script, data_dir, scenarios, beside))
         run = runs[ROBOT_ID]
     except BaseException:
         log(f"daphne log tail:\n{daphne.log_tail()}")
@@ -758,8 +808,8 @@ def main() -> None:
         if network is not None and estimate is not None:
             print(f"  {MISDECLARED}'s held-out error on the robot: network {network:.3g}, estimate {estimate:.3g}")
     print(f"machine load (1 min) {load_before[0]:.2f} before, {load_after[0]:.2f} after, on {os.cpu_count()} cores")
-    if link_figure is not None:
-        link_ratio = link_figure()
+    if links:
+        link_ratio = links[0]()
     else:
         link_ratio = None if args.no_cloud_links else _cloudlinks.figure(args.quick)
     print(
