@@ -17,8 +17,9 @@ location only once it beats the estimate on held-out outcomes: each outcome is p
 network trains on it, and over the last ``TRUST_WINDOW`` outcomes at that location its mean error
 must be at most ``TRUST_RATIO`` of the estimate's. Until then (and for a location where the
 estimate is not wrong) the estimate decides, as in the thesis before training, but it does not move
-a component to a location for a gain smaller than its own held-out error there: an estimate that a
-few outcomes showed ten times off does not bring the component back every cooldown meanwhile.
+a component to a location for a gain smaller than what its held-out outcomes there showed it falls
+short by: an estimate that a few outcomes showed ten times too low does not bring the component back
+every cooldown meanwhile.
 
 Unlike the thesis, a move needs the reward to clear the threshold by a margin (hysteresis), in three
 decisions running unless it clears it by ``noise_margin`` times the reward's recent noise, and none
@@ -246,7 +247,8 @@ class Decider:
         if model is None or not model.trained or len(self._scores[location]) < TRUST_MIN_SCORES:
             return False
         network, estimate = self.errors(location)
-        return network is not None and estimate is not None and network <= TRUST_RATIO * estimate
+        # Nothing beats an estimate that was never wrong (the cloud's, whose outcomes are the estimate's own).
+        return network is not None and estimate is not None and estimate > 0 and network <= TRUST_RATIO * estimate
 
     @property
     def model(self) -> DecisionModel:
