@@ -68,13 +68,14 @@ def test_hysteresis_requires_a_margin_above_threshold() -> None:
     assert decider.decide(at_robot(0.151), now=1.0).migrate
 
 
-def misdeclared(where: str, free: float = 1.3, declared_share: float = 0.1) -> DecisionInput:
+def misdeclared(where: str, free: float = 1.3, declared_share: float = 0.1, cloud: float = 22.0) -> DecisionInput:
     """Return the input of a component that burns 0.2 cores but declares ``declared_share`` of that.
 
-    Costed as offloading_quality's delay policy: on the robot 200 * cpu / free cores, in the cloud 22.
-    On the robot its cost is measured (the CPU it burns); from the cloud it is estimated from what it declares.
+    Costed as offloading_quality's delay policy: on the robot 200 * cpu / free cores, in the cloud ``cloud``
+    (22 over a good link). On the robot its cost is measured (the CPU it burns); from the cloud it is
+    estimated from what it declares.
     """
-    declared, burnt, cloud = 0.2 * declared_share, 0.2, 22.0
+    declared, burnt = 0.2 * declared_share, 0.2
     estimated_robot, realized_robot = 200 * declared / free, 200 * burnt / free
     if where == "robot":
         features = Features(cpu_available=free / 2, location="robot", cost_robot=realized_robot, cost_cloud=cloud)
@@ -276,21 +277,14 @@ def test_an_estimate_shown_wrong_at_the_target_moves_a_component_there_only_for_
     assert decision.decided_by == "estimate" and decision.estimated_reward > 2.0 + 3.0 and not decision.migrate
     assert "within its held-out error there" in decision.reason and "estimate's doubt at the robot" in decision.reason
     # Over a poor link the cloud costs 70: the robot wins even at ten times the estimate.
-    poor = misdeclared("cloud")
-    features = dataclasses.replace(poor.features, cost_cloud=70.0)
-    estimated_robot = poor.features.cost_robot
-    poor = DecisionInput("cloud", 70.0 - estimated_robot, features=features)
-    assert decider.decide(poor, now=101.0).migrate
+    assert decider.decide(misdeclared("cloud", cloud=70.0), now=101.0).migrate
     # An estimate shown wrong the other way (the component burnt less than it declares, say starved on a busy
     # machine) is no reason to stay away: it still moves the component for a gain past the threshold.
     generous = Decider("detector", delay_manager(trained_after=1))
     visited_robot(generous, 3, declared_share=4.0)
     assert generous.errors("robot")[1] > 1.0 and generous.underestimate("robot") == 0.0
-    slow = misdeclared("cloud", free=1.9, declared_share=4.0)  # the robot estimated at 84 from the 0.8 declared
-    slow = DecisionInput(
-        "cloud", 150.0 - slow.features.cost_robot, dataclasses.replace(slow.features, cost_cloud=150.0)
-    )
-    back = generous.decide(slow, now=100.0)
+    # The robot estimated at 84 from the 0.8 declared, against a cloud at 150.
+    back = generous.decide(misdeclared("cloud", free=1.9, declared_share=4.0, cloud=150.0), now=100.0)
     assert back.decided_by == "estimate" and back.migrate and "held-out error there" not in back.reason
 
 
