@@ -288,6 +288,48 @@ def test_an_estimate_shown_wrong_at_the_target_moves_a_component_there_only_for_
     assert back.decided_by == "estimate" and back.migrate and "held-out error there" not in back.reason
 
 
+def test_the_estimate_s_shortfall_counts_every_outcome_even_those_no_network_has_scored() -> None:
+    torch.manual_seed(1)
+    decider = Decider("detector", delay_manager(trained_after=1))
+    visited_robot(decider, 1)  # a first stay cut short: one outcome, before any network could be asked
+    assert decider.errors("robot") == (None, None) and decider.underestimate("robot") > 1.0
+    held = decider.decide(misdeclared("cloud"), now=100.0)
+    assert not held.migrate and "within its held-out error there" in held.reason
+    # An estimate-only decider (its network never trains) keeps the thesis's estimate, without doubt.
+    thesis = Decider("detector", delay_manager(trained_after=1_000_000))
+    visited_robot(thesis, 1)
+    assert thesis.decide(misdeclared("cloud"), now=100.0).migrate
+
+
+def test_a_doubt_that_matters_must_be_cleared_by_the_reward_s_noise_too_however_confirmed() -> None:
+    torch.manual_seed(1)
+    decider = Decider("detector", delay_manager(trained_after=1))
+    visited_robot(decider, 2)
+    estimated = misdeclared("cloud").features.cost_robot
+    doubt = decider.doubt(estimated, decider.underestimate("robot"))
+    assert doubt > decider.hysteresis and decider.margin == decider.hysteresis  # no noise measured yet
+    # A gain past the doubt by less than the margin: no run of decisions moves it.
+    close = misdeclared("cloud", cloud=estimated + 2.0 + doubt + decider.hysteresis / 2)
+    decisions = [decider.decide(close, now=100.0 + n) for n in range(5)]
+    assert not any(d.migrate for d in decisions) and "within its held-out error there" in decisions[-1].reason
+    assert decider.decide(misdeclared("cloud", cloud=estimated + 2.0 + doubt + 2 * decider.hysteresis), 106.0).migrate
+
+
+def test_a_move_its_own_outcome_refutes_is_undone_within_the_cooldown() -> None:
+    decider = Decider("detector", delay_manager(trained_after=1_000_000), cooldown=60.0)
+    # The estimate says the robot costs 3 against the cloud's 22: it moves the component there.
+    assert decider.decide(misdeclared("cloud"), now=0.0).migrate
+    # There it costs 31, past the noise more than the 3 the move expected: back at once, cooldown or not.
+    back = decider.decide(misdeclared("robot"), now=1.0)
+    assert back.migrate and back.target == "cloud" and "refuting" in back.reason
+    # A move its outcome bears out waits for the cooldown even when the conditions then turn.
+    truthful = Decider("detector", delay_manager(trained_after=1_000_000), cooldown=60.0)
+    assert truthful.decide(misdeclared("cloud", cloud=70.0, declared_share=1.0), now=0.0).migrate
+    stay = truthful.decide(misdeclared("robot", declared_share=1.0), now=1.0)
+    assert stay.estimated_reward > 2.0 + 3.0 and not stay.migrate and "cooling down" in stay.reason
+    assert truthful.decide(misdeclared("robot", declared_share=1.0), now=61.0).migrate
+
+
 def test_manual_recommendation_wins_over_the_reward() -> None:
     decider = Decider("detector", manager(), cooldown=3600.0)
     decider.last_move = 0.0

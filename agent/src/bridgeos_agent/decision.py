@@ -16,15 +16,17 @@ estimate of the cost at the target location (Algorithm 9's prediction). The netw
 location only once it beats the estimate on held-out outcomes: each outcome is predicted before the
 network trains on it, and over the last ``TRUST_WINDOW`` outcomes at that location its mean error
 must be at most ``TRUST_RATIO`` of the estimate's. Until then (and for a location where the
-estimate is not wrong) the estimate decides, as in the thesis before training, but it does not move
-a component to a location for a gain smaller than what its held-out outcomes there showed it falls
-short by: an estimate that a few outcomes showed ten times too low does not bring the component back
-every cooldown meanwhile.
+estimate is not wrong) the estimate decides, as in the thesis before training, but once the network
+learns it does not move a component to a location for a gain smaller than what the latest outcomes
+there showed it falls short by (every outcome is held out for an estimate, which never learns), plus
+the reward's noise when that shortfall matters: an estimate that a few outcomes showed ten times too
+low does not bring the component back every cooldown meanwhile.
 
 Unlike the thesis, a move needs the reward to clear the threshold by a margin (hysteresis), in three
 decisions running unless it clears it by ``noise_margin`` times the reward's recent noise, and none
 may follow another within a cooldown: components do not flap when the reward is noisy, while a
-real change, whose reward jumps far above the noise, moves at once. The noise is measured on the
+real change, whose reward jumps far above the noise, moves at once. A move whose own outcome costs
+past the noise more than it expected is undone within the cooldown. The noise is measured on the
 reward relative to the level of its two costs and scaled to the current level, so the swings of a
 busy robot's large costs do not hold back the next change at an idle robot's small ones.
 
@@ -190,9 +192,17 @@ class Decider:
         self.scale = max(abs(self.config.threshold) + self.hysteresis, 1e-6)
         self._model = model
         self.last_move: float | None = None
+        # Where the last move went and what it expected the component to cost there.
+        self._premise: tuple[Side, float] | None = None
         # Per location, the held-out (network error, estimate error, the estimate's signed error) of the latest
         # outcomes there; all on the network's scale.
         self._scores: dict[Side, deque[tuple[float, float, float]]] = {
+            "robot": deque(maxlen=TRUST_WINDOW),
+            "cloud": deque(maxlen=TRUST_WINDOW),
+        }
+        # Per location, the estimate's signed error on the latest outcomes there, every one of them: the estimate
+        # never learns, so each outcome is held out for it, the first ones too (which no network has yet scored).
+        self._misses: dict[Side, deque[float]] = {
             "robot": deque(maxlen=TRUST_WINDOW),
             "cloud": deque(maxlen=TRUST_WINDOW),
         }
@@ -237,9 +247,9 @@ class Decider:
         return sum(n for n, _, _ in scores) / len(scores), sum(e for _, e, _ in scores) / len(scores)
 
     def underestimate(self, location: Side) -> float:
-        """Return by how much the estimate fell short of the held-out outcomes at a location, on average (0: not)."""
-        scores = self._scores[location]
-        return max(0.0, sum(signed for _, _, signed in scores) / len(scores)) if scores else 0.0
+        """Return by how much the estimate fell short of the latest outcomes at a location, on average (0: not)."""
+        misses = self._misses[location]
+        return max(0.0, sum(misses) / len(misses)) if misses else 0.0
 
     def trust(self, location: Side) -> bool:
         """Tell whether the network decides for a location: trained and beating the estimate on held-out outcomes."""
@@ -298,6 +308,7 @@ class Decider:
     def _learn(self, outcome: Outcome, held_out: float | None) -> bool:
         """Score the network's held-out prediction of an outcome against the estimate, then record it."""
         target = squash(outcome.realized, self.scale) - squash(outcome.estimated, self.scale)
+        self._misses[outcome.location].append(target)
         if held_out is not None and math.isfinite(held_out):
             # Scored on the network's own scale, where the estimate's error is ``target``: in cost units the
             # few outcomes of a robot turning busy (costs over its little free CPU, hundreds) would outweigh
@@ -332,20 +343,32 @@ class Decider:
         network, estimate = self.errors(target)
         # Only an estimate shown short of what the target costs argues against going there (a component that
         # burnt less than it declares, say starved on a busy machine, is no reason to stay away).
-        doubt = 0.0 if trusted else self.doubt(there, self.underestimate(target))
+        # It is part of learning from outcomes: an estimate-only decider (a network that never trains) has no doubt.
+        learning = self._model is not None and self._model.trained
+        doubt = self.doubt(there, self.underestimate(target)) if learning and not trusted else 0.0
         if not clears:
             migrate, reason = False, f"{source} below threshold + hysteresis"
-        elif reward < threshold + doubt:
+        elif reward < threshold + doubt or (doubt > self.hysteresis and reward < threshold + doubt + margin):
             # The estimate was shown wrong at the target by more than this move gains (a component burning
             # more than it declares): it does not move the component there alone; the network, once trusted, may.
+            # A doubt that matters is itself a guess from a few outcomes elsewhere (a busy robot's cost grows
+            # faster than the estimate's): a gain within the reward's noise of it is no gain, however confirmed.
             migrate, reason = False, f"{source} above threshold + hysteresis but within its held-out error there"
         elif reward < threshold + margin and self._cleared[1] < CONFIRMATIONS:
             # Within the noise of a stable reward: one lucky draw does not move, a run of them does.
             migrate, reason = False, f"{source} above threshold + hysteresis but within the noise, unconfirmed"
-        elif self.last_move is not None and now - self.last_move < self.cooldown:
+        elif (
+            self.last_move is not None
+            and now - self.last_move < self.cooldown
+            and not self._refuted(given, reward, margin)
+        ):
             migrate, reason = False, f"{source} above threshold, but cooling down after the last move"
+        elif self.last_move is not None and now - self.last_move < self.cooldown:
+            migrate, reason = True, f"{source} above threshold + hysteresis, the last move's outcome refuting it"
         else:
             migrate, reason = True, f"{source} above threshold + hysteresis"
+        if migrate:
+            self._premise = (target, there + (correction if trusted and correction is not None else 0.0))
         if margin > self.hysteresis:
             reason += f" (noise margin {margin:.3g})"
         if doubt > self.hysteresis:
@@ -359,6 +382,18 @@ class Decider:
         return self._record(
             given, now, migrate, reason, prediction, trusted, margin, "network" if trusted else "estimate"
         )
+
+    def _refuted(self, given: DecisionInput, reward: float, margin: float) -> bool:
+        """Tell whether the last move was shown wrong: it costs here past the noise more than it expected.
+
+        The cooldown keeps a noisy reward from moving a component back and forth; it does not keep a component
+        where its first outcomes cost past the noise more than the move expected (an estimate that a component
+        declaring a tenth of its CPU is cheap on a busy robot) until the cooldown ends.
+        """
+        if self._premise is None or self._premise[0] != given.location:
+            return False
+        here = given.features.cost_robot if given.location == "robot" else given.features.cost_cloud
+        return here - self._premise[1] > margin and reward >= self.config.threshold + margin
 
     def _record(
         self,
