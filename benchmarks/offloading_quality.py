@@ -696,9 +696,12 @@ def main() -> None:
 
     call_command("migrate", interactive=False, verbosity=0)  # in this process: one Django start less
     daphne = Daphne(env, data_dir / "daphne.log")
-    # Two pool processes per robot: the robots' moves at a phase change start their cloud copies at once.
-    workers = 2 * (3 if args.misdeclared else 1)
-    celery = CeleryWorker(env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log", concurrency=workers)
+    # One pool process a core, as scripts/run.sh runs the worker here: a cloud start is CPU work, and the pool of
+    # six this had (two a robot, for their simultaneous starts at a phase change) shared the two cores among a
+    # burst, so that every start of it waited for all of them (a phase-2 move 0.3 s later).
+    celery = CeleryWorker(
+        env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log", concurrency=os.cpu_count() or 2
+    )
 
     from monitoring.models import Event
 
