@@ -328,6 +328,12 @@ def test_a_move_its_own_outcome_refutes_is_undone_within_the_cooldown() -> None:
     stay = truthful.decide(misdeclared("robot", declared_share=1.0), now=1.0)
     assert stay.estimated_reward > 2.0 + 3.0 and not stay.migrate and "cooling down" in stay.reason
     assert truthful.decide(misdeclared("robot", declared_share=1.0), now=61.0).migrate
+    # A rule's move (a recommendation) expected nothing: after it, the cooldown holds as before.
+    ruled = Decider("detector", delay_manager(trained_after=1_000_000), cooldown=60.0)
+    assert ruled.decide(misdeclared("cloud"), now=0.0).migrate
+    assert ruled.decide(dataclasses.replace(misdeclared("robot"), recommendation=True), now=1.0).migrate
+    assert ruled.decide(dataclasses.replace(misdeclared("cloud"), recommendation=True), now=2.0).migrate
+    assert "cooling down" in ruled.decide(misdeclared("robot"), now=3.0).reason
 
 
 def test_manual_recommendation_wins_over_the_reward() -> None:

@@ -367,8 +367,6 @@ class Decider:
             migrate, reason = True, f"{source} above threshold + hysteresis, the last move's outcome refuting it"
         else:
             migrate, reason = True, f"{source} above threshold + hysteresis"
-        if migrate:
-            self._premise = (target, there + (correction if trusted and correction is not None else 0.0))
         if margin > self.hysteresis:
             reason += f" (noise margin {margin:.3g})"
         if doubt > self.hysteresis:
@@ -379,9 +377,12 @@ class Decider:
             reason += (
                 f" (network not trusted at the {target}: held-out error {network:.3g} vs the estimate's {estimate:.3g})"
             )
-        return self._record(
+        decision = self._record(
             given, now, migrate, reason, prediction, trusted, margin, "network" if trusted else "estimate"
         )
+        if migrate:
+            self._premise = (target, there + (correction if trusted and correction is not None else 0.0))
+        return decision
 
     def _refuted(self, given: DecisionInput, reward: float, margin: float) -> bool:
         """Tell whether the last move was shown wrong: it costs here past the noise more than it expected.
@@ -409,6 +410,7 @@ class Decider:
         """Build the decision record and remember a move for the cooldown."""
         if migrate:
             self.last_move = now
+            self._premise = None  # what a rule's move expected is not known
         model = self._model
         target: Side = "cloud" if given.location == "robot" else "robot"
         network, estimate = self.errors(target)
