@@ -17,8 +17,10 @@ from bridgeos_agent.decision import (
     DecisionModel,
     Features,
     Outcome,
+    decide_and_learn,
     decide_batch,
     predict_many,
+    train_due,
     train_many,
 )
 from bridgeos_agent.decisionmodel import squash, unsquash
@@ -526,6 +528,15 @@ def test_batch_decisions_match_single_decisions() -> None:
     # No held-out outcome scored yet: the estimate decides every one.
     assert not any(d.trusted for d in decisions) and {d.decided_by for d in decisions} == {"estimate"}
     assert [d.migrate for d in decisions] == [i.estimated_reward >= 0.11 for i in inputs]
+
+
+def test_decide_and_learn_leaves_the_training_step_to_train_due() -> None:
+    torch.manual_seed(1)
+    decider = Decider("detector", delay_manager(trained_after=1))
+    decisions, due = decide_and_learn([decider], [misdeclared("robot")], now=0.0)
+    assert len(decisions) == 1 and due == [decider.model] and decider.model.steps == 0
+    train_due(due)
+    assert decider.model.steps == decider.config.neural_network.train_steps == 3
 
 
 def test_hysteresis_and_cooldown_come_from_the_manager_config() -> None:

@@ -64,8 +64,10 @@ __all__ = [
     "Features",
     "Outcome",
     "Side",
+    "decide_and_learn",
     "decide_batch",
     "predict_many",
+    "train_due",
     "train_many",
 ]
 
@@ -442,6 +444,18 @@ def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], n
 
     Returns a decision for each input but those of components in the middle of a move (``moving``).
     """
+    decisions, due = decide_and_learn(deciders, inputs, now)
+    train_due(due)
+    return decisions
+
+
+def decide_and_learn(
+    deciders: Sequence[Decider], inputs: Sequence[DecisionInput], now: float
+) -> tuple[list[Decision], list[DecisionModel]]:
+    """Decide as :func:`decide_batch` does, but return the networks due a training step rather than train them.
+
+    The Skill Manager starts the moves first and trains (:func:`train_due`) off its event loop meanwhile.
+    """
     if len(deciders) != len(inputs):
         raise ValueError("one input per decider")
     deciding = [not given.moving for given in inputs]
@@ -474,7 +488,10 @@ def decide_batch(deciders: Sequence[Decider], inputs: Sequence[DecisionInput], n
             due.append(decider.model)
         if decisions[i] is None and deciding[i]:
             decisions[i] = decider._conclude(given, now, outputs)
-    # Each model its own number of steps (neural_network.train_steps): one batch per round.
+    return [d for d in decisions if d is not None], due
+
+
+def train_due(due: Sequence[DecisionModel]) -> None:
+    """Train the networks :func:`decide_and_learn` found due, each its own number of steps (one batch per round)."""
     for round_ in range(max((m.config.train_steps for m in due), default=0)):
         train_many([m for m in due if m.config.train_steps > round_])
-    return [d for d in decisions if d is not None]

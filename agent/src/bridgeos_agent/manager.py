@@ -33,7 +33,8 @@ from bridgeos_agent.decision import (
     Features,
     Outcome,
     Side,
-    decide_batch,
+    decide_and_learn,
+    train_due,
 )
 from bridgeos_agent.decisionmodel import _load_torch
 from bridgeos_agent.heuristics import Resources
@@ -84,6 +85,7 @@ class SkillManager:
         self._usage: dict[str, tuple[str, deque[tuple[float, float]], Any, bool]] = {}
         # component -> its move in flight when run() does not wait for moves (see step).
         self._moving: dict[str, asyncio.Task[None]] = {}
+        self._training: asyncio.Future[None] | None = None  # the last step's training, in a thread
 
     # ------------------------------------------------------------------ the Components API's view
 
@@ -383,7 +385,20 @@ class SkillManager:
         names, inputs, costs = self._inputs(self.movable())
         if not names:
             return []
-        decisions = decide_batch([self._decider(name) for name in names], inputs, self.clock())
+        decisions, due = decide_and_learn([self._decider(name) for name in names], inputs, self.clock())
+        # Trained in a thread (torch lets go of the GIL) while the moves start: a training step takes 50-150 ms
+        # on a busy robot, which on the event loop held up these moves and everything else the agent serves.
+        training = self._training = asyncio.ensure_future(asyncio.to_thread(train_due, due)) if due else None
+        try:
+            return await self._carry_out(decisions, costs, wait=wait)
+        finally:
+            if training is not None:
+                await asyncio.shield(training)  # learnt before the next decision; a cancel waits for it too
+
+    async def _carry_out(
+        self, decisions: list[Decision], costs: dict[str, PolicyCosts], *, wait: bool
+    ) -> list[Decision]:
+        """Record the decisions, report the changed stays and start the moves (awaited with ``wait``)."""
         if not decisions:
             return []
         now = time.time()
@@ -507,6 +522,8 @@ class SkillManager:
                 task.cancel()
             if moving:
                 await asyncio.gather(*moving, return_exceptions=True)
+            if self._training is not None:
+                await asyncio.gather(self._training, return_exceptions=True)  # not saved mid-step
             self.save_placement()
             self.save_models()
             if self.api is not None:
