@@ -196,9 +196,9 @@ class Decider:
         self.last_move: float | None = None
         # Where the last move went and what it expected the component to cost there.
         self._premise: tuple[Side, float] | None = None
-        # Per location, the held-out (network error, estimate error, the estimate's signed error) of the latest
-        # outcomes there; all on the network's scale.
-        self._scores: dict[Side, deque[tuple[float, float, float]]] = {
+        # Per location, the held-out (network error, estimate error) of the latest outcomes there, on the network's
+        # scale.
+        self._scores: dict[Side, deque[tuple[float, float]]] = {
             "robot": deque(maxlen=TRUST_WINDOW),
             "cloud": deque(maxlen=TRUST_WINDOW),
         }
@@ -246,7 +246,7 @@ class Decider:
         scores = self._scores[location]
         if not scores:
             return None, None
-        return sum(n for n, _, _ in scores) / len(scores), sum(e for _, e, _ in scores) / len(scores)
+        return sum(n for n, _ in scores) / len(scores), sum(e for _, e in scores) / len(scores)
 
     def underestimate(self, location: Side) -> float:
         """Return by how much the estimate fell short of the latest outcomes at a location, on average (0: not)."""
@@ -315,7 +315,7 @@ class Decider:
             # Scored on the network's own scale, where the estimate's error is ``target``: in cost units the
             # few outcomes of a robot turning busy (costs over its little free CPU, hundreds) would outweigh
             # every other, and a network right by a factor everywhere would look no better than the estimate.
-            self._scores[outcome.location].append((abs(held_out - target), abs(target), target))
+            self._scores[outcome.location].append((abs(held_out - target), abs(target)))
         return self.model.record(outcome.features.vector(self.scale), target)
 
     def _conclude(self, given: DecisionInput, now: float, predicted: Sequence[float]) -> Decision:
@@ -348,6 +348,7 @@ class Decider:
         # It is part of learning from outcomes: an estimate-only decider (a network that never trains) has no doubt.
         learning = self._model is not None and self._model.trained
         doubt = self.doubt(there, self.underestimate(target)) if learning and not trusted else 0.0
+        cooling = self.last_move is not None and now - self.last_move < self.cooldown
         if not clears:
             migrate, reason = False, f"{source} below threshold + hysteresis"
         elif reward < threshold + doubt or (doubt > self.hysteresis and reward < threshold + doubt + margin):
@@ -359,16 +360,12 @@ class Decider:
         elif reward < threshold + margin and self._cleared[1] < CONFIRMATIONS:
             # Within the noise of a stable reward: one lucky draw does not move, a run of them does.
             migrate, reason = False, f"{source} above threshold + hysteresis but within the noise, unconfirmed"
-        elif (
-            self.last_move is not None
-            and now - self.last_move < self.cooldown
-            and not self._refuted(given, reward, margin)
-        ):
+        elif cooling and not self._refuted(given, reward, margin):
             migrate, reason = False, f"{source} above threshold, but cooling down after the last move"
-        elif self.last_move is not None and now - self.last_move < self.cooldown:
-            migrate, reason = True, f"{source} above threshold + hysteresis, the last move's outcome refuting it"
         else:
             migrate, reason = True, f"{source} above threshold + hysteresis"
+            if cooling:
+                reason += ", the last move's outcome refuting it"
         if margin > self.hysteresis:
             reason += f" (noise margin {margin:.3g})"
         if doubt > self.hysteresis:
