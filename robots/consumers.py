@@ -138,7 +138,8 @@ class RobotConsumer(ProtocolConsumer):
         """Route one valid frame from the robot to its handler."""
         prometheus.frame_received()
         event = envelope.event
-        if envelope.reply_to is not None and envelope.reply_to in self.requests:
+        forwarded = envelope.reply_to is not None and envelope.reply_to in self.requests
+        if forwarded:
             await self.forward_reply(envelope)
         if event == Event.ACK:
             self.reliable.on_ack(envelope.reply_to)
@@ -150,6 +151,12 @@ class RobotConsumer(ProtocolConsumer):
             future = self.chunk_requests[envelope.reply_to]
             if not future.done():
                 future.set_result(envelope)
+            return
+        if event not in self.handlers:
+            # A reply only its requester reads (components_api_reply): handed on above, or late, its
+            # requester gone. Either way there is nothing to apply, and nothing wrong with the frame.
+            if not forwarded:
+                log.debug("robot %s: %s answers %s, which nobody waits for", self.robot_id, event, envelope.reply_to)
             return
         payload = protocol.parse_payload(envelope)
         named = getattr(payload, "robot", None)

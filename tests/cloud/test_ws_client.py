@@ -281,3 +281,34 @@ async def test_every_command_reaches_the_robot_and_its_ack_returns(daphne_server
         answer = await pending
         assert answer.event == Event.ACK, (event, answer.data)
     await robot.close()
+
+
+async def test_a_components_api_reply_goes_to_its_requester_and_nothing_else(daphne_server):
+    alice, _ = await make_owner("alice")
+    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    log_start = daphne_server.log.stat().st_size
+    data = {"skill": "people-detection", "method": "GET", "path": "/components", "query": "", "body": None}
+    pending = asyncio.ensure_future(relay_command("alice-bot", Event.COMPONENTS_API, data, wait=5))
+    request = await robot.next(Event.COMPONENTS_API)
+    answer = {"skill": "people-detection", "status": 200, "body": {"components": []}}
+    await robot.send(Event.COMPONENTS_API_REPLY, answer, reply_to=request.id)
+    reply = await pending
+    assert (reply.event, reply.data) == (Event.COMPONENTS_API_REPLY, answer)
+    # A late reply (its requester gone) is dropped too; neither is refused as an internal error.
+    await robot.send(Event.COMPONENTS_API_REPLY, answer, reply_to="nobody-asked")
+    probe = await robot.request(Event.SKILL_STATUS, {"skill": "people-detection", "status": "running"})
+    assert probe.event == Event.ACK
+    errors = [frame for frame in drain(robot) if frame.event == Event.ERROR_MESSAGE]
+    assert errors == []
+    with daphne_server.log.open() as log:
+        log.seek(log_start)
+        assert "Traceback" not in log.read()
+    await robot.close()
+
+
+def drain(link) -> list:
+    """Return every frame the link has received and not yet read."""
+    frames = []
+    while not link.inbox.empty():
+        frames.append(link.inbox.get_nowait())
+    return frames
