@@ -80,10 +80,11 @@ if [ "${BRIDGEOS_DEMO_ROBOTS:-3}" -gt 0 ]; then
 else
   status demo "off (BRIDGEOS_DEMO_ROBOTS=0)"
 fi
-if (exec 3<>/dev/tcp/127.0.0.1/9090) 2>/dev/null; then
-  status metrics "http://$HOST:$PORT/metrics, Prometheus at http://127.0.0.1:9090/ (scripts/services.sh prometheus)"
+prometheus_port="${BRIDGEOS_PROMETHEUS_PORT:-9190}"
+if (exec 3<>"/dev/tcp/127.0.0.1/$prometheus_port") 2>/dev/null; then
+  status metrics "http://$HOST:$PORT/metrics, Prometheus at http://127.0.0.1:$prometheus_port/ (scripts/services.sh prometheus)"
 else
-  status metrics "http://$HOST:$PORT/metrics (no Prometheus on :9090: scripts/services.sh prometheus)"
+  status metrics "http://$HOST:$PORT/metrics (no Prometheus on :$prometheus_port: scripts/services.sh prometheus)"
 fi
 
 cat <<MSG

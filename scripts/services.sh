@@ -14,7 +14,8 @@ ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus node)
 # Debian's prometheus scrapes `make run`'s cloud and demo agents (docker/prometheus/prometheus.yml);
 # the tests start their own with a temporary config and use promtool from the same package.
-PROMETHEUS_PORT=9090
+# Not Prometheus's own default, 9090: that is rosbridge's, which ROS tools (roslibpy, roslibjs) assume.
+PROMETHEUS_PORT="${BRIDGEOS_PROMETHEUS_PORT:-9190}"
 PROMETHEUS_DIR=/var/lib/bridgeos/prometheus
 PROMETHEUS_LOG=/var/log/bridgeos-prometheus.log
 # The private networks' tests and benchmark: OpenVPN, nftables, ip netns (iproute2) and ping.
@@ -252,7 +253,15 @@ part_prometheus() {
     if ! have prometheus || ! have promtool; then
         missing prometheus "$t" "not installed (the observability tests need it): sudo apt-get install prometheus"; return
     fi
-    local did
+    local did pid
+    # An earlier version of this script ran it on 9090, rosbridge's port: that one is ours to move.
+    for pid in /proc/[0-9]*; do
+        pid=${pid#/proc/}
+        [[ $(cat "/proc/$pid/comm" 2>/dev/null) == prometheus ]] || continue
+        if tr '\0' ' ' <"/proc/$pid/cmdline" 2>/dev/null | grep -q -- "--web.listen-address=127.0.0.1:9090"; then
+            kill "$pid" 2>/dev/null && echo "prometheus: stopped the one this script started on :9090 (rosbridge's port)"
+        fi
+    done
     if port_open "$PROMETHEUS_PORT"; then
         did="already running on :$PROMETHEUS_PORT"
     else
