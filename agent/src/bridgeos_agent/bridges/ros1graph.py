@@ -41,11 +41,14 @@ class _Publisher:
         self.publication.definition, self.publication.md5sum = graph.types.definition(type_)
 
     def publish(self, msg: dict[str, Any]) -> None:
-        self.publication.send(frame(self.graph.types.encode(self._name, msg)), 1)
+        raw = self.graph.types.encode(self._name, msg)
+        self.publication.send(frame(raw), 1)
+        self.graph._loop_back(self.topic, self.type, raw)
 
     def publish_raw(self, raw: bytes) -> None:
         self.graph.types.decode(self._name, raw)  # a message that does not read never reaches the robot's nodes
         self.publication.send(frame(raw), 1)
+        self.graph._loop_back(self.topic, self.type, raw)
 
     def close(self) -> None:
         self.graph.node.unadvertise(self.topic)
@@ -75,6 +78,7 @@ class Ros1Graph:
         # The node subscribes a topic once; every bridge subscription of it (rosbridge, Foxglove, the
         # recorder) hears each message from that one connection.
         self._listeners: dict[str, list[_Subscription]] = {}
+        self._decoders: dict[str, Callable[[bytes], dict[str, Any]]] = {}
 
     async def start(self) -> None:
         """Register with the master (raises MasterError when it does not answer)."""
@@ -181,6 +185,7 @@ class Ros1Graph:
             return types.decode(name, raw)
 
         listeners = self._listeners[topic] = [_Subscription(self, topic, wanted, deliver)]
+        self._decoders[topic] = decode
 
         def received(subscription: Subscription, blob: bytes, count: int, inbound: Inbound) -> None:
             stamp = time.time_ns()
@@ -210,7 +215,23 @@ class Ros1Graph:
         listeners.remove(subscription)
         if not listeners:
             del self._listeners[subscription.topic]
+            del self._decoders[subscription.topic]
             self.node.unsubscribe(subscription.topic)
+
+    def _loop_back(self, topic: str, type_: str, raw: bytes) -> None:
+        """Hand a message the node publishes to its own subscriptions of the topic.
+
+        A node never connects to itself (the router relies on that to publish what it subscribes
+        without echoes), so a bridge client's message would reach every node but this one; rospy
+        and rosbridge_server deliver a node's publications to its own subscribers, and so do we.
+        """
+        listeners = self._listeners.get(topic)
+        if not listeners or listeners[0].type != type_:
+            return
+        stamp = time.time_ns()
+        sample = Sample(raw, self._decoders[topic], (stamp // 1_000_000_000, stamp % 1_000_000_000))
+        for listener in list(listeners):
+            listener.deliver(sample)
 
     async def advertise(self, topic: str, type_: str) -> _Publisher:
         """Publish a topic with the md5sum and definition of its type."""
