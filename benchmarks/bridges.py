@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Issue 19: rosbridge and Foxglove clients of a robot through the cloud, against the robot's own doors.
+"""Issues 19 and 32: rosbridge and Foxglove clients of a robot through the cloud, against the robot's own doors.
 
     .venv/bin/python benchmarks/bridges.py [--quick]
 
@@ -9,7 +9,8 @@ rosmaster with rospy talkers (Debian's ROS 1), and WebSocket clients speaking ea
 
 Figures: 100-byte std_msgs/String messages/s to one viewer through the cloud (rosbridge and
 Foxglove) beside the same at the robot's local door; the latency the cloud adds over the local
-door (stamped by the talker, paired per message); a 1 MB PointCloud2 at 10 Hz to 10 viewers
+door (stamped by the talker, paired per message); one rosbridge client's messages/s to another on
+the robot's local door (the node loops them back to itself: issue 32); a 1 MB PointCloud2 at 10 Hz to 10 viewers
 through the cloud's Foxglove door (p95 lag, and the robot-link bytes over the bytes delivered:
 each cloud crosses the link once, as a blob, however many viewers get it); JSON vs CBOR for a 640x480 image through the
 rosbridge engine (rosbridge_suite issue #367: JSON 269 ms / 11.5 MB, CBOR 1.5 ms / 0.92 MB); the
@@ -236,6 +237,53 @@ async def stamps(websocket: Any, kind: str, seconds: float, arrivals: dict[int, 
         arrivals[seq] = (arrived - stamp) * 1000
 
 
+# A rosbridge client publishing 100-byte strings flat out for a while, in a process of its own so the
+# subscriber it is measured by does not share its event loop; it writes its frames a hundred to a
+# send, built ahead, so what is measured is the door and not the publisher's own Python. It prints
+# how many it sent while counted.
+PUBLISHER = r"""
+import json, sys, time
+from websockets.frames import Frame, Opcode
+from websockets.sync.client import connect
+url, warmup, seconds = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+
+def frame(seq):
+    head = "%d %.6f " % (seq, time.time())
+    text = json.dumps({"op": "publish", "topic": "/b2b", "msg": {"data": head + "x" * (100 - len(head))}})
+    return Frame(Opcode.TEXT, text.encode()).serialize(mask=True, extensions=[])
+
+with connect(url, max_size=None, compression=None) as ws:
+    ws.send(json.dumps({"op": "advertise", "topic": "/b2b", "type": "std_msgs/String"}))
+    time.sleep(0.5)
+    start = time.monotonic()
+    counted = seq = 0
+    while (now := time.monotonic()) < start + warmup + seconds:
+        burst = b"".join(frame(seq + i) for i in range(1, 101))
+        seq += 100
+        ws.socket.sendall(burst)
+        counted += 100 * (now >= start + warmup)
+print(counted, flush=True)
+"""
+
+
+async def bridge_to_bridge(url: str, warmup: float, seconds: float) -> tuple[float, float]:
+    """Return the msgs/s one rosbridge client hears of another's flat-out publishing, and the share delivered."""
+    subscriber = await rosbridge_subscribe(url, None, "/b2b")
+    publisher = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", PUBLISHER, url, str(warmup + 0.5), str(seconds), stdout=subprocess.PIPE
+    )
+    try:
+        rate = await count_messages(subscriber, "rosbridge", warmup + 1.0, seconds)
+        out, _ = await asyncio.wait_for(publisher.communicate(), 30)
+    finally:
+        if publisher.returncode is None:
+            publisher.kill()
+            await publisher.wait()
+        await subscriber.close()
+    sent = int(out or 0)
+    return rate, min(1.0, rate * seconds / sent) if sent else 0.0
+
+
 async def cloud_lags(websocket: Any, seconds: float, warmup: float, lags: list[float]) -> int:
     """Record each point cloud's lag (arrival minus its header stamp, ms); return how many arrived."""
     start = time.monotonic()
@@ -408,7 +456,16 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
     finally:
         stop(talker)
 
-    # 2. Added latency at a moderate rate: the local door and the cloud's, the same messages at once.
+    # 2. Bridge to bridge: one client publishing flat out, another subscribed, on the robot's local door.
+    rate, delivered = await bridge_to_bridge(local["rosbridge"], warmup, seconds)
+    figures["bridge_to_bridge_msgs_per_s"] = round(rate)
+    figures["bridge_to_bridge_delivered_ratio"] = round(delivered, 3)
+    log(
+        f"bridge to bridge: {rate:,.0f} msgs/s of 100-byte strings from one rosbridge client to another, "
+        f"{delivered:.1%} of those sent delivered"
+    )
+
+    # 3. Added latency at a moderate rate: the local door and the cloud's, the same messages at once.
     talker = ros.talker("string", "/paced", args.latency_rate)
     try:
         local_ws = await rosbridge_subscribe(local["rosbridge"], None, "/paced")
@@ -437,7 +494,7 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
         f"p95 {figures['cloud_added_latency_p95_ms']} ms"
     )
 
-    # 3. A 1 MB point cloud at 10 Hz to 10 viewers of the cloud's Foxglove door.
+    # 4. A 1 MB point cloud at 10 Hz to 10 viewers of the cloud's Foxglove door.
     talker = ros.talker("cloud", "/points", 10)
     try:
         viewers = [await foxglove_subscribe(foxglove_cloud, headers, "/points") for _ in range(args.viewers)]
@@ -479,6 +536,8 @@ def table(figures: dict[str, Any]) -> None:
     rows = [
         ("rosbridge msgs/s to one viewer, cloud", "rosbridge_msgs_per_s", ">= 10,000 (issue 19)"),
         ("rosbridge msgs/s to one viewer, local door", "rosbridge_local_msgs_per_s", ""),
+        ("rosbridge client to client msgs/s, local door", "bridge_to_bridge_msgs_per_s", ">= 10,000 (issue 32)"),
+        ("  delivered share", "bridge_to_bridge_delivered_ratio", ""),
         ("Foxglove msgs/s to one viewer, cloud", "foxglove_msgs_per_s", ">= 10,000 (issue 19)"),
         ("Foxglove msgs/s to one viewer, local door", "foxglove_local_msgs_per_s", ""),
         ("latency added by the cloud p50 (ms)", "cloud_added_latency_p50_ms", ""),

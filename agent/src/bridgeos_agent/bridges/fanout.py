@@ -10,14 +10,41 @@ from __future__ import annotations
 
 import asyncio
 from collections import deque
+from collections.abc import Awaitable, Callable
 from typing import Protocol
 
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, GraphSubscription, Sample
 
-__all__ = ["DEFAULT_QUEUE", "LINGER_S", "Fanouts", "Outlet", "Publishers", "Reader", "SharedTail"]
+__all__ = [
+    "BATCH_FRAMES",
+    "DEFAULT_QUEUE",
+    "LINGER_S",
+    "Fanouts",
+    "Outlet",
+    "Publishers",
+    "Reader",
+    "Send",
+    "SendMany",
+    "SharedTail",
+    "one_by_one",
+]
 
 DEFAULT_QUEUE = 100  # messages queued per topic for a client that reads slower than the topic runs
 LINGER_S = 5.0  # how long a topic stays subscribed in the graph after its last client left
+BATCH_FRAMES = 64  # frames a client's writer hands its door in one go at most
+
+Send = Callable[[str | bytes], Awaitable[None]]
+SendMany = Callable[[list[str | bytes]], Awaitable[None]]
+
+
+def one_by_one(send: Send) -> SendMany:
+    """Return a sender of several frames for a door that takes them one at a time."""
+
+    async def send_many(frames: list[str | bytes]) -> None:
+        for frame in frames:
+            await send(frame)
+
+    return send_many
 
 
 class SharedTail(bytes):

@@ -30,7 +30,18 @@ from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from bridgeos_agent.bridges.fanout import DEFAULT_QUEUE, LINGER_S, Fanouts, Outlet, Publishers, SharedTail
+from bridgeos_agent.bridges.fanout import (
+    BATCH_FRAMES,
+    DEFAULT_QUEUE,
+    LINGER_S,
+    Fanouts,
+    Outlet,
+    Publishers,
+    Send,
+    SendMany,
+    SharedTail,
+    one_by_one,
+)
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, Sample
 
 __all__ = ["SUBPROTOCOLS", "Foxglove", "FoxgloveSession", "select_subprotocol"]
@@ -66,8 +77,6 @@ _UNSUPPORTED = (
     "unsubscribeConnectionGraph",
     "fetchAsset",
 )
-
-Send = Callable[[str | bytes], Awaitable[None]]
 
 
 def select_subprotocol(offered: Iterable[str]) -> str | None:
@@ -192,9 +201,9 @@ class Foxglove:
         self._poll_now = asyncio.Event()
         self._polled = asyncio.Event()
 
-    def session(self, send: Send) -> FoxgloveSession:
-        """Open a session for a new client whose frames go out through ``send``."""
-        session = FoxgloveSession(self, send)
+    def session(self, send: Send, send_many: SendMany | None = None) -> FoxgloveSession:
+        """Open a session for a new client whose frames go out through ``send`` (or ``send_many``, several at once)."""
+        session = FoxgloveSession(self, send, send_many)
         self.sessions.add(session)
         if self._poller is None:
             self._poller = asyncio.get_running_loop().create_task(self._poll(), name="foxglove-graph-poll")
@@ -328,10 +337,11 @@ class _ClientChannel:
 class FoxgloveSession:
     """One Foxglove WebSocket client: parse its frames, run its requests, queue what goes back to it."""
 
-    def __init__(self, bridge: Foxglove, send: Send) -> None:
+    def __init__(self, bridge: Foxglove, send: Send, send_many: SendMany | None = None) -> None:
         self.bridge = bridge
         self.graph = bridge.graph
         self._send = send
+        self._send_many = send_many or one_by_one(send)
         self._control: deque[str | bytes] = deque()
         self.control_dropped = 0
         self._subscriptions: dict[int, _Subscription] = {}
@@ -625,7 +635,11 @@ class FoxgloveSession:
         while not self.closed:
             frame = self._take()
             if frame is not None:
-                await self._send(frame)
+                # Everything ready goes in one go: a door writes a batch to its socket at once.
+                frames = [frame]
+                while len(frames) < BATCH_FRAMES and (frame := self._take()) is not None:
+                    frames.append(frame)
+                await self._send_many(frames)
                 continue
             self._wake.clear()
             await self._wake.wait()

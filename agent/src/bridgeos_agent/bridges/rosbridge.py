@@ -24,7 +24,17 @@ from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from bridgeos_agent.bridges.fanout import DEFAULT_QUEUE, LINGER_S, Fanouts, Outlet, Publishers
+from bridgeos_agent.bridges.fanout import (
+    BATCH_FRAMES,
+    DEFAULT_QUEUE,
+    LINGER_S,
+    Fanouts,
+    Outlet,
+    Publishers,
+    Send,
+    SendMany,
+    one_by_one,
+)
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, GraphSubscription, Sample
 
 __all__ = ["COMPRESSIONS", "LEVELS", "Rosbridge", "RosbridgeSession"]
@@ -40,8 +50,6 @@ MAX_CALLS_IN_FLIGHT = 64  # service calls one client may have running at once
 MAX_FRAGMENTED = 8  # fragmented messages one client may be sending at once
 DEFAULT_CALL_TIMEOUT = 30.0
 CLIENT_SERVICE_TIMEOUT = 10.0  # how long a ROS caller waits for a client-advertised service to answer
-
-Send = Callable[[str | bytes], Awaitable[None]]
 
 
 def _json_default(value: Any) -> Any:
@@ -148,9 +156,9 @@ class Rosbridge:
         self._services: dict[str, tuple[RosbridgeSession, GraphSubscription]] = {}
         self.rosapi = Rosapi(self)
 
-    def session(self, send: Send) -> RosbridgeSession:
-        """Open a session for a new client whose frames go out through ``send``."""
-        session = RosbridgeSession(self, send)
+    def session(self, send: Send, send_many: SendMany | None = None) -> RosbridgeSession:
+        """Open a session for a new client whose frames go out through ``send`` (or ``send_many``, several at once)."""
+        session = RosbridgeSession(self, send, send_many)
         self.sessions.add(session)
         return session
 
@@ -213,10 +221,11 @@ class Rosbridge:
 class RosbridgeSession:
     """One rosbridge v2 client: parse its frames, run its operations, queue what goes back to it."""
 
-    def __init__(self, bridge: Rosbridge, send: Send) -> None:
+    def __init__(self, bridge: Rosbridge, send: Send, send_many: SendMany | None = None) -> None:
         self.bridge = bridge
         self.graph = bridge.graph
         self._send = send
+        self._send_many = send_many or one_by_one(send)
         self.level = LEVELS["error"]  # rosbridge's default: only errors are reported until set_level
         self._control: deque[str | bytes] = deque()
         self.control_dropped = 0
@@ -505,8 +514,13 @@ class RosbridgeSession:
         while not self.closed:
             frames, delay = self._take()
             if frames:
-                for frame in frames:
-                    await self._send(frame)
+                # Everything ready goes in one go: a door writes a batch to its socket at once.
+                while len(frames) < BATCH_FRAMES:
+                    more, _ = self._take()
+                    if not more:
+                        break
+                    frames += more
+                await self._send_many(frames)
                 continue
             self._wake.clear()
             if delay is None:

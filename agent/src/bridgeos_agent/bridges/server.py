@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import os
 from collections.abc import Sequence
@@ -63,7 +64,7 @@ class _Door:
         return Subprotocol(chosen) if chosen else None
 
     async def _connection(self, websocket: ServerConnection) -> None:
-        session = self.bridge.session(websocket.send)
+        session = self.bridge.session(websocket.send, functools.partial(send_frames, websocket))
         writer = asyncio.get_running_loop().create_task(session.run())
         try:
             async for frame in websocket:
@@ -84,6 +85,26 @@ class _Door:
             self._server = None
         await self.bridge.close()
         await self.graph.close()
+
+
+async def send_frames(websocket: ServerConnection, frames: list[str | bytes]) -> None:
+    """Send several frames with one socket write.
+
+    ``send`` writes each frame on its own (a system call and a send context each): at ten thousand
+    small messages a second that is a third of a door's time. This is the pattern websockets
+    documents for ``send_context``, with the frames' bytes joined before they reach the socket.
+    """
+    if len(frames) == 1:
+        await websocket.send(frames[0])
+        return
+    async with websocket.send_context():
+        protocol = websocket.protocol
+        for frame in frames:
+            if isinstance(frame, str):
+                protocol.send_text(frame.encode())
+            else:
+                protocol.send_binary(frame)
+        websocket.transport.write(b"".join(protocol.data_to_send()))
 
 
 class RosbridgeServer(_Door):
