@@ -52,6 +52,9 @@ class Component(models.Model):
     status = models.CharField(
         max_length=16, choices=COMPONENT_STATUS_CHOICES, default=ComponentStatusName.STOPPED.value
     )
+    message = models.TextField(
+        blank=True, default="", help_text="Why the component is in its status, as the robot said (why it failed)."
+    )
     container = models.JSONField(default=dict, blank=True, help_text="Container id, address, image, ports.")
     resources = models.JSONField(default=dict, blank=True, help_text="cpu, gpu, ram, bandwidth, io.")
     updated_at = models.DateTimeField(auto_now=True)

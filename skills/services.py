@@ -113,9 +113,11 @@ def report_component_status(
     with transaction.atomic():
         component = _component(robot_id, skill_id, component_id)
         component.status = status
+        # The reason goes with the status it explains: a component that runs again has none.
+        component.message = message or ""
         if location:
             component.active_location = location
-        component.save(update_fields=["status", "active_location", "updated_at"])
+        component.save(update_fields=["status", "message", "active_location", "updated_at"])
         record_event(
             f"Component {component_id} is {status}" + (f" on the {location}" if location else ""),
             robot_id=robot_id,
@@ -127,7 +129,11 @@ def report_component_status(
             data={"message": message} if message else None,
         )
         data = {"skill": skill_id, "component": component_id, "status": status}
-        _announce(robot_id, Event.COMPONENT_STATUS, {**data, "location": location} if location else data)
+        if location:
+            data["location"] = location
+        if message:
+            data["message"] = message
+        _announce(robot_id, Event.COMPONENT_STATUS, data)
 
 
 def report_component_location(robot_id: str, skill_id: str, component_id: str, location: str) -> None:
@@ -267,7 +273,8 @@ def request_cloud_component(robot_id: str, skill_id: str, component_id: str, act
             # Its cloud copy is being retired after a move to the robot: only the copy goes.
             orchestration.request_stop(component)
             return
-        component.save(update_fields=["status", "active_location", "updated_at"])
+        component.message = ""
+        component.save(update_fields=["status", "message", "active_location", "updated_at"])
         record_event(
             f"Robot asks the cloud to {action} component {component_id}",
             robot_id=robot_id,

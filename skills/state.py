@@ -26,7 +26,16 @@ from .models import Component, Skill
 # also carries its "skills" (each with its "components"); a robot's owner is its username.
 ROBOT_FIELDS = ("id", "name", "owner", "status", "connected", "last_seen", "ros_master", "ros2", "config")
 SKILL_FIELDS = ("skill_id", "name", "status", "updated_at")
-COMPONENT_FIELDS = ("component_id", "location", "active_location", "status", "container", "resources", "updated_at")
+COMPONENT_FIELDS = (
+    "component_id",
+    "location",
+    "active_location",
+    "status",
+    "message",
+    "container",
+    "resources",
+    "updated_at",
+)
 
 
 def _columns(alias: str, fields: tuple[str, ...]) -> str:
@@ -117,7 +126,7 @@ FROM skills_skill sk WHERE sk.robot_id IN ({{robots}}) AND sk.robot_id = %s AND 
 COMPONENT_JSON_SQL = """
 SELECT json_build_object(
   'robot', sk.robot_id, 'skill', sk.skill_id, 'component_id', co.component_id, 'location', co.location,
-  'active_location', co.active_location, 'status', co.status, 'container', co.container,
+  'active_location', co.active_location, 'status', co.status, 'message', co.message, 'container', co.container,
   'resources', co.resources, 'updated_at', co.updated_at, 'config', sk.config -> 'components' -> co.component_id
 )::text
 FROM skills_component co JOIN skills_skill sk ON sk.id = co.skill_id

@@ -195,8 +195,8 @@ def _on_crash(instance: CloudInstance, seen: Observed | None, now: float) -> str
             "message": f"crashed ({why}); restart {len(crashes)} in {delay:g} s",
         }
         if cloud_is_active(component):
-            component.status = CS.STARTING
-            component.save(update_fields=["status", "updated_at"])
+            component.status, component.message = CS.STARTING, status["message"]
+            component.save(update_fields=["status", "message", "updated_at"])
             announce(robot_id, Event.COMPONENT_STATUS, status)
         record_event(
             f"Cloud copy of {component_id} crashed ({why}); restarting in {delay:g} s",

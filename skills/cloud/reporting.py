@@ -33,13 +33,10 @@ def set_status(instance: CloudInstance, status: str, message: str = "") -> None:
         instance.status, instance.message = status, message
         component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
         if component is not None and cloud_is_active(component):
-            component.status = status
-            component.save(update_fields=["status", "updated_at"])
-            announce(
-                robot_id,
-                Event.COMPONENT_STATUS,
-                {"skill": skill_id, "component": component_id, "status": status, "location": "cloud"},
-            )
+            component.status, component.message = status, message
+            component.save(update_fields=["status", "message", "updated_at"])
+            data = {"skill": skill_id, "component": component_id, "status": status, "location": "cloud"}
+            announce(robot_id, Event.COMPONENT_STATUS, {**data, "message": message} if message else data)
 
 
 def cloud_is_active(component: Component) -> bool:
@@ -62,7 +59,8 @@ def record_running(instance: CloudInstance, endpoint: dict[str, Any]) -> None:
         active = cloud_is_active(component)
         if active:
             component.status = CS.RUNNING
-            fields.append("status")
+            component.message = ""
+            fields += ["status", "message"]
         component.save(update_fields=fields)
         record_event(
             f"Cloud copy of {component_id} runs ({endpoint.get('runtime')} {str(endpoint.get('id', ''))[:12]})",
@@ -103,7 +101,8 @@ def fail(instance: CloudInstance, reason: str, *, logs: list[str] | None = None)
             return
         if cloud_is_active(component):
             component.status = CS.FAILED
-            component.save(update_fields=["status", "updated_at"])
+            component.message = f"its cloud copy failed: {reason}"
+            component.save(update_fields=["status", "message", "updated_at"])
         record_event(
             f"Cloud copy of {component_id} failed: {reason}",
             robot_id=robot_id,

@@ -174,6 +174,7 @@ function renderComponent(sid, component) {
   const url = `${base}/skill/${seg(sid)}/component/${seg(cid)}`;
   const location = el("span", { class: "badge", dataset: { location: key } });
   const status = el("span", { class: "badge", dataset: { status: key } });
+  const reason = el("span", { class: "reason", dataset: { reason: key } });
   const allowed = component.location;
   const where = el(
     "select",
@@ -202,7 +203,7 @@ function renderComponent(sid, component) {
     el("th", { scope: "row" }, el("span", {}, cid), el("span", { class: "sub" }, component.name ?? "")),
     el("td", { dataset: { label: "May run" } }, ALLOWED[allowed] ?? allowed),
     el("td", { dataset: { label: "Location" } }, location),
-    el("td", { dataset: { label: "Status" } }, status),
+    el("td", { dataset: { label: "Status" } }, status, reason),
     el(
       "td",
       { class: "commands" },
@@ -210,7 +211,7 @@ function renderComponent(sid, component) {
       outcome,
     ),
   );
-  componentRows.set(key, { location, status, migrate, outcome, where });
+  componentRows.set(key, { location, status, reason, migrate, outcome, where });
   updateComponent(sid, cid);
   return row;
 }
@@ -225,6 +226,9 @@ function updateComponent(sid, cid) {
   cells.location.className = `badge loc-${active || "none"}`;
   setText(cells.status, component.status);
   cells.status.className = `badge status-${component.status}`;
+  // Why it is in that status (why it failed), as the robot said; nothing once it runs again.
+  setText(cells.reason, component.message || "");
+  cells.status.title = component.message || "";
   const movable = component.location === "either" && Boolean(active);
   cells.migrate.disabled = !movable;
   setText(cells.migrate, movable ? `Migrate to ${active === "robot" ? "cloud" : "robot"}` : "Migrate");
@@ -504,7 +508,10 @@ for (const event of ["component_status", "component_location"]) {
     if (!mine(frame)) return;
     const component = findComponent(frame.data.skill, frame.data.component);
     if (!component) return reload();
-    if (frame.data.status) component.status = frame.data.status;
+    if (frame.data.status) {
+      component.status = frame.data.status;
+      component.message = frame.data.message ?? "";
+    }
     if (frame.data.location) component.active_location = frame.data.location;
     const key = `${frame.data.skill}/${frame.data.component}`;
     if (outcomes.get(key)?.text === "migrating…" && event === "component_location") {

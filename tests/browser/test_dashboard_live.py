@@ -155,3 +155,29 @@ def test_chart_time_labels_do_not_overlap_at_card_widths(browser, width, span_s)
         for left, right in itertools.pairwise(labels):
             gap = (right["x"] - right["width"] / 2) - (left["x"] + left["width"] / 2)
             assert gap >= 4, f"at {width} px, {left['text']!r} and {right['text']!r} are {gap:.1f} px apart"
+
+
+def test_a_failed_components_reason_shows_beside_its_status_and_goes_when_it_runs(browser):
+    from skills.services import report_component_status
+
+    def report(*args, **kwargs) -> None:
+        with ThreadPoolExecutor(1) as pool:
+            pool.submit(report_component_status, *args, **kwargs).result()
+
+    alice = make_user("alice")
+    make_robot(alice, "alice-bot")
+    why = "short of bandwidth and no running movable component frees enough; it must run on the robot"
+    report("alice-bot", "people-detection", "pointcloud", "failed", None, why)
+    browser.login("alice")
+    page = browser.page
+    page.goto(browser.base_url + "/robots/alice-bot/")
+    row = page.locator('tr[data-component="people-detection/pointcloud"]')
+    expect(row.locator("[data-status]")).to_have_text("failed")
+    expect(row.locator("[data-reason]")).to_have_text(why)  # rendered with the page
+    browser.wait_live()
+    report("alice-bot", "people-detection", "pointcloud", "running", "robot")
+    expect(row.locator("[data-status]")).to_have_text("running")  # pushed live
+    expect(row.locator("[data-reason]")).to_have_text("")
+    report("alice-bot", "people-detection", "pointcloud", "failed", None, "the robot's engine refused it")
+    expect(row.locator("[data-reason]")).to_have_text("the robot's engine refused it")
+    assert browser.console_errors() == []

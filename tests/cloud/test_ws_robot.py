@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 
+import httpx
 import pytest
 import websockets
 from asgiref.sync import sync_to_async
@@ -138,6 +139,28 @@ async def test_robot_reports_are_applied_and_acknowledged(daphne_server):
     shutdown = await link.send(Event.SHUTDOWN, {"reason": "battery empty"})
     await link.wait_acked(shutdown)
     assert (await robot_row("r1")).status == "shutdown"
+    await link.close()
+
+
+async def test_a_failed_components_reason_is_kept_with_its_status_and_cleared_when_it_runs(daphne_server):
+    owner, api_token = await make_owner("owner")
+    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    why = "short of bandwidth and no running movable component frees enough; it must run on the robot"
+    failed = {"skill": "people-detection", "component": "pointcloud", "status": "failed", "message": why}
+    await link.wait_acked(await link.send(Event.COMPONENT_STATUS, failed))
+
+    async def info() -> dict:
+        async with httpx.AsyncClient(base_url=daphne_server.url, headers={"Authorization": f"Token {api_token}"}) as c:
+            answer = await c.get("/api/robot/r1/info")
+        assert answer.status_code == 200, answer.text
+        (skill,) = answer.json()["skills"]
+        return {c["component_id"]: c for c in skill["components"]}
+
+    assert ((await info())["pointcloud"]["status"], (await info())["pointcloud"]["message"]) == ("failed", why)
+    assert (await info())["sampler"]["message"] == ""
+    running = {"skill": "people-detection", "component": "pointcloud", "status": "running", "location": "robot"}
+    await link.wait_acked(await link.send(Event.COMPONENT_STATUS, running))
+    assert ((await info())["pointcloud"]["status"], (await info())["pointcloud"]["message"]) == ("running", "")
     await link.close()
 
 
