@@ -69,27 +69,29 @@ image_base() {
 # The use-case nodes live in the agent package; the ros image carries only them (stdlib, rospy, numpy).
 USECASES=../agent/src/bridgeos_agent/usecases
 AGENT_INIT=../agent/src/bridgeos_agent/__init__.py
+AGENT_ROS2GRAPH=../agent/src/bridgeos_agent/ros2graph.py
 
-ros_context() {  # tag, hash: build from docker/ros plus the staged use-case nodes
-    local ctx; ctx=$(mktemp -d /tmp/bridgeos-ros-context.XXXXXX)
-    cp -r "$DOCKER_DIR/ros/." "$ctx/"
-    mkdir -p "$ctx/usecases/bridgeos/bridgeos_agent"
-    cp "$DOCKER_DIR/$AGENT_INIT" "$ctx/usecases/bridgeos/bridgeos_agent/"
+stage_usecases() {  # context dir, command name, module: the use-case nodes and a command starting them
+    mkdir -p "$1/usecases/bridgeos/bridgeos_agent"
+    cp "$DOCKER_DIR/$AGENT_INIT" "$1/usecases/bridgeos/bridgeos_agent/"
     (cd "$DOCKER_DIR/$USECASES/.." && find usecases -type f -name '*.py' -not -path '*/__pycache__/*' \
-        -exec cp --parents {} "$ctx/usecases/bridgeos/bridgeos_agent/" \;)
-    printf '#!/bin/sh\n# Start a bridgeOS use-case node: bridgeos-usecase NODE [ARGS]\n%s\n' \
-        'PYTHONPATH=/opt/bridgeos${PYTHONPATH:+:$PYTHONPATH} exec python3 -m bridgeos_agent.usecases "$@"' \
-        >"$ctx/usecases/bridgeos-usecase"
-    chmod 755 "$ctx/usecases/bridgeos-usecase"
-    local status=0
-    docker_build "$ctx" "$1" "$2" || status=$?
-    rm -rf "$ctx"
-    return "$status"
+        -exec cp --parents {} "$1/usecases/bridgeos/bridgeos_agent/" \;)
+    # What the ROS 2 nodes take from the agent beyond the use cases: rclpy_missing (standard library only).
+    cp "$DOCKER_DIR/$AGENT_ROS2GRAPH" "$1/usecases/bridgeos/bridgeos_agent/"
+    printf '#!/bin/sh\n# Start a bridgeOS use-case node: %s NODE [ARGS]\n%s\n' "$2" \
+        "PYTHONPATH=/opt/bridgeos\${PYTHONPATH:+:\$PYTHONPATH} exec python3 -m $3 \"\$@\"" \
+        >"$1/usecases/$2"
+    chmod 755 "$1/usecases/$2"
+}
+
+ros_context() {  # context dir: docker/ros plus the staged use-case nodes
+    cp -r "$DOCKER_DIR/ros/." "$1/" && stage_usecases "$1" bridgeos-usecase bridgeos_agent.usecases
 }
 
 image_ros() {
-    build_image bridgeos/ros:noetic "$(inputs_hash "$(image_id bridgeos/base:bookworm)" ros "$USECASES" "$AGENT_INIT")" \
-        ros_context
+    build_image bridgeos/ros:noetic \
+        "$(inputs_hash "$(image_id bridgeos/base:bookworm)" ros "$USECASES" "$AGENT_INIT" "$AGENT_ROS2GRAPH")" \
+        staged ros_context
 }
 
 # ROS 2 Jazzy: a venv with the agent's `ros2` extra (the wheels from PyPI), so a pyproject change
@@ -102,11 +104,13 @@ with open(sys.argv[1], "rb") as f:
 }
 ros2_context() {
     cp -r "$DOCKER_DIR/ros2/." "$1/" && ros2_requirements "$DOCKER_DIR/../agent/pyproject.toml" >"$1/requirements-ros2.txt" &&
-        cp "${PIP_CERT:-${SSL_CERT_FILE:-/etc/ssl/certs/ca-certificates.crt}}" "$1/pip-ca.crt"
+        cp "${PIP_CERT:-${SSL_CERT_FILE:-/etc/ssl/certs/ca-certificates.crt}}" "$1/pip-ca.crt" &&
+        stage_usecases "$1" bridgeos-usecase2 bridgeos_agent.usecases.ros2
 }
 image_ros2() {
+    local requirements; requirements=$(ros2_requirements "$DOCKER_DIR/../agent/pyproject.toml")
     build_image bridgeos/ros2:jazzy \
-        "$(inputs_hash "$(image_id bridgeos/base:bookworm)$(ros2_requirements "$DOCKER_DIR/../agent/pyproject.toml")" ros2)" \
+        "$(inputs_hash "$(image_id bridgeos/base:bookworm)$requirements" ros2 "$USECASES" "$AGENT_INIT" "$AGENT_ROS2GRAPH")" \
         staged ros2_context
 }
 

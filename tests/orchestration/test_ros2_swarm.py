@@ -1,5 +1,8 @@
 """A ROS 2 cloud copy on Docker Swarm: in bridgeos/ros2:jazzy, a client of its robot's discovery server.
 
+Both an ad-hoc rclpy talker and a use case's own node (``bridgeos-usecase2 pointcloud``, the command
+the ROS 2 use-case Skills' cloud copies run) run from the image.
+
 The robot authenticates with its ROS 2 graph; the cloud's worker runs the robot's Fast DDS
 discovery server as a host-networked Swarm service of the ROS 2 image, then the copy (an rclpy
 talker, no image named: the ROS 2 image by default) as another; an rclpy listener on the host,
@@ -115,3 +118,57 @@ async def test_a_ros2_cloud_copy_in_the_ros2_image_talks_through_its_robots_disc
 
 async def _is_running(robot_id: str) -> bool:
     return (await server_status(robot_id)) == "running"
+
+
+# Counts the PointCloud2 messages of a topic for a while and prints how many, with the first one's size.
+CLOUD_LISTENER = """
+import sys, time, rclpy
+from sensor_msgs.msg import PointCloud2
+rclpy.init()
+node = rclpy.create_node("cloud_listener")
+heard = []
+node.create_subscription(PointCloud2, sys.argv[1], lambda m: heard.append(m.width * m.height), 10)
+end = time.monotonic() + float(sys.argv[2])
+while time.monotonic() < end:
+    rclpy.spin_once(node, timeout_sec=0.05)
+print(len(heard), heard[:1], flush=True)
+"""
+
+
+async def test_a_ros2_use_case_node_runs_as_a_swarm_cloud_copy_from_the_ros2_image(stack):
+    command = ["bridgeos-usecase2", "pointcloud", "--width", "32", "--height", "24", "--rate", "5"]
+    config = {
+        "skill": "ROS 2 use case on Swarm",
+        "skill_id": "usecase2swarm",
+        "components": {
+            "pointcloud": {"name": "Pointcloud", "location": "cloud", "ros": 2, "cloud": {"command": command}}
+        },
+    }
+    token, _ = await make_robot("r2-usecase", skill=parse_skill_config(config).model_dump(mode="json"))
+    link, success = await login(stack, "r2-usecase", token, GRAPH)
+    address = success["ros2_discovery_server"]
+    namespace = instance_namespace("usecase2swarm", "pointcloud", "cloud")
+    try:
+        await eventually(lambda: _is_running("r2-usecase"), timeout=90, what="the discovery server service running")
+        await link.send(
+            Event.COMPONENT_START, {"skill": "usecase2swarm", "component": "pointcloud", "location": "cloud"}
+        )
+        await eventually(lambda: _copy_running("r2-usecase"), timeout=90, what="the use case's copy running")
+        spec = docker.from_env().services.get(object_name("r2-usecase", "usecase2swarm", "pointcloud"))
+        assert spec.attrs["Spec"]["TaskTemplate"]["ContainerSpec"]["Image"].startswith(IMAGE)
+        for _ in range(3):  # its rclpy may still be starting in the container
+            listener = node(CLOUD_LISTENER, [f"{namespace}/pointcloud", "12"], address)
+            out, _ = await asyncio.to_thread(listener.communicate, timeout=60)
+            count = out.strip().splitlines()[-1].split(" ", 1)[0] if out.strip() else ""
+            assert count.isdigit(), f"the listener failed:\n{out[-2000:]}"
+            if int(count) > 0:
+                assert "[768]" in out  # 32 x 24 points: the node's own cloud, rendered in the container
+                break
+        else:
+            raise AssertionError("no point cloud from the use case's cloud copy reached the host")
+    finally:
+        await link.send(
+            Event.COMPONENT_STOP, {"skill": "usecase2swarm", "component": "pointcloud", "location": "cloud"}
+        )
+        await eventually(lambda: _copy_stopped("r2-usecase"), timeout=60, what="the cloud copy stopped")
+        await link.close()
