@@ -145,8 +145,11 @@ class Ros2Actions:
             handle = await asyncio.wait_for(_settle(loop, sent, f"{name}: the goal"), timeout)
         except TimeoutError:
             # Accepted after all, later: nobody waits for it, so it is cancelled then.
-            sent.add_done_callback(lambda done: _cancel_late(done))
+            sent.add_done_callback(_cancel_late)
             raise BridgeError(f"{name} did not answer the goal within {timeout:g} s") from None
+        except asyncio.CancelledError:  # the client left while the server was deciding
+            sent.add_done_callback(_cancel_late)
+            raise
         if not handle.accepted:
             raise BridgeError(f"{name} rejected the goal")
         return Ros2ActionGoal(loop, name, handle)

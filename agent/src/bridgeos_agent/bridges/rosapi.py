@@ -30,6 +30,7 @@ ROSAPI_SERVICES = (
     "search_param",
     "get_time",
     "message_details",
+    "action_servers",
 )
 
 
@@ -142,3 +143,6 @@ class Rosapi:
 
     async def _message_details(self, args: dict[str, Any]) -> dict[str, Any]:
         return {"typedefs": self.graph.message_details(self._arg(args, "type"))}
+
+    async def _action_servers(self, args: dict[str, Any]) -> dict[str, Any]:
+        return {"action_servers": sorted(await self.graph.action_servers())}

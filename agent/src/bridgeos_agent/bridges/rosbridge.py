@@ -24,6 +24,7 @@ from typing import Any
 
 from bridgeos_agent.bridges.fanout import DEFAULT_QUEUE, LINGER_S, Fanouts, Outlet, Publishers
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, GraphSubscription, Sample
+from bridgeos_agent.bridges.rosactions import RosActions
 from bridgeos_agent.bridges.rosapi import Rosapi
 from bridgeos_agent.bridges.rosbridgewire import (
     COMPRESSIONS,
@@ -32,6 +33,7 @@ from bridgeos_agent.bridges.rosbridgewire import (
     count_field,
     encode_cbor,
     encode_json,
+    fragments,
     name_field,
     text_field,
 )
@@ -183,6 +185,7 @@ class RosbridgeSession:
         self._wake = asyncio.Event()
         self._binary = False  # answer in CBOR once the client speaks CBOR
         self.closed = False
+        self.actions = RosActions(self)
         self._handlers: dict[str, Callable[[dict[str, Any]], Awaitable[None]]] = {
             "advertise": self._advertise,
             "unadvertise": self._unadvertise,
@@ -196,6 +199,7 @@ class RosbridgeSession:
             "set_level": self._set_level,
             "status": self._ignore,
             "fragment": self._fragment,
+            **self.actions.handlers(),
         }
 
     # ------------------------------------------------------------------ frames in
@@ -434,14 +438,19 @@ class RosbridgeSession:
             message["id"] = ident
         self.send(message)
 
-    def send(self, message: dict[str, Any]) -> None:
-        """Queue a protocol message (not a topic's) for the client."""
+    def send(self, message: dict[str, Any], *, compression: str = "none", fragment_size: int | None = None) -> None:
+        """Queue a protocol message (not a topic's) for the client, in CBOR if it asked, in fragments if too long."""
         if self.closed:
             return
-        if len(self._control) >= CONTROL_QUEUE:
-            self._control.popleft()
-            self.control_dropped += 1
-        self._control.append(encode_cbor(message) if self._binary else encode_json(message))
+        frame = encode_cbor(message) if self._binary or compression == "cbor" else encode_json(message)
+        pieces = [frame]
+        if fragment_size and isinstance(frame, str) and len(frame) > fragment_size:
+            pieces = list(fragments(frame, fragment_size, f"{message['op']}:{next(self._ids)}"))
+        for piece in pieces:
+            if len(self._control) >= CONTROL_QUEUE:
+                self._control.popleft()
+                self.control_dropped += 1
+            self._control.append(piece)
         self._wake.set()
 
     def wake(self) -> None:
@@ -511,13 +520,7 @@ class RosbridgeSession:
         size = outlet.fragment_size
         if size is None or not isinstance(frame, str) or len(frame) <= size:
             return [frame]
-        ident = f"{outlet.topic}:{outlet.sent}"
-        total = -(-len(frame) // size)
-        pieces = (frame[i * size : (i + 1) * size] for i in range(total))
-        return [
-            encode_json({"op": "fragment", "id": ident, "data": piece, "num": i, "total": total})
-            for i, piece in enumerate(pieces)
-        ]
+        return list(fragments(frame, size, f"{outlet.topic}:{outlet.sent}"))
 
     # ------------------------------------------------------------------ end
 
@@ -541,4 +544,5 @@ class RosbridgeSession:
         for task in list(self._calls):
             task.cancel()
         await asyncio.gather(*self._calls, return_exceptions=True)
+        await self.actions.close()
         self.bridge.forget(self)

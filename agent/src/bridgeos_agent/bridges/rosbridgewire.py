@@ -78,3 +78,12 @@ def count_field(message: dict[str, Any], key: str, default: int, *, upto: int | 
     if upto is not None and value > upto:
         raise Fail(f"'{key}' must be at most {upto}, not {value!r}")
     return int(value)
+
+
+def fragments(frame: str, size: int, ident: str) -> list[str]:
+    """Split a JSON frame into rosbridge ``fragment`` frames of at most ``size`` characters of it each."""
+    total = -(-len(frame) // size)
+    return [
+        encode_json({"op": "fragment", "id": ident, "data": frame[i * size : (i + 1) * size], "num": i, "total": total})
+        for i in range(total)
+    ]
