@@ -182,7 +182,8 @@ async def set_parameters(graph: BridgeGraph, changes: list[tuple[str, Any]]) -> 
         except (BridgeError, KeyError) as exc:
             stuck = await _restore(graph, done, before)
             told = f"could not restore {', '.join(stuck)}" if stuck else "nothing was changed"
-            raise Fail(f"parameters[{index}] ({name}): {exc}; {told}") from None
+            reason = f"no such parameter {name}" if isinstance(exc, KeyError) else str(exc)  # the graph names it
+            raise Fail(f"parameters[{index}]: {reason}; {told}") from None
         done.append(name)
 
 
