@@ -158,7 +158,11 @@ class Foxglove:
         failing = False
         while True:
             # First the clock, since a client is offered the time capability (or not) in its greeting.
-            await self.clock.check()
+            try:
+                await self.clock.check()
+            except Exception:  # the greeting must not wait for a clock that cannot be read
+                if not failing:
+                    logger.exception("foxglove: cannot tell whether the graph runs on simulated time")
             if not self._clock_known:
                 self._clock_known = True
                 for session in list(self.sessions):

@@ -281,7 +281,7 @@ class ParameterWatch:
             watched = self.watched()
             try:
                 current = await self.graph.get_params(sorted(watched))
-            except BridgeError as exc:
+            except Exception as exc:  # told once; the next poll tries again, and the clients keep their updates
                 if not failing:
                     logger.warning("foxglove: cannot read the subscribed parameters: %s", exc)
                 failing = True
