@@ -360,7 +360,7 @@ def binary(*parts: bytes) -> dict[str, str]:
         ({"text": "{not json"}, "malformed JSON", 2),
         ({"text": '["op"]'}, "must be a JSON object with an 'op'", 2),
         ({"text": '{"op": "fly"}'}, "unknown op 'fly'", 2),
-        ({"text": '{"op": "getParameters", "parameterNames": []}'}, "getParameters is not supported", 2),
+        ({"text": '{"op": "subscribeConnectionGraph"}'}, "subscribeConnectionGraph is not supported", 2),
         ({"text": '{"op": "subscribe"}'}, "'subscriptions' is missing", 2),
         ({"text": '{"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 77777}]}'}, "no channel 77777", 2),
         ({"text": '{"op": "subscribe", "subscriptions": [{"id": -1, "channelId": 1}]}'}, "must be an integer", 2),

@@ -47,6 +47,8 @@ client.on("serviceCallResponse", ({ serviceId, callId, encoding, data }) =>
   emit("serviceCallResponse", { serviceId, callId, encoding, data: base64(data) }),
 );
 client.on("serviceCallFailure", (failure) => emit("serviceCallFailure", { failure }));
+client.on("parameterValues", ({ parameters, id }) => emit("parameterValues", { parameters, id }));
+client.on("time", ({ timestamp }) => emit("time", { timestamp: String(timestamp) }));
 
 const commands = {
   subscribe({ topic }) {
@@ -75,6 +77,18 @@ const commands = {
       encoding,
       data: new DataView(new Uint8Array(Buffer.from(data, "base64")).buffer),
     });
+  },
+  getParameters({ names, id }) {
+    client.getParameters(names, id);
+  },
+  setParameters({ parameters, id }) {
+    client.setParameters(parameters, id);
+  },
+  subscribeParameterUpdates({ names }) {
+    client.subscribeParameterUpdates(names);
+  },
+  unsubscribeParameterUpdates({ names }) {
+    client.unsubscribeParameterUpdates(names);
   },
   raw({ text, binary }) {
     ws.send(text !== undefined ? text : Buffer.from(binary, "base64"));

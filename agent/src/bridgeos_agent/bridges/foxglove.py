@@ -26,8 +26,7 @@ import os
 import struct
 import uuid
 from collections import deque
-from collections.abc import Awaitable, Callable, Iterable
-from dataclasses import dataclass, field
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from bridgeos_agent.bridges.fanout import (
@@ -42,126 +41,47 @@ from bridgeos_agent.bridges.fanout import (
     SharedTail,
     one_by_one,
 )
-from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, Sample
+from bridgeos_agent.bridges.foxgloveclock import CAPABILITY as TIME_CAPABILITY
+from bridgeos_agent.bridges.foxgloveclock import SimClock
+from bridgeos_agent.bridges.foxgloveparams import CAPABILITIES as PARAMETER_CAPABILITIES
+from bridgeos_agent.bridges.foxgloveparams import PARAM_POLL_S, ParameterOps, ParameterWatch
+from bridgeos_agent.bridges.foxglovepublish import ClientChannels
+from bridgeos_agent.bridges.foxglovewire import (
+    CLIENT_MESSAGE_DATA,
+    ERROR,
+    MESSAGE_DATA,
+    SERVICE_CALL_REQUEST,
+    SERVICE_CALL_RESPONSE,
+    SUBPROTOCOLS,
+    TIME,
+    WARNING,
+    Channel,
+    Fail,
+    Service,
+    encode,
+    ident_field,
+    items_field,
+    json_default,
+    select_subprotocol,
+)
+from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, Sample
 
 __all__ = ["SUBPROTOCOLS", "Foxglove", "FoxgloveSession", "select_subprotocol"]
 
 logger = logging.getLogger(__name__)
 
-# The Foxglove app offers foxglove.websocket.v1; the Foxglove SDK's clients offer foxglove.sdk.v1 for
-# the same messages. A door (or the cloud relay) answers with the one the client offered first.
-SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
 CAPABILITIES = ("clientPublish", "services")
 MAX_FRAME_BYTES = 16 << 20  # a frame bigger than this is refused with a status, the connection kept
 CONTROL_QUEUE = 1_000  # JSON answers and statuses waiting for a client that does not read
 MAX_SUBSCRIPTIONS = 1_000  # subscriptions one client may hold
-MAX_CLIENT_CHANNELS = 256  # channels one client may advertise
 MAX_CALLS_IN_FLIGHT = 64  # service calls one client may have running at once
 CALL_TIMEOUT = 30.0
 POLL_S = 2.0  # how often the graph's topics and services are looked at for channels come and gone
-MAX_ID = 2**32 - 1
-
-# Binary opcodes: from the server, and from the client.
-MESSAGE_DATA = 0x01
-SERVICE_CALL_RESPONSE = 0x03
-CLIENT_MESSAGE_DATA = 0x01
-SERVICE_CALL_REQUEST = 0x02
-
-INFO, WARNING, ERROR = 0, 1, 2
 _UNSUPPORTED = (
-    "getParameters",
-    "setParameters",
-    "subscribeParameterUpdates",
-    "unsubscribeParameterUpdates",
     "subscribeConnectionGraph",
     "unsubscribeConnectionGraph",
     "fetchAsset",
 )
-
-
-def select_subprotocol(offered: Iterable[str]) -> str | None:
-    """Return the first subprotocol a client offers that this protocol speaks, or None."""
-    return next((name for name in offered if name in SUBPROTOCOLS), None)
-
-
-def encode(message: dict[str, Any]) -> str:
-    """Encode a JSON protocol message."""
-    return json.dumps(message, separators=(",", ":"))
-
-
-class _Fail(BridgeError):
-    """A client's request that is refused, at a level (error unless said)."""
-
-    def __init__(self, message: str, level: int = ERROR) -> None:
-        super().__init__(message)
-        self.level = level
-
-
-def _ident(value: Any, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_ID:
-        raise _Fail(f"{what} must be an integer in 0..{MAX_ID}, not {value!r}"[:200])
-    return value
-
-
-def _items(message: dict[str, Any], key: str) -> list[Any]:
-    value = message.get(key)
-    if not isinstance(value, list):
-        raise _Fail(f"'{key}' must be an array" if key in message else f"'{key}' is missing")
-    return value
-
-
-@dataclass
-class Channel:
-    """A topic of the graph offered to clients."""
-
-    id: int
-    topic: str
-    type: str
-    encoding: str
-    schema_encoding: str
-    schema: str
-
-    def advertisement(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "topic": self.topic,
-            "encoding": self.encoding,
-            "schemaName": self.type,
-            "schemaEncoding": self.schema_encoding,
-            "schema": self.schema,
-        }
-
-
-@dataclass
-class Service:
-    """A service of the graph offered to clients."""
-
-    id: int
-    name: str
-    type: str
-    encoding: str
-    schema_encoding: str
-    schemas: tuple[str, str]
-
-    def advertisement(self) -> dict[str, Any]:
-        def part(suffix: str, schema: str) -> dict[str, str]:
-            return {
-                "encoding": self.encoding,
-                "schemaName": self.type + suffix,
-                "schemaEncoding": self.schema_encoding,
-                "schema": schema,
-            }
-
-        return {
-            "id": self.id,
-            "name": self.name,
-            "type": self.type,
-            "request": part("_Request", self.schemas[0]),
-            "response": part("_Response", self.schemas[1]),
-            # Older clients read only these; the schema encoding is then taken from supportedEncodings.
-            "requestSchema": self.schemas[0],
-            "responseSchema": self.schemas[1],
-        }
 
 
 class Foxglove:
@@ -177,6 +97,7 @@ class Foxglove:
         linger_s: float = LINGER_S,
         poll_s: float = POLL_S,
         call_timeout: float = CALL_TIMEOUT,
+        param_poll_s: float = PARAM_POLL_S,
     ) -> None:
         self.graph = graph
         self.name = name
@@ -200,11 +121,16 @@ class Foxglove:
         self._poller: asyncio.Task[None] | None = None
         self._poll_now = asyncio.Event()
         self._polled = asyncio.Event()
+        self.parameters = ParameterWatch(graph, param_poll_s)
+        self.clock = SimClock(graph, self._tell_time)
+        self._clock_known = False  # a client is greeted once the graph's clock has been looked at
 
     def session(self, send: Send, send_many: SendMany | None = None) -> FoxgloveSession:
         """Open a session for a new client whose frames go out through ``send`` (or ``send_many``, several at once)."""
         session = FoxgloveSession(self, send, send_many)
         self.sessions.add(session)
+        if self._clock_known:
+            session.greet()
         if self._poller is None:
             self._poller = asyncio.get_running_loop().create_task(self._poll(), name="foxglove-graph-poll")
         self._poll_now.set()
@@ -219,6 +145,8 @@ class Foxglove:
             self._poller = None
         for session in list(self.sessions):
             await session.close()
+        await self.parameters.stop()
+        self.clock.close()
         self.fanouts.close()
 
     def forget(self, session: FoxgloveSession) -> None:
@@ -231,9 +159,23 @@ class Foxglove:
 
     # ------------------------------------------------------------------ channels and services
 
+    def _tell_time(self, nanoseconds: int) -> None:
+        for session in self.sessions:
+            session.tell_time(nanoseconds)
+
     async def _poll(self) -> None:
         failing = False
         while True:
+            # First the clock, since a client is offered the time capability (or not) in its greeting.
+            try:
+                await self.clock.check()
+            except Exception:  # the greeting must not wait for a clock that cannot be read
+                if not failing:
+                    logger.exception("foxglove: cannot tell whether the graph runs on simulated time")
+            if not self._clock_known:
+                self._clock_known = True
+                for session in list(self.sessions):
+                    session.greet()
             try:
                 await self.refresh()
             except BridgeError as exc:  # the master is gone for a while: say so once, keep the channels
@@ -305,14 +247,8 @@ class Foxglove:
             if not isinstance(args, dict):
                 raise BridgeError("a JSON request must be an object with the request's fields")
             answer = await self.graph.call_service(service.name, service.type, args, self.call_timeout)
-            return json.dumps(answer, default=_json_default, separators=(",", ":")).encode()
+            return json.dumps(answer, default=json_default, separators=(",", ":")).encode()
         return await self.graph.call_service_raw(service.name, service.type, payload, self.call_timeout)
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, bytes | bytearray | memoryview):
-        return list(bytes(value))
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
 
 
 class _Subscription(Outlet):
@@ -324,14 +260,6 @@ class _Subscription(Outlet):
         super().__init__(channel.topic, size)
         self.id = ident
         self.channel = channel.id
-
-
-@dataclass
-class _ClientChannel:
-    topic: str
-    encoding: str
-    publisher: GraphPublisher
-    published: int = field(default=0)
 
 
 class FoxgloveSession:
@@ -347,32 +275,51 @@ class FoxgloveSession:
         self._subscriptions: dict[int, _Subscription] = {}
         self._by_channel: dict[int, int] = {}  # channel id -> this client's subscription id of it
         self._order: list[_Subscription] = []
-        self._client_channels: dict[int, _ClientChannel] = {}
         self._calls: set[asyncio.Task[None]] = set()
         self._wake = asyncio.Event()
         self.closed = False
+        self.greeted = False  # nothing goes out before serverInfo, which waits for the graph's clock
+        self.time = False  # offered the time capability: told the simulated time, stamped with it
+        self._time_ns: int | None = None  # the latest time not yet sent
+        self.parameters = ParameterOps(self, bridge.parameters)
+        self.client_channels = ClientChannels(self)
         self._handlers: dict[str, Callable[[dict[str, Any]], Awaitable[None]]] = {
             "subscribe": self._subscribe,
             "unsubscribe": self._unsubscribe,
-            "advertise": self._advertise,
-            "unadvertise": self._unadvertise,
+            **self.client_channels.handlers(),
+            **self.parameters.handlers(),
         }
+
+    def greet(self) -> None:
+        """Send serverInfo and what the server offers now, ahead of anything already answered."""
+        if self.greeted:
+            return
+        bridge = self.bridge
+        self.greeted = True
+        self.time = bridge.clock.active
         metadata = {"ROS_VERSION": str(self.graph.ros_version)}
         if os.environ.get("ROS_DISTRO"):
             metadata["ROS_DISTRO"] = os.environ["ROS_DISTRO"]
-        self.send(
-            {
-                "op": "serverInfo",
-                "name": bridge.name,
-                "capabilities": list(CAPABILITIES),
-                "supportedEncodings": bridge.encodings,
-                "metadata": metadata,
-                "sessionId": bridge.session_id,
-            }
-        )
-        self.send({"op": "advertise", "channels": [c.advertisement() for c in bridge.channels.values()]})
+        info = {
+            "op": "serverInfo",
+            "name": bridge.name,
+            "capabilities": [*CAPABILITIES, *PARAMETER_CAPABILITIES, *([TIME_CAPABILITY] if self.time else [])],
+            "supportedEncodings": bridge.encodings,
+            "metadata": metadata,
+            "sessionId": bridge.session_id,
+        }
+        greeting: list[dict[str, Any]] = [
+            info,
+            {"op": "advertise", "channels": [c.advertisement() for c in bridge.channels.values()]},
+        ]
         if bridge.services:
-            self.send({"op": "advertiseServices", "services": [s.advertisement() for s in bridge.services.values()]})
+            greeting.append(
+                {"op": "advertiseServices", "services": [s.advertisement() for s in bridge.services.values()]}
+            )
+        self._control.extendleft(encode(message) for message in reversed(greeting))
+        if self.time and bridge.clock.now_ns is not None:
+            self.tell_time(bridge.clock.now_ns)
+        self._wake.set()
 
     # ------------------------------------------------------------------ frames in
 
@@ -399,7 +346,8 @@ class FoxgloveSession:
         handler = self._handlers.get(op)
         if handler is None:
             if op in _UNSUPPORTED:
-                self.status(ERROR, f"{op} is not supported: this server's capabilities are {', '.join(CAPABILITIES)}")
+                offered = ", ".join([*CAPABILITIES, *PARAMETER_CAPABILITIES, *([TIME_CAPABILITY] if self.time else [])])
+                self.status(ERROR, f"{op} is not supported: this server's capabilities are {offered}")
             else:
                 self.status(ERROR, f"unknown op {op[:64]!r}")
             return
@@ -411,7 +359,7 @@ class FoxgloveSession:
             return
         opcode = data[0]
         if opcode == CLIENT_MESSAGE_DATA:
-            await self._guard("client message data", self._client_message(data))
+            await self._guard("client message data", self.client_channels.message(data))
         elif opcode == SERVICE_CALL_REQUEST:
             await self._guard("service call request", self._service_call(data))
         else:
@@ -420,7 +368,7 @@ class FoxgloveSession:
     async def _guard(self, what: str, work: Awaitable[None]) -> None:
         try:
             await work
-        except _Fail as exc:
+        except Fail as exc:
             self.status(exc.level, f"{what}: {exc}")
         except BridgeError as exc:
             self.status(ERROR, f"{what}: {exc}")
@@ -429,7 +377,7 @@ class FoxgloveSession:
             self.status(ERROR, f"{what}: internal error: {type(exc).__name__}: {exc}"[:500])
 
     async def _subscribe(self, message: dict[str, Any]) -> None:
-        for item in _items(message, "subscriptions"):
+        for item in items_field(message, "subscriptions"):
             try:
                 await self._subscribe_one(item)
             except BridgeError as exc:
@@ -437,19 +385,19 @@ class FoxgloveSession:
 
     async def _subscribe_one(self, item: Any) -> None:
         if not isinstance(item, dict):
-            raise _Fail("each subscription must be an object with 'id' and 'channelId'")
-        ident = _ident(item.get("id"), "a subscription's 'id'")
-        channel_id = _ident(item.get("channelId"), "'channelId'")
+            raise Fail("each subscription must be an object with 'id' and 'channelId'")
+        ident = ident_field(item.get("id"), "a subscription's 'id'")
+        channel_id = ident_field(item.get("channelId"), "'channelId'")
         if ident in self._subscriptions:
-            raise _Fail(f"subscription id {ident} is already in use")
+            raise Fail(f"subscription id {ident} is already in use")
         channel = self.bridge.channels.get(channel_id)
         if channel is None:
-            raise _Fail(f"no channel {channel_id} is advertised")
+            raise Fail(f"no channel {channel_id} is advertised")
         if channel_id in self._by_channel:
             taken = self._by_channel[channel_id]
-            raise _Fail(f"channel {channel_id} ({channel.topic}) is already subscribed as {taken}")
+            raise Fail(f"channel {channel_id} ({channel.topic}) is already subscribed as {taken}")
         if len(self._subscriptions) >= MAX_SUBSCRIPTIONS:
-            raise _Fail(f"a client may hold at most {MAX_SUBSCRIPTIONS} subscriptions")
+            raise Fail(f"a client may hold at most {MAX_SUBSCRIPTIONS} subscriptions")
         subscription = _Subscription(ident, channel, self.bridge.default_queue)
         self._subscriptions[ident] = subscription
         self._by_channel[channel_id] = ident
@@ -465,14 +413,14 @@ class FoxgloveSession:
         self._order.append(subscription)
 
     async def _unsubscribe(self, message: dict[str, Any]) -> None:
-        for value in _items(message, "subscriptionIds"):
+        for value in items_field(message, "subscriptionIds"):
             try:
-                ident = _ident(value, "a subscription id")
+                ident = ident_field(value, "a subscription id")
                 subscription = self._subscriptions.get(ident)
                 if subscription is None:
-                    raise _Fail(f"no subscription {ident}", WARNING)
+                    raise Fail(f"no subscription {ident}", WARNING)
                 self._drop_subscription(subscription)
-            except _Fail as exc:
+            except Fail as exc:
                 self.status(exc.level, f"unsubscribe: {exc}")
 
     def _drop_subscription(self, subscription: _Subscription) -> None:
@@ -482,74 +430,12 @@ class FoxgloveSession:
             self._order.remove(subscription)
         self.bridge.fanouts.detach(subscription.topic, subscription)
 
-    async def _advertise(self, message: dict[str, Any]) -> None:
-        for item in _items(message, "channels"):
-            try:
-                await self._advertise_one(item)
-            except BridgeError as exc:
-                self.status(getattr(exc, "level", ERROR), f"advertise: {exc}")
-
-    async def _advertise_one(self, item: Any) -> None:
-        if not isinstance(item, dict):
-            raise _Fail("each channel must be an object with 'id', 'topic', 'encoding' and 'schemaName'")
-        ident = _ident(item.get("id"), "a channel's 'id'")
-        topic, encoding, type_ = item.get("topic"), item.get("encoding"), item.get("schemaName")
-        for key, value in (("topic", topic), ("encoding", encoding), ("schemaName", type_)):
-            if not isinstance(value, str) or not value:
-                raise _Fail(f"channel {ident}: '{key}' must be a non-empty string")
-        assert isinstance(topic, str) and isinstance(encoding, str) and isinstance(type_, str)
-        if len(topic) > 256 or any(ch.isspace() for ch in topic):
-            raise _Fail(f"channel {ident}: {topic[:64]!r} is not a ROS topic name")
-        topic = topic if topic.startswith("/") else "/" + topic
-        if encoding not in self.bridge.encodings:
-            raise _Fail(f"channel {ident}: encoding {encoding[:32]!r} is not one of {', '.join(self.bridge.encodings)}")
-        if ident in self._client_channels:
-            raise _Fail(f"channel id {ident} is already advertised by this client")
-        if len(self._client_channels) >= MAX_CLIENT_CHANNELS:
-            raise _Fail(f"a client may advertise at most {MAX_CLIENT_CHANNELS} channels")
-        publisher = await self.bridge.publishers.advertise(topic, type_, (self, ident))
-        self._client_channels[ident] = _ClientChannel(topic, encoding, publisher)
-
-    async def _unadvertise(self, message: dict[str, Any]) -> None:
-        for value in _items(message, "channelIds"):
-            try:
-                ident = _ident(value, "a channel id")
-                channel = self._client_channels.pop(ident, None)
-                if channel is None:
-                    raise _Fail(f"channel {ident} is not advertised by this client", WARNING)
-                self.bridge.publishers.unadvertise(channel.topic, (self, ident))
-            except _Fail as exc:
-                self.status(exc.level, f"unadvertise: {exc}")
-
-    async def _client_message(self, data: bytes) -> None:
-        if len(data) < 5:
-            raise _Fail(f"{len(data)} bytes: too short for a channel id")
-        (ident,) = struct.unpack_from("<I", data, 1)
-        channel = self._client_channels.get(ident)
-        if channel is None:
-            raise _Fail(f"channel {ident} is not advertised by this client")
-        payload = data[5:]
-        if channel.encoding == "json":
-            try:
-                msg = json.loads(payload)
-            except ValueError as exc:
-                raise _Fail(f"{channel.topic}: the message is not JSON: {exc}") from None
-            if not isinstance(msg, dict):
-                raise _Fail(f"{channel.topic}: a JSON message must be an object")
-            channel.publisher.publish(msg)
-        else:
-            try:
-                channel.publisher.publish_raw(payload)
-            except BridgeError as exc:
-                raise _Fail(f"{channel.topic}: {exc}") from None
-        channel.published += 1
-
     async def _service_call(self, data: bytes) -> None:
         if len(data) < 13:
-            raise _Fail(f"{len(data)} bytes: too short for a service call request")
+            raise Fail(f"{len(data)} bytes: too short for a service call request")
         service_id, call_id, size = struct.unpack_from("<III", data, 1)
         if 13 + size > len(data):
-            raise _Fail(f"the encoding's length {size} runs past the frame's end")
+            raise Fail(f"the encoding's length {size} runs past the frame's end")
         encoding = data[13 : 13 + size].decode("utf-8", "replace")
         payload = data[13 + size :]
         service = self.bridge.services.get(service_id)
@@ -582,6 +468,12 @@ class FoxgloveSession:
 
     # ------------------------------------------------------------------ graph changes
 
+    def tell_time(self, nanoseconds: int) -> None:
+        """Send the simulated time (only the latest waits) if this client was offered the time capability."""
+        if self.time and not self.closed:
+            self._time_ns = nanoseconds
+            self._wake.set()
+
     def update(
         self, gone: list[int], added: list[Channel], gone_services: list[int], added_services: list[Service]
     ) -> None:
@@ -590,6 +482,8 @@ class FoxgloveSession:
             ident = self._by_channel.get(channel_id)
             if ident is not None:
                 self._drop_subscription(self._subscriptions[ident])
+        if not self.greeted:  # its greeting will offer what there is then
+            return
         if gone:
             self.send({"op": "unadvertise", "channelIds": gone})
         if added:
@@ -645,8 +539,13 @@ class FoxgloveSession:
             await self._wake.wait()
 
     def _take(self) -> str | bytes | None:
+        if not self.greeted:
+            return None
         if self._control:
             return self._control.popleft()
+        if self._time_ns is not None:
+            frame, self._time_ns = struct.pack("<BQ", TIME, self._time_ns), None
+            return frame
         order = self._order
         for index, subscription in enumerate(order):
             if not subscription.queue:
@@ -655,8 +554,12 @@ class FoxgloveSession:
             # Round robin: the subscription just served goes last, so a busy topic cannot starve the others.
             order.append(order.pop(index))
             subscription.sent += 1
-            seconds, nanoseconds = sample.stamp
-            head = struct.pack("<BIQ", MESSAGE_DATA, subscription.id, seconds * 1_000_000_000 + nanoseconds)
+            if self.time:  # the protocol wants the time frames' source for message stamps too
+                stamp = self.bridge.clock.stamp(sample)
+            else:
+                seconds, nanoseconds = sample.stamp
+                stamp = seconds * 1_000_000_000 + nanoseconds
+            head = struct.pack("<BIQ", MESSAGE_DATA, subscription.id, stamp)
             return SharedTail(head, sample.raw)
         return None
 
@@ -670,10 +573,9 @@ class FoxgloveSession:
         self._wake.set()
         for subscription in list(self._subscriptions.values()):
             self._drop_subscription(subscription)
-        for ident, channel in list(self._client_channels.items()):
-            self.bridge.publishers.unadvertise(channel.topic, (self, ident))
-        self._client_channels.clear()
+        self.client_channels.close()
         for task in list(self._calls):
             task.cancel()
         await asyncio.gather(*self._calls, return_exceptions=True)
+        await self.parameters.close()
         self.bridge.forget(self)

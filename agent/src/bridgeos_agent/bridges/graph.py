@@ -14,6 +14,7 @@ from typing import Any, Protocol
 __all__ = [
     "BridgeError",
     "BridgeGraph",
+    "GraphActionGoal",
     "GraphPublisher",
     "GraphSubscription",
     "Sample",
@@ -73,6 +74,16 @@ class GraphPublisher(Protocol):
         """Stop publishing."""
 
 
+class GraphActionGoal(Protocol):
+    """A goal the bridge sent to an action server of the graph, which accepted it."""
+
+    async def result(self) -> tuple[int, dict[str, Any]]:
+        """Wait for the goal to end; return its status (action_msgs/GoalStatus) and its result as plain data."""
+
+    async def cancel(self, timeout: float) -> None:
+        """Ask the server to cancel the goal; raise BridgeError with its reason when it will not."""
+
+
 class BridgeGraph(Protocol):
     """A robot's ROS graph as the bridges see it."""
 
@@ -119,6 +130,9 @@ class BridgeGraph(Protocol):
     async def get_param(self, name: str) -> Any:
         """Return a parameter's value; raise KeyError when it is not set."""
 
+    async def get_params(self, names: list[str] | None) -> dict[str, Any]:
+        """Return the values of the parameters named (all when None) that are set; raise BridgeError for a bad name."""
+
     async def set_param(self, name: str, value: Any) -> None:
         """Set a parameter."""
 
@@ -127,6 +141,26 @@ class BridgeGraph(Protocol):
 
     async def param_names(self) -> list[str]:
         """Return the names of every parameter."""
+
+    async def simulated_clock(self) -> bool:
+        """Return whether the graph runs on simulated time, told on /clock (rosgraph_msgs/Clock)."""
+
+    async def action_servers(self) -> dict[str, str]:
+        """Return the actions a server serves now, with their types ('' when it cannot be told)."""
+
+    async def send_action_goal(
+        self,
+        name: str,
+        type_: str | None,
+        goal: dict[str, Any],
+        feedback: Callable[[dict[str, Any]], None] | None,
+        timeout: float,
+    ) -> GraphActionGoal:
+        """Send a ROS 2 action goal (its feedback to ``feedback`` on the event loop); return once it is accepted.
+
+        Raise BridgeError with the reason when it is not: no server, a goal that does not fit the
+        type, a rejection, or a graph without ROS 2 actions.
+        """
 
     def now(self) -> tuple[int, int]:
         """Return the graph's time as (seconds, nanoseconds)."""

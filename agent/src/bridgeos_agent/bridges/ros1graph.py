@@ -342,6 +342,19 @@ class Ros1Graph:
             raise BridgeError(str(exc)) from None
         return _plain_xmlrpc(value)
 
+    async def get_params(self, names: list[str] | None) -> dict[str, Any]:
+        """Return the values of the parameters named that are set, or of every one (leaves) when None."""
+        if names is None:
+            return dict(_leaves("", await self.get_param("/")))
+
+        async def one(name: str) -> tuple[str, Any] | None:
+            try:
+                return name, await self.get_param(name)
+            except KeyError:
+                return None
+
+        return dict(found for found in await asyncio.gather(*(one(name) for name in names)) if found is not None)
+
     async def set_param(self, name: str, value: Any) -> None:
         """Set a parameter (XML-RPC has no null: a null value is refused)."""
         if _has_null(value):
@@ -360,6 +373,40 @@ class Ros1Graph:
     async def param_names(self) -> list[str]:
         """Return every parameter's name."""
         return list(await self._master("getParamNames"))
+
+    async def simulated_clock(self) -> bool:
+        """Return whether /use_sim_time is set true: the graph's nodes then follow /clock."""
+        try:
+            return await self.get_param("/use_sim_time") is True
+        except KeyError:
+            return False
+
+    # ------------------------------------------------------------------ actions
+
+    async def action_servers(self) -> dict[str, str]:
+        """Return the actionlib servers (their status, feedback and result topics published), with their types."""
+        topics = await self.published_topics()
+        servers = {}
+        for topic, type_ in topics.items():
+            namespace = topic.removesuffix("/status")
+            result = topics.get(namespace + "/result", "")
+            if type_ == "actionlib_msgs/GoalStatusArray" and namespace + "/feedback" in topics and result:
+                servers[namespace] = result.removesuffix("Result")
+        return servers
+
+    async def send_action_goal(
+        self,
+        name: str,
+        type_: str | None,
+        goal: dict[str, Any],
+        feedback: Callable[[dict[str, Any]], None] | None,
+        timeout: float,
+    ) -> Any:
+        """Refuse: ROS 1 has no actions of ROS 2's form."""
+        raise BridgeError(
+            "this robot's graph is ROS 1, which has no ROS 2 actions: drive an actionlib server "
+            f"through its topics ({name}/goal, {name}/cancel, {name}/feedback, {name}/result) instead"
+        )
 
     def now(self) -> tuple[int, int]:
         """Return the wall-clock time (the bridge does not follow /clock)."""
@@ -393,6 +440,12 @@ def _plain_xmlrpc(value: Any) -> Any:
     if isinstance(value, list):
         return [_plain_xmlrpc(item) for item in value]
     return value
+
+
+def _leaves(prefix: str, value: Any) -> list[tuple[str, Any]]:
+    if not isinstance(value, dict):
+        return [(prefix, value)]
+    return [leaf for key, item in value.items() for leaf in _leaves(f"{prefix}/{key}", item)]
 
 
 def _has_null(value: Any) -> bool:

@@ -19,14 +19,14 @@ from collections.abc import Callable
 from typing import Any
 
 from bridgeos_agent.bridges.graph import BridgeError, Sample, ServiceHandler
+from bridgeos_agent.bridges.ros2actions import Ros2ActionGoal, Ros2Actions
 from bridgeos_agent.bridges.ros2defs import message_definition, service_definitions
+from bridgeos_agent.bridges.ros2params import Ros2Params
 from bridgeos_agent.ros2graph import Ros2Graph, Ros2TypeError, interface_class
 
 __all__ = ["Ros2BridgeGraph", "fill_message", "message_to_plain"]
 
 logger = logging.getLogger(__name__)
-
-PARAM_TIMEOUT = 2.0
 
 
 def ros2_name(type_: str, kind: str = "msg") -> str:
@@ -224,6 +224,8 @@ class Ros2BridgeGraph:
         self._thread.start()
         self.relay = RelayLoop(context, self.relay_node, "rosbridge")
         self._clients: dict[tuple[str, str], Any] = {}
+        self.params = Ros2Params(self._request, self.nodes)
+        self.actions = Ros2Actions(self.node, self.group, loop)
 
     def _spin(self) -> None:
         from rclpy.executors import ExternalShutdownException
@@ -234,6 +236,7 @@ class Ros2BridgeGraph:
     async def close(self) -> None:
         """Leave the graph (the process's Context of it stays for its other users)."""
         self.relay.close()
+        self.actions.close()
         self._executor.shutdown(timeout_sec=2)
         with contextlib.suppress(Exception):
             self.node.destroy_node()
@@ -391,69 +394,42 @@ class Ros2BridgeGraph:
             raise BridgeError(f"cannot serve {name}: {exc}") from None
         return _Handle(srv_type, lambda: self.node.destroy_service(service))
 
-    # ------------------------------------------------------------------ parameters
-
-    @staticmethod
-    def _split(name: str) -> tuple[str, str]:
-        node, sep, parameter = name.partition(":")
-        if not sep or not node.strip("/") or not parameter:
-            raise BridgeError(f"ROS 2 parameters belong to nodes: name one /node_name:parameter_name, not {name!r}")
-        return "/" + node.strip("/"), parameter
-
-    async def _param_call(self, node: str, service: str, request_fill: dict[str, Any]) -> Any:
-        srv_type = f"rcl_interfaces/srv/{service}"
-        cls = _load(srv_type, "srv")
-        request = cls.Request()
-        for key, value in request_fill.items():
-            setattr(request, key, value)
-        snake = "".join("_" + c.lower() if c.isupper() else c for c in service).lstrip("_")
-        return await self._request(f"{node}/{snake}", srv_type, cls, request, PARAM_TIMEOUT)
+    # ------------------------------------------------------------------ parameters and actions
 
     async def get_param(self, name: str) -> Any:
-        """Return a node's parameter."""
-        node, parameter = self._split(name)
-        answer = await self._param_call(node, "GetParameters", {"names": [parameter]})
-        if not answer.values or answer.values[0].type == 0:
-            raise KeyError(name)
-        return _from_parameter_value(answer.values[0])
+        """Return a node's parameter ('/node:parameter')."""
+        return await self.params.get(name)
+
+    async def get_params(self, names: list[str] | None) -> dict[str, Any]:
+        """Return the values of the parameters named (every one when None) that are set."""
+        return await self.params.values(names)
 
     async def set_param(self, name: str, value: Any) -> None:
         """Set a node's parameter (the node may refuse: its reason is passed on)."""
-        from rcl_interfaces.msg import Parameter
-
-        node, parameter = self._split(name)
-        answer = await self._param_call(
-            node, "SetParameters", {"parameters": [Parameter(name=parameter, value=_to_parameter_value(value))]}
-        )
-        result = answer.results[0]
-        if not result.successful:
-            raise BridgeError(f"{name}: {node} refused: {result.reason}")
+        await self.params.set(name, value)
 
     async def delete_param(self, name: str) -> None:
         """Undeclare a node's parameter (nodes that allow it only)."""
-        from rcl_interfaces.msg import Parameter, ParameterValue
-
-        await self.get_param(name)
-        node, parameter = self._split(name)
-        answer = await self._param_call(
-            node, "SetParameters", {"parameters": [Parameter(name=parameter, value=ParameterValue(type=0))]}
-        )
-        result = answer.results[0]
-        if not result.successful:
-            raise BridgeError(f"{name}: {node} refused to delete it: {result.reason}")
+        await self.params.delete(name)
 
     async def param_names(self) -> list[str]:
         """Return '/node:parameter' for every parameter of every node that answers."""
+        return await self.params.names()
 
-        async def of(node: str) -> list[str]:
-            try:
-                answer = await self._param_call(node, "ListParameters", {"depth": 0})
-            except BridgeError:
-                return []
-            return [f"{node}:{parameter}" for parameter in answer.result.names]
+    async def action_servers(self) -> dict[str, str]:
+        """Return the actions a server serves now, with their types."""
+        return self.actions.servers()
 
-        nodes = [n for n in await self.nodes() if not n.endswith("_relay")]
-        return [name for names in await asyncio.gather(*(of(n) for n in nodes)) for name in names]
+    async def send_action_goal(
+        self,
+        name: str,
+        type_: str | None,
+        goal: dict[str, Any],
+        feedback: Callable[[dict[str, Any]], None] | None,
+        timeout: float,
+    ) -> Ros2ActionGoal:
+        """Send a goal to an action server of the graph; return once the server accepted it."""
+        return await self.actions.send_goal(name, type_, goal, feedback, timeout)
 
     # ------------------------------------------------------------------ time and types
 
@@ -464,6 +440,11 @@ class Ros2BridgeGraph:
     def service_schemas(self, type_: str) -> tuple[str, str]:
         """Return the full ros2msg definitions of a service's request and response."""
         return service_definitions(ros2_name(type_, "srv"))
+
+    async def simulated_clock(self) -> bool:
+        """Return whether someone publishes /clock (rosgraph_msgs/Clock): the graph runs on simulated time."""
+        types = dict(self.node.get_topic_names_and_types()).get("/clock") or []
+        return "rosgraph_msgs/msg/Clock" in types and bool(self.node.count_publishers("/clock"))
 
     def now(self) -> tuple[int, int]:
         """Return the bridge node's clock."""
@@ -527,44 +508,3 @@ def _deserialize(raw: bytes, cls: Any, type_: str) -> Any:
 
 async def _call(handler: ServiceHandler, request: dict[str, Any]) -> dict[str, Any]:
     return await handler(request)
-
-
-def _from_parameter_value(value: Any) -> Any:
-    kinds = {
-        1: "bool_value",
-        2: "integer_value",
-        3: "double_value",
-        4: "string_value",
-        5: "byte_array_value",
-        6: "bool_array_value",
-        7: "integer_array_value",
-        8: "double_array_value",
-        9: "string_array_value",
-    }
-    return _plain(getattr(value, kinds[value.type]))
-
-
-def _to_parameter_value(value: Any) -> Any:
-    from rcl_interfaces.msg import ParameterValue
-
-    if isinstance(value, bool):
-        return ParameterValue(type=1, bool_value=value)
-    if isinstance(value, int):
-        return ParameterValue(type=2, integer_value=value)
-    if isinstance(value, float):
-        return ParameterValue(type=3, double_value=value)
-    if isinstance(value, str):
-        return ParameterValue(type=4, string_value=value)
-    if isinstance(value, list) and value:
-        if all(isinstance(v, bool) for v in value):
-            return ParameterValue(type=6, bool_array_value=value)
-        if all(isinstance(v, int) and not isinstance(v, bool) for v in value):
-            return ParameterValue(type=7, integer_array_value=value)
-        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-            return ParameterValue(type=8, double_array_value=[float(v) for v in value])
-        if all(isinstance(v, str) for v in value):
-            return ParameterValue(type=9, string_array_value=value)
-    raise BridgeError(
-        "a ROS 2 parameter holds a boolean, an integer, a double, a string or a non-empty list of one of them, "
-        f"not {value!r}"[:300]
-    )

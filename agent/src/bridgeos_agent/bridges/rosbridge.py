@@ -13,12 +13,10 @@ only ever loses its own messages and never holds up the robot or another client.
 from __future__ import annotations
 
 import asyncio
-import base64
 import contextlib
 import itertools
 import json
 import logging
-import math
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -36,13 +34,24 @@ from bridgeos_agent.bridges.fanout import (
     one_by_one,
 )
 from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph, GraphPublisher, GraphSubscription, Sample
+from bridgeos_agent.bridges.rosactions import RosActions
+from bridgeos_agent.bridges.rosapi import Rosapi
+from bridgeos_agent.bridges.rosbridgewire import (
+    COMPRESSIONS,
+    LEVELS,
+    Fail,
+    count_field,
+    encode_cbor,
+    encode_json,
+    fragments,
+    name_field,
+    text_field,
+)
 
-__all__ = ["COMPRESSIONS", "LEVELS", "Rosbridge", "RosbridgeSession"]
+__all__ = ["COMPRESSIONS", "LEVELS", "Rosapi", "Rosbridge", "RosbridgeSession", "encode_cbor", "encode_json"]
 
 logger = logging.getLogger(__name__)
 
-LEVELS = {"info": 0, "warning": 1, "error": 2, "none": 3}
-COMPRESSIONS = ("none", "cbor", "cbor-raw")
 MAX_FRAME_BYTES = 16 << 20  # a frame bigger than this is refused with a status, the connection kept
 MAX_QUEUE = 10_000
 CONTROL_QUEUE = 1_000  # answers and statuses waiting for a client that does not read
@@ -50,61 +59,6 @@ MAX_CALLS_IN_FLIGHT = 64  # service calls one client may have running at once
 MAX_FRAGMENTED = 8  # fragmented messages one client may be sending at once
 DEFAULT_CALL_TIMEOUT = 30.0
 CLIENT_SERVICE_TIMEOUT = 10.0  # how long a ROS caller waits for a client-advertised service to answer
-
-
-def _json_default(value: Any) -> Any:
-    # rosbridge sends uint8[]/char[] as base64 in JSON; numeric arrays arrive as lists already.
-    if isinstance(value, bytes | bytearray | memoryview):
-        return base64.b64encode(value).decode()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
-def encode_json(message: dict[str, Any]) -> str:
-    """Encode a protocol message as rosbridge's JSON."""
-    return json.dumps(message, default=_json_default, separators=(",", ":"))
-
-
-def encode_cbor(message: dict[str, Any]) -> bytes:
-    """Encode a protocol message as CBOR (byte arrays stay bytes)."""
-    import cbor2
-
-    return cbor2.dumps(message)
-
-
-class _Fail(BridgeError):
-    """A client's request that is refused, at a level (error unless said)."""
-
-    def __init__(self, message: str, level: str = "error") -> None:
-        super().__init__(message)
-        self.level = level
-
-
-def _text(message: dict[str, Any], key: str, *, required: bool = True) -> str | None:
-    value = message.get(key)
-    if value is None and not required:
-        return None
-    if not isinstance(value, str) or not value:
-        raise _Fail(f"'{key}' must be a non-empty string" if key in message else f"'{key}' is missing")
-    return value
-
-
-def _name(message: dict[str, Any], key: str) -> str:
-    value = _text(message, key)
-    assert value is not None
-    if len(value) > 256 or any(ch.isspace() for ch in value):
-        raise _Fail(f"'{key}' {value[:64]!r} is not a ROS name")
-    return value if value.startswith("/") else "/" + value
-
-
-def _count(message: dict[str, Any], key: str, default: int, *, upto: int | None = None) -> int:
-    value = message.get(key, default)
-    if value is None:
-        return default
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
-        raise _Fail(f"'{key}' must be a number >= 0, not {value!r}")
-    if upto is not None and value > upto:
-        raise _Fail(f"'{key}' must be at most {upto}, not {value!r}")
-    return int(value)
 
 
 class _Outlet(Outlet):
@@ -185,11 +139,11 @@ class Rosbridge:
         if entry is not None:
             if entry[0] is session:
                 return
-            raise _Fail(f"{name} is already advertised by another client")
+            raise Fail(f"{name} is already advertised by another client")
         if name.startswith("/rosapi/"):
-            raise _Fail(f"{name} is served by the bridge itself")
+            raise Fail(f"{name} is served by the bridge itself")
         if name in await self.graph.services():
-            raise _Fail(f"{name} is already served in the ROS graph")
+            raise Fail(f"{name} is already served in the ROS graph")
 
         async def handle(args: dict[str, Any]) -> dict[str, Any]:
             return await session.serve_call(name, args, self.client_service_timeout)
@@ -240,6 +194,7 @@ class RosbridgeSession:
         self._wake = asyncio.Event()
         self._binary = False  # answer in CBOR once the client speaks CBOR
         self.closed = False
+        self.actions = RosActions(self)
         self._handlers: dict[str, Callable[[dict[str, Any]], Awaitable[None]]] = {
             "advertise": self._advertise,
             "unadvertise": self._unadvertise,
@@ -253,6 +208,7 @@ class RosbridgeSession:
             "set_level": self._set_level,
             "status": self._ignore,
             "fragment": self._fragment,
+            **self.actions.handlers(),
         }
 
     # ------------------------------------------------------------------ frames in
@@ -289,7 +245,7 @@ class RosbridgeSession:
             return
         try:
             await handler(message)
-        except _Fail as exc:
+        except Fail as exc:
             self.status(exc.level, f"{op}: {exc}", ident)
         except BridgeError as exc:
             self.status("error", f"{op}: {exc}", ident)
@@ -303,19 +259,19 @@ class RosbridgeSession:
     async def _fragment(self, message: dict[str, Any]) -> None:
         ident, data, num, total = (message.get(k) for k in ("id", "data", "num", "total"))
         if not isinstance(ident, str | int) or not isinstance(data, str):
-            raise _Fail("a fragment needs an 'id' and a 'data' string")
+            raise Fail("a fragment needs an 'id' and a 'data' string")
         if not isinstance(num, int) or not isinstance(total, int) or not 0 <= num < total <= 100_000:
-            raise _Fail("a fragment needs 0 <= num < total")
+            raise Fail("a fragment needs 0 <= num < total")
         key = str(ident)
         parts = self._fragments.get(key)
         if parts is None:
             if len(self._fragments) >= MAX_FRAGMENTED:
-                raise _Fail(f"more than {MAX_FRAGMENTED} fragmented messages at once")
+                raise Fail(f"more than {MAX_FRAGMENTED} fragmented messages at once")
             parts = self._fragments[key] = {}
         parts[num] = data
         if sum(len(part) for part in parts.values()) > self.bridge.max_frame_bytes:
             del self._fragments[key]
-            raise _Fail(f"fragmented message {key} exceeds {self.bridge.max_frame_bytes} bytes")
+            raise Fail(f"fragmented message {key} exceeds {self.bridge.max_frame_bytes} bytes")
         if len(parts) == total:
             del self._fragments[key]
             await self.receive("".join(parts[i] for i in range(total)))
@@ -323,53 +279,53 @@ class RosbridgeSession:
     async def _set_level(self, message: dict[str, Any]) -> None:
         level = message.get("level")
         if level not in LEVELS:
-            raise _Fail(f"level must be one of {', '.join(LEVELS)}, not {level!r}")
+            raise Fail(f"level must be one of {', '.join(LEVELS)}, not {level!r}")
         self.level = LEVELS[level]
 
     async def _advertise(self, message: dict[str, Any]) -> None:
-        topic, type_ = _name(message, "topic"), _text(message, "type")
+        topic, type_ = name_field(message, "topic"), text_field(message, "type")
         assert type_ is not None
         publisher = self._advertised.get(topic)
         if publisher is not None:
             if self.graph.normalize_type(type_) != publisher.type:
-                raise _Fail(f"{topic} is advertised with type {publisher.type}, not {type_}")
+                raise Fail(f"{topic} is advertised with type {publisher.type}, not {type_}")
             return
         self._advertised[topic] = await self.bridge.publishers.advertise(topic, type_, self)
 
     async def _unadvertise(self, message: dict[str, Any]) -> None:
-        topic = _name(message, "topic")
+        topic = name_field(message, "topic")
         if self._advertised.pop(topic, None) is None:
-            raise _Fail(f"{topic} is not advertised by this client", "warning")
+            raise Fail(f"{topic} is not advertised by this client", "warning")
         self.bridge.publishers.unadvertise(topic, self)
 
     async def _publish(self, message: dict[str, Any]) -> None:
-        topic = _name(message, "topic")
+        topic = name_field(message, "topic")
         msg = message.get("msg", {})
         if not isinstance(msg, dict):
-            raise _Fail("'msg' must be an object")
+            raise Fail("'msg' must be an object")
         publisher = self._advertised.get(topic)
         if publisher is None:
             # rosbridge publishes on an existing topic without an advertise, with the topic's type.
             known = (await self.graph.topics()).get(topic)
             if known is None:
-                raise _Fail(f"{topic} does not exist: advertise it with a type first")
+                raise Fail(f"{topic} does not exist: advertise it with a type first")
             publisher = self._advertised[topic] = await self.bridge.publishers.advertise(topic, known, self)
         publisher.publish(msg)
 
     async def _subscribe(self, message: dict[str, Any]) -> None:
-        topic = _name(message, "topic")
-        type_ = _text(message, "type", required=False)
+        topic = name_field(message, "topic")
+        type_ = text_field(message, "type", required=False)
         compression = message.get("compression") or "none"
         if compression not in COMPRESSIONS:
-            raise _Fail(f"compression {compression!r} is not supported: use one of {', '.join(COMPRESSIONS)}")
+            raise Fail(f"compression {compression!r} is not supported: use one of {', '.join(COMPRESSIONS)}")
         options = {
-            "throttle_rate": _count(message, "throttle_rate", 0, upto=3_600_000),
-            "queue_length": _count(message, "queue_length", 0, upto=MAX_QUEUE),
-            "fragment_size": _count(message, "fragment_size", 0) or None,
+            "throttle_rate": count_field(message, "throttle_rate", 0, upto=3_600_000),
+            "queue_length": count_field(message, "queue_length", 0, upto=MAX_QUEUE),
+            "fragment_size": count_field(message, "fragment_size", 0) or None,
             "compression": compression,
         }
         if options["fragment_size"] is not None and compression != "none":
-            raise _Fail("fragment_size applies to JSON only (compression 'none')")
+            raise Fail("fragment_size applies to JSON only (compression 'none')")
         ident = message.get("id")
         key = str(ident) if isinstance(ident, str | int) else f"subscribe:{topic}"
         outlet = self._outlets.get(topic)
@@ -379,16 +335,16 @@ class RosbridgeSession:
             self._outlets[topic] = outlet
             self._order.append(outlet)
         elif type_ is not None and self.graph.normalize_type(type_) != outlet.type:
-            raise _Fail(f"{topic} is of type {outlet.type}, not {type_}")
+            raise Fail(f"{topic} is of type {outlet.type}, not {type_}")
         outlet.options.pop(key, None)
         outlet.options[key] = options
         outlet.configure(self.bridge.default_queue)
 
     async def _unsubscribe(self, message: dict[str, Any]) -> None:
-        topic = _name(message, "topic")
+        topic = name_field(message, "topic")
         outlet = self._outlets.get(topic)
         if outlet is None:
-            raise _Fail(f"not subscribed to {topic}", "warning")
+            raise Fail(f"not subscribed to {topic}", "warning")
         ident = message.get("id")
         if isinstance(ident, str | int) and str(ident) in outlet.options:
             del outlet.options[str(ident)]
@@ -406,18 +362,18 @@ class RosbridgeSession:
         self.bridge.fanouts.detach(outlet.topic, outlet)
 
     async def _call_service(self, message: dict[str, Any]) -> None:
-        name = _name(message, "service")
-        type_ = _text(message, "type", required=False)
+        name = name_field(message, "service")
+        type_ = text_field(message, "type", required=False)
         args = message.get("args", {})
         if isinstance(args, list) and not args:
             args = {}
         if not isinstance(args, dict):
-            raise _Fail("'args' must be an object with the request's fields")
+            raise Fail("'args' must be an object with the request's fields")
         timeout = message.get("timeout") or DEFAULT_CALL_TIMEOUT
         if isinstance(timeout, bool) or not isinstance(timeout, int | float) or not 0 < timeout <= 3600:
-            raise _Fail(f"'timeout' must be a number of seconds in (0, 3600], not {timeout!r}")
+            raise Fail(f"'timeout' must be a number of seconds in (0, 3600], not {timeout!r}")
         if len(self._calls) >= MAX_CALLS_IN_FLIGHT:
-            raise _Fail(f"{MAX_CALLS_IN_FLIGHT} service calls are already running for this client")
+            raise Fail(f"{MAX_CALLS_IN_FLIGHT} service calls are already running for this client")
         task = asyncio.get_running_loop().create_task(self._run_call(name, type_, args, float(timeout), message))
         self._calls.add(task)
         task.add_done_callback(self._calls.discard)
@@ -442,7 +398,7 @@ class RosbridgeSession:
         ident = message.get("id")
         future = self._waiting.pop(str(ident), None) if isinstance(ident, str | int) else None
         if future is None:
-            raise _Fail(f"no call is waiting for a response with id {ident!r}")
+            raise Fail(f"no call is waiting for a response with id {ident!r}")
         if future.done():
             return
         values = message.get("values", {})
@@ -454,15 +410,15 @@ class RosbridgeSession:
             future.set_result(values)
 
     async def _advertise_service(self, message: dict[str, Any]) -> None:
-        name, type_ = _name(message, "service"), _text(message, "type")
+        name, type_ = name_field(message, "service"), text_field(message, "type")
         assert type_ is not None
         await self.bridge.advertise_service(name, type_, self)
         self._services.add(name)
 
     async def _unadvertise_service(self, message: dict[str, Any]) -> None:
-        name = _name(message, "service")
+        name = name_field(message, "service")
         if not self.bridge.unadvertise_service(name, self):
-            raise _Fail(f"{name} is not advertised by this client", "warning")
+            raise Fail(f"{name} is not advertised by this client", "warning")
         self._services.discard(name)
 
     async def serve_call(self, name: str, args: dict[str, Any], timeout: float) -> dict[str, Any]:
@@ -491,14 +447,19 @@ class RosbridgeSession:
             message["id"] = ident
         self.send(message)
 
-    def send(self, message: dict[str, Any]) -> None:
-        """Queue a protocol message (not a topic's) for the client."""
+    def send(self, message: dict[str, Any], *, compression: str = "none", fragment_size: int | None = None) -> None:
+        """Queue a protocol message (not a topic's) for the client, in CBOR if it asked, in fragments if too long."""
         if self.closed:
             return
-        if len(self._control) >= CONTROL_QUEUE:
-            self._control.popleft()
-            self.control_dropped += 1
-        self._control.append(encode_cbor(message) if self._binary else encode_json(message))
+        frame = encode_cbor(message) if self._binary or compression == "cbor" else encode_json(message)
+        pieces = [frame]
+        if fragment_size and isinstance(frame, str) and len(frame) > fragment_size:
+            pieces = list(fragments(frame, fragment_size, f"{message['op']}:{next(self._ids)}"))
+        for piece in pieces:
+            if len(self._control) >= CONTROL_QUEUE:
+                self._control.popleft()
+                self.control_dropped += 1
+            self._control.append(piece)
         self._wake.set()
 
     def wake(self) -> None:
@@ -573,13 +534,7 @@ class RosbridgeSession:
         size = outlet.fragment_size
         if size is None or not isinstance(frame, str) or len(frame) <= size:
             return [frame]
-        ident = f"{outlet.topic}:{outlet.sent}"
-        total = -(-len(frame) // size)
-        pieces = (frame[i * size : (i + 1) * size] for i in range(total))
-        return [
-            encode_json({"op": "fragment", "id": ident, "data": piece, "num": i, "total": total})
-            for i, piece in enumerate(pieces)
-        ]
+        return list(fragments(frame, size, f"{outlet.topic}:{outlet.sent}"))
 
     # ------------------------------------------------------------------ end
 
@@ -603,134 +558,5 @@ class RosbridgeSession:
         for task in list(self._calls):
             task.cancel()
         await asyncio.gather(*self._calls, return_exceptions=True)
+        await self.actions.close()
         self.bridge.forget(self)
-
-
-ROSAPI_SERVICES = (
-    "topics",
-    "topic_type",
-    "topics_for_type",
-    "services",
-    "service_type",
-    "services_for_type",
-    "nodes",
-    "get_param",
-    "set_param",
-    "delete_param",
-    "has_param",
-    "get_param_names",
-    "search_param",
-    "get_time",
-    "message_details",
-)
-
-
-class Rosapi:
-    """rosapi's services, answered by the bridge from the graph (``/rosapi/<name>``)."""
-
-    def __init__(self, bridge: Rosbridge) -> None:
-        self.bridge = bridge
-        self.graph = bridge.graph
-
-    def names(self) -> list[str]:
-        """Return the full names of the rosapi services."""
-        return [f"/rosapi/{name}" for name in ROSAPI_SERVICES]
-
-    async def call(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
-        """Answer one rosapi call."""
-        short = name.removeprefix("/rosapi/")
-        if short not in ROSAPI_SERVICES:
-            raise BridgeError(f"{name} is not a rosapi service this bridge serves ({', '.join(ROSAPI_SERVICES)})")
-        method: Callable[[dict[str, Any]], Awaitable[dict[str, Any]]] = getattr(self, "_" + short)
-        return await method(args)
-
-    @staticmethod
-    def _arg(args: dict[str, Any], key: str, default: str | None = None) -> str:
-        value = args.get(key, default)
-        if not isinstance(value, str) or (default is None and not value):
-            raise BridgeError(f"'{key}' must be a non-empty string")
-        return value
-
-    async def _all_services(self) -> dict[str, str]:
-        services = dict(await self.graph.services())
-        for name in self.names():
-            services.setdefault(name, f"rosapi/{name.rsplit('/', 1)[1]}")
-        return services
-
-    async def _topics(self, args: dict[str, Any]) -> dict[str, Any]:
-        topics = sorted((await self.graph.topics()).items())
-        return {"topics": [t for t, _ in topics], "types": [ty for _, ty in topics]}
-
-    async def _topic_type(self, args: dict[str, Any]) -> dict[str, Any]:
-        topic = self._arg(args, "topic")
-        return {"type": (await self.graph.topics()).get(topic if topic.startswith("/") else "/" + topic, "")}
-
-    async def _topics_for_type(self, args: dict[str, Any]) -> dict[str, Any]:
-        wanted = self.graph.normalize_type(self._arg(args, "type"))
-        return {"topics": sorted(t for t, ty in (await self.graph.topics()).items() if ty == wanted)}
-
-    async def _services(self, args: dict[str, Any]) -> dict[str, Any]:
-        return {"services": sorted(await self._all_services())}
-
-    async def _service_type(self, args: dict[str, Any]) -> dict[str, Any]:
-        service = self._arg(args, "service")
-        return {"type": (await self._all_services()).get(service if service.startswith("/") else "/" + service, "")}
-
-    async def _services_for_type(self, args: dict[str, Any]) -> dict[str, Any]:
-        wanted = self._arg(args, "type")
-        return {"services": sorted(s for s, ty in (await self._all_services()).items() if ty == wanted)}
-
-    async def _nodes(self, args: dict[str, Any]) -> dict[str, Any]:
-        return {"nodes": sorted(await self.graph.nodes())}
-
-    async def _get_param(self, args: dict[str, Any]) -> dict[str, Any]:
-        name = self._arg(args, "name")
-        default = args.get("default", args.get("default_value", ""))
-        try:
-            value = await self.graph.get_param(name)
-        except KeyError:
-            if default:
-                return {"value": default, "successful": True, "reason": ""}
-            return {"value": "null", "successful": False, "reason": f"parameter {name} is not set"}
-        return {"value": json.dumps(value, default=_json_default), "successful": True, "reason": ""}
-
-    async def _set_param(self, args: dict[str, Any]) -> dict[str, Any]:
-        name = self._arg(args, "name")
-        text = self._arg(args, "value", "")
-        try:
-            value = json.loads(text)
-        except ValueError:
-            raise BridgeError(f"set_param {name}: 'value' must be JSON text, not {text[:64]!r}") from None
-        await self.graph.set_param(name, value)
-        return {"successful": True, "reason": ""}
-
-    async def _delete_param(self, args: dict[str, Any]) -> dict[str, Any]:
-        name = self._arg(args, "name")
-        try:
-            await self.graph.delete_param(name)
-        except KeyError:
-            return {"successful": False, "reason": f"parameter {name} is not set"}
-        return {"successful": True, "reason": ""}
-
-    async def _has_param(self, args: dict[str, Any]) -> dict[str, Any]:
-        name = self._arg(args, "name")
-        try:
-            await self.graph.get_param(name)
-        except KeyError:
-            return {"exists": False}
-        return {"exists": True}
-
-    async def _get_param_names(self, args: dict[str, Any]) -> dict[str, Any]:
-        return {"names": sorted(await self.graph.param_names())}
-
-    async def _search_param(self, args: dict[str, Any]) -> dict[str, Any]:
-        name = self._arg(args, "name")
-        found = [p for p in await self.graph.param_names() if p.rstrip("/").endswith("/" + name.strip("/"))]
-        return {"global_name": found[0] if found else ""}
-
-    async def _get_time(self, args: dict[str, Any]) -> dict[str, Any]:
-        secs, nsecs = self.graph.now()
-        return {"time": self.graph.time_message(secs, nsecs)}
-
-    async def _message_details(self, args: dict[str, Any]) -> dict[str, Any]:
-        return {"typedefs": self.graph.message_details(self._arg(args, "type"))}
