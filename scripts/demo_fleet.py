@@ -117,6 +117,12 @@ def main() -> int:
                     "2",
                     "--sim-ram",
                     "2048",
+                    # A link that holds what the demo's Skills must run on the robot even at its low point
+                    # (two people detections' point clouds, 40 Mbit/s each), and swings enough to move others.
+                    "--sim-bandwidth",
+                    "300",
+                    "--sim-bandwidth-min",
+                    "100",
                     "--stop-components-on-exit",
                     "--metrics",
                     metrics_address,
@@ -140,10 +146,11 @@ def main() -> int:
                 pass  # the cloud is still starting
             time.sleep(0.25)
         for skill in robot.get("skills", [robot["skill"]]):
-            url = f"{base}/{robot['id']}/skill/{skill}/start?wait=5"
+            # A robot busy starting its other Skills' components answers late on a loaded machine: wait.
+            url = f"{base}/{robot['id']}/skill/{skill}/start?wait=30"
             for attempt in range(5):
                 try:
-                    urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers), timeout=15)
+                    urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers), timeout=40)
                     break
                 except OSError as exc:
                     # "connected" may be left over from a cloud that was killed: the agent's new

@@ -132,6 +132,26 @@ def test_run_rejects_a_bad_simulated_resource(
     assert "--sim-cpu" in capsys.readouterr().err
 
 
+def test_the_simulated_links_low_point_is_a_setting_at_most_its_peak(
+    clean_env: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from bridgeos_agent.agent import settings_from_args
+    from bridgeos_agent.cli import build_parser
+
+    def simulated(*options: str):
+        return settings_from_args(build_parser().parse_args(["run", "--simulate", *options])).simulated
+
+    assert (simulated().bandwidth, simulated().bandwidth_min) == (100.0, 5.0)  # 5 % of the peak by default
+    assert simulated("--sim-bandwidth", "300").bandwidth_min == 15.0
+    low = simulated("--sim-bandwidth", "300", "--sim-bandwidth-min", "120")
+    assert (low.bandwidth_min, min(low.bandwidth_now(t) for t in range(0, 120))) == (120.0, pytest.approx(120, abs=1))
+    run = ["run", "--master", "ws://127.0.0.1:1", "--robot", "r", "--token", "t", "--simulate"]
+    assert main([*run, "--sim-bandwidth", "50", "--sim-bandwidth-min", "60"]) == 2
+    assert "--sim-bandwidth-min 60 is above the peak --sim-bandwidth 50" in capsys.readouterr().err
+    assert main([*run, "--sim-bandwidth-min", "0"]) == 2
+    assert "--sim-bandwidth-min" in capsys.readouterr().err
+
+
 def test_run_rejects_unknown_runtime(clean_env: pytest.MonkeyPatch) -> None:
     assert main(["run", "--master", "ws://h:1", "--robot", "r", "--token", "t", "--runtime", "vm"]) == 2
 

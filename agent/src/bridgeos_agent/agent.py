@@ -38,7 +38,8 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
     data_dir = args.data_dir or Path.home() / ".local" / "share" / "bridgeos-agent" / args.robot
     simulated = None
     if args.simulate:
-        simulated = SimulatedRobot(cpu=args.sim_cpu, ram=args.sim_ram, bandwidth=args.sim_bandwidth)
+        low = args.sim_bandwidth_min if args.sim_bandwidth_min is not None else args.sim_bandwidth / 20
+        simulated = SimulatedRobot(cpu=args.sim_cpu, ram=args.sim_ram, bandwidth=args.sim_bandwidth, bandwidth_min=low)
     return AgentSettings(
         master=args.master,
         robot=args.robot,

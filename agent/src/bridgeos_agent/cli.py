@@ -233,7 +233,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive("--sim-bandwidth"),
         default=100.0,
         metavar="MBIT",
-        help="simulated peak bandwidth in Mbit/s (default 100); it swings down to 5%% and back",
+        help="simulated peak bandwidth in Mbit/s (default 100); it swings down to --sim-bandwidth-min and back",
+    )
+    run.add_argument(
+        "--sim-bandwidth-min",
+        type=_positive("--sim-bandwidth-min"),
+        default=None,
+        metavar="MBIT",
+        help="the simulated bandwidth's low point in Mbit/s, at most the peak (default 5%% of the peak)",
     )
     run.add_argument(
         "--sample-interval",
@@ -357,6 +364,13 @@ def _check_connection_args(parser: argparse.ArgumentParser, args: argparse.Names
         parser.error("missing " + ", ".join(missing))
 
 
+def _check_simulation_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if args.sim_bandwidth_min is not None and args.sim_bandwidth_min > args.sim_bandwidth:
+        parser.error(
+            f"--sim-bandwidth-min {args.sim_bandwidth_min:g} is above the peak --sim-bandwidth {args.sim_bandwidth:g}"
+        )
+
+
 def _check_transport_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     try:
         check_master_url(args.master, allow_insecure=args.allow_insecure)
@@ -424,6 +438,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
         parser.error(f"--data-dir {args.data_dir} exists and is not a directory")
     _check_transport_args(parser, args)
+    _check_simulation_args(parser, args)
     _check_ros2_args(parser, args)
     _check_rosbridge_args(parser, args)
     _check_foxglove_args(parser, args)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 from django.core.management.base import BaseCommand
@@ -22,8 +23,8 @@ class Command(BaseCommand):
     def handle(self, *args: Any, **options: Any) -> None:
         async def sweep(runtime: CloudRuntime) -> tuple[int, int]:
             found = await runtime.observe()
-            for item in found:
-                await runtime.remove(item)
+            # Side by side: each removal waits for its containers to stop, up to their grace period.
+            await asyncio.gather(*(runtime.remove(item) for item in found))
             networks = await runtime.networks()
             for name in networks.values():
                 await runtime.remove_network_named(name)
