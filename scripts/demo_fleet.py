@@ -118,11 +118,11 @@ def main() -> int:
                     "--sim-ram",
                     "2048",
                     # A link that holds what the demo's Skills must run on the robot even at its low point
-                    # (two people detections' point clouds, 40 Mbit/s each), and swings enough to move others.
+                    # (two people detections, 140 Mbit/s in all), however its swing is timed against their starts.
                     "--sim-bandwidth",
-                    "300",
+                    "400",
                     "--sim-bandwidth-min",
-                    "100",
+                    "160",
                     "--stop-components-on-exit",
                     "--metrics",
                     metrics_address,

@@ -144,7 +144,8 @@ def _reconcile_instance(instance: CloudInstance, seen: Observed | None, now: flo
     running = seen is not None and seen.status is Status.RUNNING
     if running:
         if instance.status != CS.RUNNING:
-            endpoint = with_runtime(robot_id, lambda runtime: runtime.endpoint(cloud_spec(instance)))
+            spec = cloud_spec(instance)  # reads the database: before, not inside, the runtime's event loop
+            endpoint = with_runtime(robot_id, lambda runtime: runtime.endpoint(spec))
             record_running(instance, endpoint)
             return "restarted"
         return None

@@ -59,14 +59,26 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
     )
 
 
+class LevelTagged(logging.Formatter):
+    """Format a record as its time and message, naming its level when it is a warning or worse."""
+
+    def __init__(self) -> None:
+        super().__init__("%(asctime)s %(message)s", datefmt="%H:%M:%S")
+
+    def formatMessage(self, record: logging.LogRecord) -> str:  # noqa: N802 (logging's name)
+        line = super().formatMessage(record)
+        if record.levelno < logging.WARNING:
+            return line
+        # An operator (or a log check) finds what went wrong by its level, as in every other log.
+        stamp, _, message = line.partition(" ")
+        return f"{stamp} {record.levelname} {message}"
+
+
 def run_agent(args: argparse.Namespace) -> int:
     """Run the Robot Controller until SIGINT/SIGTERM, a shutdown order or a refused token."""
-    logging.basicConfig(
-        level=logging.WARNING if args.quiet else logging.INFO,
-        format="%(asctime)s %(message)s",
-        datefmt="%H:%M:%S",
-        stream=sys.stderr,
-    )
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(LevelTagged())
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, handlers=[handler])
     settings = settings_from_args(args)
     logging.getLogger("bridgeos_agent").info(
         "bridgeos-agent %s: robot %s, runtime %s%s, data in %s",
