@@ -53,7 +53,9 @@ stop() {
   for pid in "${pids[@]}"; do kill "$pid" 2>/dev/null || true; done
   wait 2>/dev/null || true
 }
-trap stop INT TERM EXIT
+# Ctrl-C (or a TERM) is how a user stops it: a clean stop, not a failure make would report.
+trap 'stop; exit 0' INT TERM
+trap stop EXIT
 
 if [ -n "${REDIS_URL:-}" ]; then
   .venv/bin/celery -A bridgeos_cloud worker --beat -l warning -c 2 \
