@@ -452,10 +452,15 @@ def test_a_bad_rosbridge_option_is_refused_before_anything_starts(
     assert not data_dir.exists()
 
 
+ROSBRIDGE_PORT = 9090  # rosbridge's well-known port, which roslibpy's and roslibjs's examples assume
+
+
 @pytest.mark.skipif(not ros1_available(), reason="Debian's ROS 1 is not installed")
-def test_the_agent_serves_rosbridge_when_asked(tmp_path: Path) -> None:
+@pytest.mark.parametrize("well_known", [False, True], ids=["free port", "port 9090"])
+def test_the_agent_serves_rosbridge_when_asked(tmp_path: Path, well_known: bool) -> None:
+    # On rosbridge's own port too: nothing this project starts (its Prometheus once did) may hold it.
     with private_rosmaster(tmp_path) as master:
-        port = free_port()
+        port = ROSBRIDGE_PORT if well_known else free_port()
         env = {**os.environ, "ROS_MASTER_URI": master, "PYTHONUNBUFFERED": "1"}
         agent = subprocess.Popen(
             [
