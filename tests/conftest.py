@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.logguard import watch
+
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 
@@ -73,7 +75,7 @@ def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Itera
     from django.conf import settings
 
     port = free_port()
-    log = tmp_path_factory.mktemp("daphne") / "daphne.log"
+    log = watch(tmp_path_factory.mktemp("daphne") / "daphne.log")
     env = service_env(settings.DATABASES["default"]["NAME"])
     with log.open("wb") as out:
         process = subprocess.Popen(
@@ -103,6 +105,7 @@ def another_daphne(log: Path, **env: str) -> Iterator[tuple[Server, subprocess.P
     from django.conf import settings
 
     port = free_port()
+    watch(log)
     full_env = service_env(settings.DATABASES["default"]["NAME"]) | {"VIRTUAL_ENV": str(BIN.parent), **env}
     with log.open("wb") as out:
         process = subprocess.Popen(
@@ -148,7 +151,7 @@ def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) 
         pytest.fail("The suite needs Redis: run it with `make test` (REDIS_URL=redis://...).")
     # Tasks queued by an earlier, interrupted run must not reach this worker.
     redis.Redis.from_url(settings.REDIS_URL).flushdb()
-    log = tmp_path_factory.mktemp("celery") / "worker.log"
+    log = watch(tmp_path_factory.mktemp("celery") / "worker.log")
     env = service_env(settings.DATABASES["default"]["NAME"])
     name = f"test-{os.getpid()}@localhost"
     with log.open("wb") as out:

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import BIN, ROOT, free_port, service_env, wait_for_port
+from tests.logguard import watch
 
 _SAMPLE = json.loads(
     resources.files("bridgeos_agent").joinpath("samples").joinpath("people_detection.json").read_text()
@@ -29,7 +30,7 @@ class Cloud:
 
     def __init__(self, log: Path) -> None:
         self.port = free_port()
-        self.log = log
+        self.log = watch(log)
         self.process: subprocess.Popen | None = None
         self.env: dict[str, str] = {}
 

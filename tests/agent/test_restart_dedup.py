@@ -18,6 +18,7 @@ from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Envelope, Event
 from bridgeos_agent.skillconfig import parse_skill_config
 from tests.conftest import BIN
+from tests.logguard import watch
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -68,7 +69,7 @@ class ScriptedCloud:
 
 
 def start_agent(port: int, data_dir: Path, log: Path) -> subprocess.Popen:
-    with log.open("ab") as out:
+    with watch(log).open("ab") as out:
         return subprocess.Popen(
             [
                 str(BIN / "bridgeos-agent"),

@@ -31,6 +31,7 @@ from robots.services import create_robot, issue_api_token
 from skills.services import add_skill
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
 from tests.conftest import BIN
+from tests.logguard import watch
 
 from .simrobot import start_simulated_robot, stop_simulated_robot
 
@@ -185,7 +186,7 @@ def start_agent(master: str, robot_id: str, token: str, data_dir: Path, *, log: 
     """Start the robot agent, simulated, with the process runtime: the one place tests start one."""
     command = [str(AGENT), "run", "--master", master, "--robot", robot_id, "--token", token]
     command += ["--runtime", "process", "--simulate", "--data-dir", str(data_dir), "--stop-components-on-exit"]
-    with log.open("ab") as out:
+    with watch(log).open("ab") as out:
         return subprocess.Popen(
             command, env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=out, stderr=subprocess.STDOUT
         )

@@ -44,12 +44,12 @@ def test_parameters_are_read_set_and_followed_through_the_cloud(ros: tuple[str, 
     assert {"parameters", "parametersSubscribe"} <= set(capabilities) and "time" not in capabilities
 
     client.command("getParameters", names=["/robot/gain"], id="g")
-    answer = client.wait("parameterValues", lambda e: e["id"] == "g")
+    answer = client.wait("parameterValues", lambda e: e.get("id") == "g")
     assert answer["parameters"] == [{"name": "/robot/gain", "value": 2.5, "type": "float64"}]
 
     client.command("subscribeParameterUpdates", names=["/robot/gain"])
     client.command("setParameters", parameters=[{"name": "/robot/gain", "value": 4, "type": "float64"}], id="s")
-    assert client.wait("parameterValues", lambda e: e["id"] == "s")["parameters"][0]["value"] == 4
+    assert client.wait("parameterValues", lambda e: e.get("id") == "s")["parameters"][0]["value"] == 4
     try:
         assert xmlrpc.client.ServerProxy(master).getParam("/test", "/robot/gain")[2] == 4.0
         xmlrpc.client.ServerProxy(master).setParam("/test", "/robot/gain", 6.5)  # a change behind its back

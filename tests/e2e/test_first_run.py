@@ -21,11 +21,11 @@ import httpx
 import pytest
 
 from tests.conftest import ROOT, free_port
+from tests.logguard import BAD_LINE
 
 pytestmark = [pytest.mark.slow, pytest.mark.docker, pytest.mark.browser, pytest.mark.timeout(900)]
 
 CHROMIUM = "/usr/bin/chromium"
-BAD_LINE = re.compile(r"\bERROR\b|\bCRITICAL\b|Traceback \(most recent call last\)")
 START_S = 120  # until the terminal says the cloud runs
 SETTLE_S = 420  # until every demo component has run
 STOP_S = 120  # from Ctrl-C until every process of the run is gone

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from tests.conftest import BIN, ROOT, service_env
+from tests.logguard import watch
 from tests.net.netns import Network, _in_namespace
 
 PUBLIC = "192.0.2.1"  # the cloud's public address (TEST-NET-1, only ever inside these namespaces)
@@ -188,7 +189,7 @@ class World:
 
     def spawn(self, namespace: str, args: list[str], log: str, env: dict[str, str] | None = None) -> subprocess.Popen:
         """Start a process inside a namespace, logging to the world's directory."""
-        with (self.dir / log).open("ab") as out:
+        with watch(self.dir / log).open("ab") as out:
             process = subprocess.Popen(
                 self.net.command(namespace, args),
                 cwd=ROOT,

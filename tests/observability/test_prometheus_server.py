@@ -13,6 +13,7 @@ from django.contrib.auth import get_user_model
 from robots.models import Robot
 from robots.services import create_robot
 from tests.conftest import BIN, free_port
+from tests.logguard import watch
 
 from .promutil import DASHBOARD, PROMETHEUS, PROMTOOL, RULE_TESTS, RULES, Prometheus, fetch, promtool_check_metrics
 
@@ -54,7 +55,7 @@ def test_prometheus_scrapes_the_cloud_and_an_agent_and_every_dashboard_query_run
     owner = get_user_model().objects.create_user("prom-owner")
     _, token = create_robot("prom-agent", owner)
     agent_port, prometheus_port = free_port(), free_port()
-    agent_log = (tmp_path / "agent.log").open("wb")
+    agent_log = watch(tmp_path / "agent.log").open("wb")
     agent = subprocess.Popen(
         [
             str(BIN / "bridgeos-agent"), "run", "--master", daphne_server.ws_url, "--robot", "prom-agent",

@@ -24,6 +24,7 @@ from asgiref.sync import sync_to_async
 
 from tests.agent.conftest import Cloud
 from tests.conftest import BIN, ROOT, close_other_sessions, remove_cloud_copies, service_env
+from tests.logguard import watch
 
 
 @dataclass
@@ -56,7 +57,7 @@ class Stack:
 
         self.workers_started += 1
         name = f"{self.queue}-{self.workers_started}@localhost"
-        log = self.logs / f"worker-{self.workers_started}.log"
+        log = watch(self.logs / f"worker-{self.workers_started}.log")
         env = {**service_env(settings.DATABASES["default"]["NAME"]), **self.env}
         command = [str(BIN / "celery"), "-A", "bridgeos_cloud", "worker", "-P", "prefork", "-c", str(concurrency)]
         command += ["-l", "info", "-n", name, "-Q", self.queue, "--without-gossip", "--without-mingle"]
