@@ -97,6 +97,7 @@ def test_a_simulated_robot_swings_its_bandwidth_and_drains_its_battery():
     assert first.free["ram"] == pytest.approx(1024 - 512 - 102.4)
 
 
+@pytest.mark.log_errors(r"skill s: router failed for good: boom")
 async def test_a_crashing_plugin_restarts_with_backoff_then_gives_up():
     runs, failures = [], []
 
