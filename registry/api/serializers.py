@@ -9,7 +9,8 @@ class TokenQuerySerializer(serializers.Serializer):
     """The query Distribution's clients send to the realm (docker adds account, client_id, offline_token)."""
 
     service = serializers.CharField(required=False, allow_blank=True, max_length=255)
-    scope = serializers.ListField(child=serializers.CharField(max_length=1024), required=False, max_length=50)
+    # Counted after splitting (a parameter may list several), in services.parse_scopes.
+    scope = serializers.ListField(child=serializers.CharField(max_length=16384), required=False)
     account = serializers.CharField(required=False, allow_blank=True, max_length=255)
     client_id = serializers.CharField(required=False, allow_blank=True, max_length=255)
     offline_token = serializers.CharField(required=False, allow_blank=True, max_length=16)
