@@ -48,8 +48,15 @@ def parse_scopes(texts: list[str]) -> list[tokens.Scope]:
     return [tokens.parse_scope(part) for part in parts]
 
 
-def issue_token(principal: tokens.Principal, scopes: list[tokens.Scope], service: str = "") -> dict[str, Any]:
-    """Return Distribution's token answer; no refresh_token, which docker would redeem with a POST we do not serve."""
+def issue_token(
+    user: AbstractBaseUser, scope_texts: list[str], *, robot: Robot | None = None, service: str = ""
+) -> dict[str, Any]:
+    """Return Distribution's token answer for the scopes asked; raise ScopeError for a malformed one.
+
+    No refresh_token: docker would redeem it with a POST this realm does not serve.
+    """
+    scopes = parse_scopes(scope_texts)
+    principal = principal_of(user, robot)
     conf = settings.BRIDGEOS
     now = datetime.now(UTC)
     claims = tokens.token_claims(

@@ -43,10 +43,14 @@ class TokenView(APIView):
     def get(self, request: Request) -> Response:
         query = TokenQuerySerializer(data=request.query_params)
         query.is_valid(raise_exception=True)
+        robot = request.auth if isinstance(request.auth, Robot) else None
         try:
-            scopes = services.parse_scopes(query.validated_data.get("scope", []))
+            answer = services.issue_token(
+                request.user,
+                query.validated_data.get("scope", []),
+                robot=robot,
+                service=query.validated_data.get("service", ""),
+            )
         except tokens.ScopeError as exc:
             raise ValidationError({"scope": [str(exc)]}) from None
-        robot = request.auth if isinstance(request.auth, Robot) else None
-        principal = services.principal_of(request.user, robot)
-        return Response(services.issue_token(principal, scopes, query.validated_data.get("service", "")))
+        return Response(answer)
