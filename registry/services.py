@@ -10,7 +10,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
 
-from bridgeos_cloud.env import kept_secret
+from bridgeos_cloud.env import ConfigError, kept_secret
 from network import pki
 from robots.models import Robot
 
@@ -24,10 +24,13 @@ MAX_SCOPES = 50
 def signing_key() -> ec.EllipticCurvePrivateKey:
     """Return the key that signs registry tokens: BRIDGEOS_REGISTRY_KEY(_FILE), else one kept in DATA_DIR."""
     configured = settings.BRIDGEOS["REGISTRY_KEY"]
-    text = configured or kept_secret(
-        settings.DATA_DIR / "registry_key.pem", lambda: pki.key_pem(pki.new_key()).encode()
-    )
-    return pki.load_key(text)
+    path = settings.DATA_DIR / "registry_key.pem"
+    text = configured or kept_secret(path, lambda: pki.key_pem(pki.new_key()).encode())
+    try:
+        return pki.load_key(text)
+    except (ValueError, TypeError, AssertionError):
+        where = "BRIDGEOS_REGISTRY_KEY" if configured else str(path)
+        raise ConfigError(f"{where} is not an unencrypted PEM EC private key (P-256) to sign registry tokens") from None
 
 
 def principal_of(user: AbstractBaseUser, robot: Robot | None = None) -> tokens.Principal:

@@ -7,6 +7,7 @@ import yaml
 from cryptography import x509
 from django.core.management import CommandError, call_command
 
+from network import pki
 from registry import services
 from registry.tokens import key_id
 
@@ -82,3 +83,25 @@ def test_an_out_path_that_is_a_file_is_refused(tmp_path):
     (tmp_path / "out").write_text("")
     with pytest.raises(CommandError, match="not a directory"):
         configure(tmp_path)
+
+
+@pytest.fixture
+def registry_key(settings):
+    """Let a test set BRIDGEOS_REGISTRY_KEY; the cached key is forgotten before and after."""
+    services.signing_key.cache_clear()
+    yield lambda pem: settings.BRIDGEOS.__setitem__("REGISTRY_KEY", pem)
+    settings.BRIDGEOS["REGISTRY_KEY"] = ""
+    services.signing_key.cache_clear()
+
+
+def test_a_configured_key_signs_and_a_bad_one_is_a_clear_error(tmp_path, registry_key):
+    key = pki.new_key()
+    registry_key(pki.key_pem(key))
+    configure(tmp_path)
+    cert = x509.load_pem_x509_certificate((tmp_path / "out" / "token.crt").read_bytes())
+    assert key_id(cert.public_key()) == key_id(key.public_key())
+    services.signing_key.cache_clear()
+    registry_key("not a key")
+    with pytest.raises(CommandError, match="BRIDGEOS_REGISTRY_KEY is not an unencrypted PEM EC private key"):
+        configure(tmp_path / "again")
+    assert not (tmp_path / "again" / "out").exists()

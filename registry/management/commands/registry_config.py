@@ -12,6 +12,7 @@ from django.conf import settings
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 from django.utils import timezone
 
+from bridgeos_cloud.env import ConfigError
 from network import pki
 from registry import services, tokens
 from registry.config import ConfigProblem, RegistrySetup, render_config, render_yaml
@@ -59,7 +60,10 @@ class Command(BaseCommand):
             config = render_yaml(render_config(setup)) + "\n"
         except ConfigProblem as exc:
             raise CommandError(str(exc)) from None
-        key = services.signing_key()
+        try:
+            key = services.signing_key()
+        except ConfigError as exc:
+            raise CommandError(str(exc)) from None
         cert = tokens.signing_certificate(key, common_name="bridgeOS registry tokens", now=timezone.now())
         out.mkdir(parents=True, exist_ok=True)
         _write(out / "token.crt", pki.pem(cert), 0o644)
