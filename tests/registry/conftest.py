@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import contextlib
 import shutil
 import subprocess
 from collections.abc import Iterator
@@ -46,14 +47,19 @@ def registry(daphne_server, tmp_path_factory) -> Iterator[Registry]:
     call_command(
         "registry_config", realm=realm, listen=host, storage=str(base / "storage"), out=str(base / "conf"), stdout=None
     )
-    log = watch(base / "registry.log")
+    with serving(base / "conf" / "config.yml", host, base / "registry.log") as log:
+        yield Registry(host, log, realm)
+
+
+@contextlib.contextmanager
+def serving(config: Path, host: str, log: Path) -> Iterator[Path]:
+    """Run `docker-registry serve CONFIG` until the block ends; its log is read by the log guard."""
+    watch(log)
     with log.open("wb") as out:
-        process = subprocess.Popen(
-            ["docker-registry", "serve", str(base / "conf" / "config.yml")], stdout=out, stderr=subprocess.STDOUT
-        )
+        process = subprocess.Popen(["docker-registry", "serve", str(config)], stdout=out, stderr=subprocess.STDOUT)
     try:
         wait_for_port(int(host.rpartition(":")[2]), process)
-        yield Registry(host, log, realm)
+        yield log
     finally:
         process.terminate()
         try:

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import shutil
+import ssl
+from datetime import UTC, datetime
+
+import httpx
 import pytest
 import yaml
 from cryptography import x509
@@ -10,6 +15,9 @@ from django.core.management import CommandError, call_command
 from network import pki
 from registry import services
 from registry.tokens import key_id
+from tests.conftest import free_port
+
+from .conftest import serving
 
 REALM = "http://127.0.0.1:8000/api/registry/token"
 
@@ -41,6 +49,22 @@ def test_the_defaults_are_the_clouds_issuer_and_service(tmp_path, settings):
     config = configure(tmp_path, listen="[::1]:5000")
     assert config["auth"]["token"]["issuer"] == settings.BRIDGEOS["REGISTRY_ISSUER"] == "bridgeos-cloud"
     assert config["auth"]["token"]["service"] == settings.BRIDGEOS["REGISTRY_SERVICE"]
+
+
+@pytest.mark.skipif(shutil.which("docker-registry") is None, reason="docker-registry is not installed")
+def test_the_registry_serves_https_with_a_certificate_of_the_clouds_ca(tmp_path):
+    now = datetime.now(UTC)
+    ca_key, ca = pki.make_ca("test CA", now=now)
+    key, cert = pki.issue(ca_key, ca, "127.0.0.1", server=True, now=now, names=["127.0.0.1"])
+    (tmp_path / "ca.crt").write_text(pki.pem(ca))
+    (tmp_path / "tls.crt").write_text(pki.pem(cert))
+    (tmp_path / "tls.key").write_text(pki.key_pem(key))
+    host = f"127.0.0.1:{free_port()}"
+    configure(tmp_path, listen=host, tls_cert=str(tmp_path / "tls.crt"), tls_key=str(tmp_path / "tls.key"))
+    with serving(tmp_path / "out" / "config.yml", host, tmp_path / "registry.log"):
+        answer = httpx.get(f"https://{host}/v2/", verify=ssl.create_default_context(cafile=tmp_path / "ca.crt"))
+    assert answer.status_code == 401
+    assert answer.headers["WWW-Authenticate"] == f'Bearer realm="{REALM}",service="bridgeos-registry"'
 
 
 def test_a_public_address_with_a_certificate_serves_tls(tmp_path):
