@@ -9,7 +9,15 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-__all__ = ["ConfigProblem", "RegistrySetup", "check_realm", "is_loopback", "parse_listen", "render_config", "render_yaml"]
+__all__ = [
+    "ConfigProblem",
+    "RegistrySetup",
+    "check_realm",
+    "is_loopback",
+    "parse_listen",
+    "render_config",
+    "render_yaml",
+]
 
 
 class ConfigProblem(ValueError):
