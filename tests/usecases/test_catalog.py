@@ -123,5 +123,8 @@ def test_the_demo_fleet_puts_the_use_cases_in_the_catalog_and_on_its_robots() ->
         )
     # At its link's low point demo-1 holds both its people detections wholly on the robot.
     detections = [load_sample_skill_config(name) for name in ("people_detection", "people_detection_ros2")]
-    needs = sum(c.resources.bandwidth for skill in detections for c in skill.components.values())
-    assert both["robots"][0]["simulate"]["bandwidth_min"] >= needs
+    components = [c for skill in detections for c in skill.components.values()]
+    simulate = both["robots"][0]["simulate"]
+    assert simulate["bandwidth_min"] >= sum(c.resources.bandwidth for c in components)
+    assert simulate["cpu"] >= sum(c.resources.cpu for c in components)
+    assert simulate["ram"] >= sum(c.resources.ram for c in components)
