@@ -128,16 +128,15 @@ def fields_table(schema: dict[str, Any], link: Callable[[str], str]) -> str:
     return table(["field", "type", "required", "default", "meaning"], rows)
 
 
-def models_page(title: str, intro: str, schema: dict[str, Any], root_name: str) -> str:
-    """Render a pydantic model's JSON Schema as one section per model, the root first."""
+def definitions(items: list[tuple[str, dict[str, Any]]], level: int, prefix: str = "", page: str = "") -> str:
+    """Render named schemas as one section each: heading, description, then fields or type."""
 
     def link(name: str) -> str:
-        return f"#{anchor(name)}"
+        return f"{page}#{anchor(prefix + name)}"
 
-    parts = [BANNER, f"# {title}\n\n", intro, "\n"]
-    definitions = [(root_name, schema), *sorted(schema.get("$defs", {}).items())]
-    for name, definition in definitions:
-        parts.append("\n" + heading(2, name, anchor(name)) + "\n")
+    parts = []
+    for name, definition in items:
+        parts.append("\n" + heading(level, name, anchor(prefix + name)) + "\n")
         if definition.get("description"):
             parts.append(" ".join(definition["description"].split()) + "\n\n")
         if "properties" in definition or definition.get("type") == "object":
@@ -145,6 +144,12 @@ def models_page(title: str, intro: str, schema: dict[str, Any], root_name: str) 
         else:
             parts.append(f"A value of type {schema_type(definition, link)}.\n")
     return "".join(parts)
+
+
+def models_page(title: str, intro: str, schema: dict[str, Any], root_name: str) -> str:
+    """Render a pydantic model's JSON Schema as one section per model, the root first."""
+    items = [(root_name, schema), *sorted(schema.get("$defs", {}).items())]
+    return BANNER + f"# {title}\n\n" + intro + "\n" + definitions(items, 2)
 
 
 # --------------------------------------------------------------------------- the pages
@@ -184,8 +189,8 @@ _ARROWS = {
 }
 
 
-def protocol_page() -> str:
-    """Render every WebSocket event and its payload from bridgeos_agent.protocol."""
+def protocol_page() -> tuple[str, str]:
+    """Render every WebSocket event and its payload, and their shared types, from bridgeos_agent.protocol."""
     from bridgeos_agent import protocol
 
     envelope = protocol.Envelope.model_json_schema()
@@ -228,17 +233,13 @@ def protocol_page() -> str:
         shared.update(schema.get("$defs", {}))
         parts.append("\n" + heading(3, f"`{event}`", anchor(event)) + "\n")
         parts.append(f"Payload `{model.__name__}`: {' '.join((model.__doc__ or '').split())}\n\n")
-        parts.append(fields_table(schema, lambda name: f"#{anchor('type-' + name)}"))
-    parts.append("\n" + heading(2, "Types used by the payloads", "types") + "\n")
-    for name, definition in sorted(shared.items()):
-        parts.append("\n" + heading(3, name, anchor("type-" + name)) + "\n")
-        if definition.get("description"):
-            parts.append(" ".join(definition["description"].split()) + "\n\n")
-        if "properties" in definition:
-            parts.append(fields_table(definition, lambda name: f"#{anchor('type-' + name)}"))
-        else:
-            parts.append(f"A value of type {schema_type(definition, lambda n: '#' + anchor('type-' + n))}.\n")
-    return "".join(parts)
+        parts.append(fields_table(schema, lambda name: f"protocol-types.md#{anchor('type-' + name)}"))
+    types = (
+        BANNER + "# WebSocket protocol: the payloads' types\n\n"
+        "The types the [payloads of the WebSocket protocol](protocol.md) are built from, generated from "
+        "`bridgeos_agent.protocol`.\n" + definitions(sorted(shared.items()), 2, "type-")
+    )
+    return "".join(parts), types
 
 
 def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -367,14 +368,7 @@ def openapi_page(document: dict[str, Any]) -> str:
         parts.append("\n" + heading(2, tag, anchor("tag-" + tag)) + "\n")
         parts.append(table(["method", "path", "what", "query", "body", "responses"], rows))
     parts.append("\n" + heading(2, "Schemas", "schemas") + "\n")
-    for name, definition in sorted(document.get("components", {}).get("schemas", {}).items()):
-        parts.append("\n" + heading(3, name, anchor("schema-" + name)) + "\n")
-        if definition.get("description"):
-            parts.append(" ".join(definition["description"].split()) + "\n\n")
-        if "properties" in definition:
-            parts.append(fields_table(definition, link))
-        else:
-            parts.append(f"A value of type {schema_type(definition, link)}.\n")
+    parts.append(definitions(sorted(document.get("components", {}).get("schemas", {}).items()), 3, "schema-"))
     return "".join(parts)
 
 
@@ -547,6 +541,7 @@ def render() -> dict[str, str]:
     from bridgeos_agent.skillconfig import skill_config_json_schema
 
     document = openapi_document()
+    protocol, protocol_types = protocol_page()
 
     def dump(value: Any) -> str:
         return json.dumps(value, indent=2, sort_keys=True, ensure_ascii=False) + "\n"
@@ -556,7 +551,8 @@ def render() -> dict[str, str]:
         "skill-config.schema.json": dump(skill_config_json_schema()),
         "robot-config.md": robot_config_page(),
         "robot-config.schema.json": dump(robot_config_json_schema()),
-        "protocol.md": protocol_page(),
+        "protocol.md": protocol,
+        "protocol-types.md": protocol_types,
         "openapi.md": openapi_page(document),
         "openapi.json": dump(document),
         "cli.md": cli_page(),
