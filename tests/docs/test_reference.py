@@ -79,3 +79,13 @@ def test_every_skill_config_shown_in_the_guides_validates():
                 parse_skill_config(block)
                 shown += 1
     assert shown >= 2  # the tutorial's and the config guide's at least
+
+
+def test_every_option_of_the_agent_is_explained_for_robot_owners(generator):
+    from bridgeos_agent.cli import build_parser
+
+    explained = (ROOT / "docs" / "robots" / "agent.md").read_text()
+    run = generator._subcommands(build_parser())["run"]
+    options = [option for action in run._actions for option in action.option_strings if option.startswith("--")]
+    missing = [option for option in options if f"`{option}`" not in explained and option != "--help"]
+    assert not missing, f"add these to docs/robots/agent.md: {missing}"
