@@ -89,3 +89,12 @@ def test_every_option_of_the_agent_is_explained_for_robot_owners(generator):
     options = [option for action in run._actions for option in action.option_strings if option.startswith("--")]
     missing = [option for option in options if f"`{option}`" not in explained and option != "--help"]
     assert not missing, f"add these to docs/robots/agent.md: {missing}"
+
+
+def test_every_python_example_in_the_guides_compiles():
+    compiled = 0
+    for page in HAND_WRITTEN:
+        for block in re.findall(r"```python\n(.*?)```", page.read_text(), re.S):
+            compile(block, str(page), "exec")
+            compiled += 1
+    assert compiled >= 5
