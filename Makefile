@@ -56,7 +56,7 @@ lint: install
 docs: install
 	$(PY) scripts/docs_reference.py
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
-	@echo "== docs: open .data/site/index.html, or run $(VENV)/bin/mkdocs serve"
+	@echo "== docs: open .data/site/index.html, or run $(VENV)/bin/mkdocs serve -a 127.0.0.1:8001"
 
 ## Run every benchmark and write .data/bench/report.md beside the thesis's figures (BENCH_ARGS="--quick", "--only router", "--strict").
 bench: install
