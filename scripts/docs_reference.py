@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import importlib.util
 import json
 import os
 import re
@@ -181,14 +182,6 @@ def robot_config_page() -> str:
     return models_page("Robot config reference", intro, robot_config_json_schema(), "RobotConfig")
 
 
-_ARROWS = {
-    "robot_to_cloud": "robot → cloud",
-    "cloud_to_robot": "cloud → robot",
-    "client_to_cloud": "client → cloud",
-    "cloud_to_client": "cloud → client",
-}
-
-
 def protocol_page() -> tuple[str, str]:
     """Render every WebSocket event and its payload, and their shared types, from bridgeos_agent.protocol."""
     from bridgeos_agent import protocol
@@ -214,17 +207,10 @@ def protocol_page() -> tuple[str, str]:
     ]
     rows = []
     for event in protocol.Event:
-        model = protocol.PAYLOADS[event]
+        legs = ", ".join(leg.replace("_to_", " → ") for leg in protocol.Direction if leg in protocol.DIRECTIONS[event])
         answers = ", ".join(f"`{reply}`" for reply in sorted(protocol.REPLIES.get(event, ())))
-        rows.append(
-            [
-                f"[`{event}`](#{anchor(event)})",
-                ", ".join(arrow for leg, arrow in _ARROWS.items() if leg in protocol.DIRECTIONS[event]),
-                "yes" if event in protocol.REQUIRES_ACK else "",
-                "yes" if event in protocol.COMMANDS else "",
-                answers,
-            ]
-        )
+        acked, command = ("yes" if event in kind else "" for kind in (protocol.REQUIRES_ACK, protocol.COMMANDS))
+        rows.append([f"[`{event}`](#{anchor(event)})", legs, acked, command, answers])
     parts.append(table(["event", "directions", "acked", "command", "answered by"], rows))
     shared: dict[str, Any] = {}
     for event in protocol.Event:
@@ -354,16 +340,8 @@ def openapi_page(document: dict[str, Any]) -> str:
                 for status, answer in operation.get("responses", {}).items()
             )
             summary = operation.get("summary") or (operation.get("description") or "").split("\n")[0]
-            by_tag.setdefault(tag, []).append(
-                [
-                    code(method.upper()),
-                    code(path),
-                    cell(summary),
-                    params,
-                    schema_type(body, link) if body else "",
-                    responses,
-                ]
-            )
+            row = [code(method.upper()), code(path), cell(summary), params, schema_type(body, link) if body else ""]
+            by_tag.setdefault(tag, []).append([*row, responses])
     for tag, rows in sorted(by_tag.items()):
         parts.append("\n" + heading(2, tag, anchor("tag-" + tag)) + "\n")
         parts.append(table(["method", "path", "what", "query", "body", "responses"], rows))
@@ -424,6 +402,10 @@ def _default(call: ast.Call, parents: dict[ast.AST, ast.AST]) -> str:
     return ""
 
 
+def _read(name: str, how: str, default: str, path: Path, why: str) -> dict[str, str]:
+    return {"name": name, "how": how, "default": default, "where": str(path.relative_to(ROOT)), "why": why}
+
+
 def environment_reads(paths: list[Path]) -> list[dict[str, str]]:
     """Return every environment variable the given Python modules read, with how, its default and why."""
     reads = []
@@ -441,16 +423,9 @@ def environment_reads(paths: list[Path]) -> list[dict[str, str]]:
             func = ast.unparse(node.func)
             if (func not in _HELPERS and func not in _READERS) or first.value in _INHERITED:
                 continue
-            reads.append(
-                {
-                    "name": first.value,
-                    "how": func if func in _HELPERS else "os.environ",
-                    "default": _default(node, parents),
-                    "where": str(path.relative_to(ROOT)),
-                    "why": _comment(lines, node.lineno),
-                }
-            )
-    return sorted(reads, key=lambda read: (read["name"], read["where"]))
+            how = func if func in _HELPERS else "os.environ"
+            reads.append(_read(first.value, how, _default(node, parents), path, _comment(lines, node.lineno)))
+    return reads
 
 
 def shell_reads(paths: list[Path]) -> list[dict[str, str]]:
@@ -462,16 +437,9 @@ def shell_reads(paths: list[Path]) -> list[dict[str, str]]:
             for match in _SHELL_DEFAULT.finditer(line):
                 if match.group(1) in _INHERITED:
                     continue
-                reads.append(
-                    {
-                        "name": match.group(1),
-                        "how": "shell",
-                        "default": code(match.group(2)) if match.group(2) else "",
-                        "where": str(path.relative_to(ROOT)),
-                        "why": _comment(lines, lineno),
-                    }
-                )
-    return sorted(reads, key=lambda read: (read["name"], read["where"]))
+                default = code(match.group(2)) if match.group(2) else ""
+                reads.append(_read(match.group(1), "shell", default, path, _comment(lines, lineno)))
+    return reads
 
 
 def _python_files(*packages: Path) -> list[Path]:
@@ -497,7 +465,6 @@ def settings_page() -> str:
     scripts = environment_reads(generators) + shell_reads(
         sorted([*(ROOT / "scripts").glob("*.sh"), ROOT / "scripts" / "daphne"])
     )
-    scripts.sort(key=lambda read: (read["name"], read["where"]))
     return "".join(
         [
             BANNER,
@@ -530,6 +497,41 @@ def cloud_variables() -> set[str]:
     return {read["name"] for read in environment_reads(_python_files(*(ROOT / p for p in CLOUD_PACKAGES)))}
 
 
+# --------------------------------------------------------------------------- benchmarks
+
+
+def benchmarks_page() -> str:
+    """Render every benchmark's purpose and the figures it is judged by (benchmarks/thesis.py)."""
+    spec = importlib.util.spec_from_file_location("bench_thesis", ROOT / "benchmarks" / "thesis.py")
+    assert spec is not None and spec.loader is not None
+    thesis = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("bench_thesis", thesis)  # dataclasses look their module up by name
+    spec.loader.exec_module(thesis)
+    parts = [
+        BANNER,
+        "# Benchmarks and what they are judged by\n\n",
+        "Every `benchmarks/*.py` (its docstring's first line), and the figures of its last-line JSON that "
+        "`make bench` sets beside the thesis's figure and the goal an issue set (`benchmarks/thesis.py`). "
+        "The measured figures are in [Performance and reliability](../performance/index.md).\n",
+    ]
+    for path in sorted((ROOT / "benchmarks").glob("[!_]*.py")):
+        if path.stem == "thesis":
+            continue
+        doc = (ast.get_docstring(ast.parse(path.read_text())) or "").split("\n")[0]
+        parts.append("\n" + heading(2, f"`{path.stem}`", anchor("bench-" + path.stem)) + "\n" + doc + "\n\n")
+        rows = [_figure_row(figure) for figure in thesis.BENCHMARKS.get(path.stem, [])]
+        parts.append(table(["key", "what", "unit", "thesis", "goal", "better"], rows) if rows else "")
+    return "".join(parts)
+
+
+def _figure_row(figure: Any) -> list[str]:
+    """Return one judged figure as a row: key, label, unit, the thesis's figure, the goal, which way is better."""
+    thesis = f"{figure.thesis:g} ({figure.thesis_source})" if figure.thesis is not None else ""
+    goal = f"{figure.goal:g} ({figure.goal_source})" if figure.goal is not None else ""
+    better = figure.better if thesis or goal else ""
+    return [code(figure.key), cell(figure.label), figure.unit, cell(thesis), cell(goal), better]
+
+
 # --------------------------------------------------------------------------- writing and checking
 
 
@@ -557,6 +559,7 @@ def render() -> dict[str, str]:
         "openapi.json": dump(document),
         "cli.md": cli_page(),
         "settings.md": settings_page(),
+        "benchmarks.md": benchmarks_page(),
     }
 
 
