@@ -32,22 +32,18 @@ def layer_sync(function: Callable[P, Coroutine[Any, Any, R]]) -> Callable[P, R]:
     """Return a synchronous caller of an async function that talks to the channel layer."""
 
     def call(*args: P.args, **kwargs: P.kwargs) -> R:
-        if _under_a_loop() or not _redis_layer():
+        if _handed_to_daphne() or not _redis_layer():
             return async_to_sync(function)(*args, **kwargs)
+        # Also where a loop runs in this very thread (sync code called from async code, a test's
+        # browser driver): async_to_sync refuses there, and the kept loop's thread is not this one.
         return asyncio.run_coroutine_threadsafe(function(*args, **kwargs), _loop()).result()
 
     return call
 
 
-def _under_a_loop() -> bool:
-    """Tell whether an event loop owns this call: daphne's through asgiref, or one running in this thread."""
-    if getattr(SyncToAsync.threadlocal, "main_event_loop", None) is not None:
-        return True
-    try:
-        asyncio.get_running_loop()
-    except RuntimeError:
-        return False
-    return True
+def _handed_to_daphne() -> bool:
+    """Tell whether daphne's loop owns this call (a sync view, or a consumer's database thread, via asgiref)."""
+    return getattr(SyncToAsync.threadlocal, "main_event_loop", None) is not None
 
 
 def _redis_layer() -> bool:

@@ -372,8 +372,13 @@ LOGGING = {
     "version": 1,
     "disable_existing_loggers": False,
     "formatters": {"plain": {"format": "%(asctime)s %(levelname)s %(name)s: %(message)s"}},
-    "filters": {"robot_state_as_warning": {"()": "bridgeos_cloud.logfilters.RobotStateAsWarning"}},
-    "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
+    "filters": {
+        "robot_state_as_warning": {"()": "bridgeos_cloud.logfilters.RobotStateAsWarning"},
+        "client_fault_as_warning": {"()": "bridgeos_cloud.logfilters.ClientFaultAsWarning"},
+    },
+    "handlers": {
+        "console": {"class": "logging.StreamHandler", "formatter": "plain", "filters": ["client_fault_as_warning"]}
+    },
     "loggers": {"django.request": {"filters": ["robot_state_as_warning"]}},
     "root": {"handlers": ["console"], "level": env_str("LOG_LEVEL", "INFO")},
 }

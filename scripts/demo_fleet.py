@@ -113,16 +113,15 @@ def main() -> int:
                     "--data-dir",
                     str(data_root / robot["id"]),
                     "--simulate",
+                    # What the robot's config declares (demo_fleet's DEMO_ROBOT), and its link's low point.
                     "--sim-cpu",
-                    "2",
+                    str(robot["simulate"]["cpu"]),
                     "--sim-ram",
-                    "2048",
-                    # A link that holds what the demo's Skills must run on the robot even at its low point
-                    # (two people detections, 140 Mbit/s in all), however its swing is timed against their starts.
+                    str(robot["simulate"]["ram"]),
                     "--sim-bandwidth",
-                    "400",
+                    str(robot["simulate"]["bandwidth"]),
                     "--sim-bandwidth-min",
-                    "160",
+                    str(robot["simulate"]["bandwidth_min"]),
                     "--stop-components-on-exit",
                     "--metrics",
                     metrics_address,

@@ -465,7 +465,7 @@ def feasible_costs(
     return costs
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=250, deadline=None)
 @given(requests())
 def test_deploy_exactly_when_the_requirement_fits_the_free_resources(request: Request) -> None:
     state, skill_id, component_id, choice = request
@@ -473,7 +473,7 @@ def test_deploy_exactly_when_the_requirement_fits_the_free_resources(request: Re
     assert isinstance(decision, Deploy) == needed(state, skill_id, component_id).fits(state.free)
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=250, deadline=None)
 @given(requests())
 def test_a_replacement_is_legal_frees_enough_and_costs_least(request: Request) -> None:
     state, skill_id, component_id, choice = request
@@ -503,7 +503,7 @@ def test_a_replacement_is_legal_frees_enough_and_costs_least(request: Request) -
     assert decision.cost <= choice.threshold
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=250, deadline=None)
 @given(requests())
 def test_cloud_or_refuse_only_when_no_replacement_is_cheap_enough(request: Request) -> None:
     state, skill_id, component_id, choice = request

@@ -97,6 +97,15 @@ def test_a_simulated_robot_swings_its_bandwidth_and_drains_its_battery():
     assert first.free["ram"] == pytest.approx(1024 - 512 - 102.4)
 
 
+def test_a_robot_config_below_the_simulated_low_point_caps_the_swing_at_its_peak():
+    """The cloud's robot config sets the peak (apply_config); the swing never goes above it."""
+    robot = SimulatedRobot(bandwidth=400, bandwidth_min=160, period=100)
+    robot.bandwidth = 100.0
+    assert max(robot.bandwidth_now(t) for t in range(100)) == pytest.approx(100.0)
+    assert min(robot.bandwidth_now(t) for t in range(100)) == pytest.approx(100.0)
+
+
+@pytest.mark.log_errors(r"skill s: router failed for good: boom")
 async def test_a_crashing_plugin_restarts_with_backoff_then_gives_up():
     runs, failures = [], []
 

@@ -226,6 +226,7 @@ async def test_an_instance_gets_endpoints_only_once_placed_and_then_hears(nodes,
     assert len(nodes.messages("robot")) == heard, "the robot instance still hears after the switch"
 
 
+@pytest.mark.log_errors(r"skill relay2: ROS 2 route /(unknown|missing|wrong|qos): ")
 async def test_bad_input_is_reported_with_the_topic_and_the_reason_and_starts_nothing_of_it(nodes, make_router):
     errors = []
     routes = [

@@ -145,6 +145,17 @@ def bad_lines(root: Path) -> list[str]:
     return found
 
 
+def agent_lines(data: Path, components: dict[str, tuple[str, str]]) -> str:
+    """Return what the robots' logs say of these components and of their resources, to tell why they never ran."""
+    lines = []
+    for key in components:
+        robot, skill, component = key.split("/")
+        log = data / "agents" / f"{robot}.log"
+        text = log.read_text(errors="replace").splitlines() if log.exists() else []
+        lines += [f"{robot}: {line}" for line in text if f"{skill}/{component}" in line or "short of" in line][-40:]
+    return "\n".join(lines)
+
+
 def render_robot_page(base_url: str, username: str, password: str, robot: str) -> list[str]:
     """Log in through the form, open a robot's page in Chromium; return the console's errors."""
     from playwright.sync_api import expect, sync_playwright
@@ -203,7 +214,7 @@ def test_make_run_from_a_clean_data_directory_runs_every_demo_component_and_leav
             assert run.process.poll() is None, "make run ended early:\n" + run.output
             if time.monotonic() > deadline:
                 never = {key: latest[key] for key in sorted(set(latest) - ran)}
-                raise AssertionError(f"never running within {SETTLE_S} s: {never}")
+                raise AssertionError(f"never running within {SETTLE_S} s: {never}\n{agent_lines(data, never)}")
             time.sleep(2)
         failed = {key: state for key, state in latest.items() if state[0] == "failed"}
         assert failed == {}

@@ -12,6 +12,7 @@ from django.core.management import call_command
 
 from bridgeos_agent.skillconfig import load_sample_skill_config
 from bridgeos_agent.usecases import NODES
+from robots.models import Robot
 from skills.models import Skill, SkillTemplate
 
 # Thesis Table 5.1 (plus the simulated robot, which stands in for the robot's own drivers).
@@ -109,3 +110,18 @@ def test_the_demo_fleet_puts_the_use_cases_in_the_catalog_and_on_its_robots() ->
     assert SkillTemplate.objects.filter(name="Autonomous mapping (ROS 2)").count() == 1
     skill = Skill.objects.get(robot_id="demo-3", skill_id="mapping-ros2")
     assert skill.config["components"]["mapping"]["ros"] == 2
+
+    # The capacity its agent simulates is the capacity its robot config declares: an agent takes
+    # the config's, so a demo robot declared at the default 100 Mbit/s could not hold its Skills.
+    for robot in both["robots"]:
+        declared = Robot.objects.get(id=robot["id"]).config["resources"]
+        simulate = robot["simulate"]
+        assert (declared["cpu"], declared["ram"], declared["bandwidth"]) == (
+            simulate["cpu"],
+            simulate["ram"],
+            simulate["bandwidth"],
+        )
+    # At its link's low point demo-1 holds both its people detections wholly on the robot.
+    detections = [load_sample_skill_config(name) for name in ("people_detection", "people_detection_ros2")]
+    needs = sum(c.resources.bandwidth for skill in detections for c in skill.components.values())
+    assert both["robots"][0]["simulate"]["bandwidth_min"] >= needs

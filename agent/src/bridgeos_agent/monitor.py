@@ -67,7 +67,9 @@ class SimulatedRobot:
     def bandwidth_now(self, now: float) -> float:
         """Return the bandwidth available at ``now`` (Mbit/s)."""
         swing = (1 + math.sin(2 * math.pi * now / self.period)) / 2
-        return self.bandwidth_min + (self.bandwidth - self.bandwidth_min) * swing
+        # The robot config sets the peak (apply_config): a low point above it would swing above the peak.
+        low = min(self.bandwidth_min, self.bandwidth)
+        return low + (self.bandwidth - low) * swing
 
     def sample(self, now: float, used: Mapping[str, float], cloud_bytes: tuple[float, float]) -> Sample:
         """Return a reading given the resources the running components use."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 from importlib import resources
 from typing import Any
@@ -10,12 +11,17 @@ from django.contrib.auth import get_user_model
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from bridgeos_agent.skillconfig import parse_skill_config
-from robots.models import Robot
+from robots.models import Robot, default_robot_config
 from robots.services import create_robot, issue_api_token, rotate_token
 from skills.models import Skill, SkillTemplate
 from skills.services import add_skill
 
 SAMPLE = "demo_telemetry.json"
+# What a demo robot has: its robot config declares it (Algorithm 1's capacity, which an agent takes
+# from the cloud's config) and its simulating agent swings its link down to `bandwidth_min` and back.
+# A link that holds what the demo's Skills must run on the robot even at its low point (two people
+# detections, 140 Mbit/s in all), however its swing is timed against their starts.
+DEMO_ROBOT = {"cpu": 2.0, "ram": 2048.0, "bandwidth": 400.0, "bandwidth_min": 160.0}
 # The thesis's use cases (§5.3): in the catalog always; on demo robots (one each, in turn) with --usecases.
 USE_CASES = {
     "people_detection.json": ("Detects people in a depth camera's pointclouds (thesis §5.3).", ["vision", "ros"]),
@@ -32,6 +38,13 @@ USE_CASES_ROS2 = {
 
 def sample(name: str) -> dict[str, Any]:
     return json.loads(resources.files("bridgeos_agent").joinpath("samples", name).read_text())
+
+
+def demo_robot_config(config: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Return a robot config (a new robot's default, or ``config``) declaring a demo robot's resources."""
+    config = copy.deepcopy(config) if config is not None else default_robot_config()
+    config["resources"] = {**config["resources"], **{k: v for k, v in DEMO_ROBOT.items() if k != "bandwidth_min"}}
+    return config
 
 
 def catalog(samples: dict[str, tuple[str, list[str]]]) -> list[dict[str, Any]]:
@@ -73,10 +86,13 @@ class Command(BaseCommand):
             robot_id = f"demo-{n}"
             robot = Robot.objects.filter(id=robot_id).first()
             if robot is None:
-                robot, token = create_robot(robot_id, owner, name=f"Demo robot {n}")
+                robot, token = create_robot(robot_id, owner, name=f"Demo robot {n}", config=demo_robot_config())
             else:
                 # Tokens are stored hashed: a restarted demo gets fresh ones.
                 token = rotate_token(robot)
+                if robot.config != demo_robot_config(robot.config):
+                    robot.config = demo_robot_config(robot.config)
+                    robot.save(update_fields=["config"])
             skills = [config] + ([use_cases[(n - 1) % len(use_cases)]] if options["usecases"] else [])
             skills += [use_cases_ros2[(n - 1) % len(use_cases_ros2)]] if options["usecases2"] else []
             for skill in skills:
@@ -88,5 +104,7 @@ class Command(BaseCommand):
                     existing.config = skill
                     existing.save(update_fields=["config", "updated_at"])
             ids = [skill["skill_id"] for skill in skills]
-            robots.append({"id": robot_id, "token": token, "skill": config["skill_id"], "skills": ids})
+            robots.append(
+                {"id": robot_id, "token": token, "skill": config["skill_id"], "skills": ids, "simulate": DEMO_ROBOT}
+            )
         self.stdout.write(json.dumps({"robots": robots, "api_token": issue_api_token(owner)[0]}))

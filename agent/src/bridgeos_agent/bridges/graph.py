@@ -28,6 +28,10 @@ class BridgeError(Exception):
     """A request the graph cannot carry out; the text is what the client is told."""
 
 
+class GoalOutcome(BridgeError):
+    """A well-formed action goal that did not run: no server answered, it was rejected, or the graph has none."""
+
+
 class Sample:
     """One message off the graph: its serialized bytes, decoded on first use and cached."""
 

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlsplit
 
-from bridgeos_agent.bridges.graph import BridgeError, Sample, ServiceHandler
+from bridgeos_agent.bridges.graph import BridgeError, GoalOutcome, Sample, ServiceHandler
 from bridgeos_agent.bridges.ros1types import Ros1Types, ros1_name
 from bridgeos_agent.rosnode import Inbound, MasterError, RosNode, Subscription, iter_frames, read_header
 from bridgeos_agent.tcpros import HeaderError, encode_header, frame
@@ -403,7 +403,7 @@ class Ros1Graph:
         timeout: float,
     ) -> Any:
         """Refuse: ROS 1 has no actions of ROS 2's form."""
-        raise BridgeError(
+        raise GoalOutcome(
             "this robot's graph is ROS 1, which has no ROS 2 actions: drive an actionlib server "
             f"through its topics ({name}/goal, {name}/cancel, {name}/feedback, {name}/result) instead"
         )

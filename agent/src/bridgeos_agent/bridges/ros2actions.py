@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from bridgeos_agent.bridges.graph import BridgeError
+from bridgeos_agent.bridges.graph import BridgeError, GoalOutcome
 
 __all__ = ["SERVER_WAIT_S", "Ros2ActionGoal", "Ros2Actions"]
 
@@ -114,7 +114,7 @@ class Ros2Actions:
         known = self.known().get(name) or []
         action_type = ros2_name(type_, "action") if type_ else (known[0] if known else None)
         if action_type is None:
-            raise BridgeError(f"no action server answers {name} (and without 'action_type' its type is unknown)")
+            raise GoalOutcome(f"no action server answers {name} (and without 'action_type' its type is unknown)")
         if known and action_type not in known:
             raise BridgeError(f"{name} is of type {known[0]}, not {action_type}")
         try:
@@ -130,7 +130,7 @@ class Ros2Actions:
             if time.monotonic() > deadline:
                 if created:  # the graph is left as it was: no action client of ours lingers
                     self._drop(name, action_type)
-                raise BridgeError(f"no action server answers {name}")
+                raise GoalOutcome(f"no action server answers {name}")
             await asyncio.sleep(0.05)
 
         loop = self.loop
@@ -146,12 +146,12 @@ class Ros2Actions:
         except TimeoutError:
             # Accepted after all, later: nobody waits for it, so it is cancelled then.
             sent.add_done_callback(_cancel_late)
-            raise BridgeError(f"{name} did not answer the goal within {timeout:g} s") from None
+            raise GoalOutcome(f"{name} did not answer the goal within {timeout:g} s") from None
         except asyncio.CancelledError:  # the client left while the server was deciding
             sent.add_done_callback(_cancel_late)
             raise
         if not handle.accepted:
-            raise BridgeError(f"{name} rejected the goal")
+            raise GoalOutcome(f"{name} rejected the goal")
         return Ros2ActionGoal(loop, name, handle)
 
     def _client(self, name: str, action_type: str, cls: Any) -> tuple[Any, bool]:

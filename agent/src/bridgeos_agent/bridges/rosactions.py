@@ -17,7 +17,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from bridgeos_agent.bridges.graph import BridgeError, GraphActionGoal
+from bridgeos_agent.bridges.graph import BridgeError, GoalOutcome, GraphActionGoal
 from bridgeos_agent.bridges.rosbridgewire import Fail, count_field, name_field, text_field
 
 if TYPE_CHECKING:
@@ -124,7 +124,11 @@ class RosActions:
                     action, action_type, args, heard if feedback else None, GOAL_TIMEOUT
                 )
             except BridgeError as exc:
-                self.session.status("error", f"send_action_goal: {exc}", goal.ident)
+                # A goal that did not run is told by its result alone, as rosbridge_server does (roslibpy,
+                # with no handler for status, would log one beside it as an error in the client's
+                # application); a malformed goal is the client's error and also gets a status.
+                if not isinstance(exc, GoalOutcome):
+                    self.session.status("error", f"send_action_goal: {exc}", goal.ident)
                 self._result(goal, STATUS_UNKNOWN, str(exc), succeeded=False)
                 return
             if goal.cancel_asked:  # the cancel came while the server was deciding on the goal
@@ -132,7 +136,6 @@ class RosActions:
             try:
                 status, values = await goal.handle.result()
             except BridgeError as exc:
-                self.session.status("error", f"send_action_goal: {exc}", goal.ident)
                 self._result(goal, STATUS_UNKNOWN, str(exc), succeeded=False)
                 return
             self._result(goal, status, values, succeeded=True)
