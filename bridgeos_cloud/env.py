@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 _TRUE = {"1", "true", "yes", "on"}
@@ -66,3 +67,20 @@ def env_list(name: str, default: list[str]) -> list[str]:
     if value is None:
         return list(default)
     return [item.strip() for item in value.split(",") if item.strip()]
+
+
+def kept_secret(path: Path, make: Callable[[], bytes]) -> str:
+    """Return the secret kept in a file, making it once with ``make`` when the file does not exist yet."""
+    if not path.exists():
+        # Written aside and linked into place: daphne, Celery and manage.py starting together
+        # agree on one secret, and none reads a half-written file.
+        draft = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        draft.write_bytes(make())
+        draft.chmod(0o600)
+        try:
+            os.link(draft, path)
+        except FileExistsError:
+            pass  # another process made it first: use theirs
+        finally:
+            draft.unlink()
+    return path.read_text().strip()

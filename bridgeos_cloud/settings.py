@@ -11,7 +11,7 @@ from cryptography.fernet import Fernet
 
 from network.conf import network_settings
 
-from .env import env_bool, env_float, env_int, env_list, env_str
+from .env import env_bool, env_float, env_int, env_list, env_str, kept_secret
 
 BASE_DIR = Path(__file__).resolve().parent.parent
 DATA_DIR = Path(env_str("BRIDGEOS_DATA_DIR", str(BASE_DIR / ".data")))
@@ -44,20 +44,7 @@ def _pki_key() -> str:
     configured = env_str("BRIDGEOS_PKI_KEY")
     if configured:
         return configured
-    path = DATA_DIR / "pki_key"
-    if not path.exists():
-        # Written aside and linked into place: daphne, Celery and manage.py starting together
-        # agree on one key, and none reads a half-written file.
-        draft = path.with_name(f"pki_key.{os.getpid()}.tmp")
-        draft.write_bytes(Fernet.generate_key())
-        draft.chmod(0o600)
-        try:
-            os.link(draft, path)
-        except FileExistsError:
-            pass  # another process made it first: use theirs
-        finally:
-            draft.unlink()
-    return path.read_text().strip()
+    return kept_secret(DATA_DIR / "pki_key", Fernet.generate_key)
 
 
 BRIDGEOS_PKI_KEY = _pki_key()
@@ -91,6 +78,7 @@ INSTALLED_APPS = [
     "dashboard.apps.DashboardConfig",
     "network.apps.NetworkConfig",
     "recordings.apps.RecordingsConfig",
+    "registry.apps.RegistryConfig",
 ]
 
 MIDDLEWARE = [
@@ -363,6 +351,13 @@ BRIDGEOS = {
     "AUTH_FAILURES": env_int("BRIDGEOS_AUTH_FAILURES", 10),
     "AUTH_FAILURES_PER_ADDRESS": env_int("BRIDGEOS_AUTH_FAILURES_PER_ADDRESS", 100),
     "AUTH_WINDOW_S": env_float("BRIDGEOS_AUTH_WINDOW_S", 300.0),
+    # The cloud as the token server of Distribution registries (registry/): the key signing their
+    # tokens (PEM; default: one made once and kept in DATA_DIR as registry_key.pem), the `iss` they
+    # expect, the `aud` of a request that names no service, and how long a token is good for.
+    "REGISTRY_KEY": env_str("BRIDGEOS_REGISTRY_KEY", ""),
+    "REGISTRY_ISSUER": env_str("BRIDGEOS_REGISTRY_ISSUER", "bridgeos-cloud"),
+    "REGISTRY_SERVICE": env_str("BRIDGEOS_REGISTRY_SERVICE", "bridgeos-registry"),
+    "REGISTRY_TOKEN_TTL_S": env_float("BRIDGEOS_REGISTRY_TOKEN_TTL_S", 300.0),
 }
 
 # Robots' subnets (IPAM pools), the VPN and TLS: see network/conf.py and the README.

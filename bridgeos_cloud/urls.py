@@ -24,6 +24,7 @@ urlpatterns = [
     path("api/", include("monitoring.api.urls")),
     path("api/", include("network.api.urls")),
     path("api/", include("recordings.api.urls")),
+    path("api/", include("registry.api.urls")),
     path("api/schema/", SpectacularAPIView.as_view(), name="schema"),
     path("api/docs/", SpectacularSwaggerView.as_view(url_name="schema"), name="docs"),
 ]

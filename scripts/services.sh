@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure the real services bridgeOS runs and tests against are up.
 #
-#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus node
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus node registry
 #   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
 #
 # Idempotent: a part already up is left alone. Missing software is installed with apt
@@ -11,7 +11,7 @@
 set -euo pipefail
 
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus node)
+ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus node registry)
 # Debian's prometheus scrapes `make run`'s cloud and demo agents (docker/prometheus/prometheus.yml);
 # the tests start their own with a temporary config and use promtool from the same package.
 # Not Prometheus's own default, 9090: that is rosbridge's, which ROS tools (roslibpy, roslibjs) assume.
@@ -89,6 +89,7 @@ wants ros && { [[ -x /usr/bin/roscore ]] && rospy_ok && numpy_ok || APT_NEEDED+=
 wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
 wants prometheus && { have prometheus && have promtool || APT_NEEDED+=(prometheus); }
 wants node && { have node && have npm || APT_NEEDED+=(nodejs npm); }
+wants registry && { have docker-registry && have skopeo || APT_NEEDED+=(docker-registry skopeo); }
 if wants vpn; then
     for tool in "${VPN_TOOLS[@]}"; do have "${tool%%:*}" || APT_NEEDED+=("${tool#*:}"); done
 fi
@@ -299,6 +300,18 @@ part_node() {
     done
     ((${#did[@]})) || did=("packages up to date")
     report node "$t" "node $(node --version), ${did[*]}"
+}
+
+# Debian's CNCF Distribution registry and skopeo; the tests start their own registry with a
+# config from `manage.py registry_config`, so none is started here.
+part_registry() {
+    local t; t=$(now)
+    if ! have docker-registry || ! have skopeo; then
+        missing registry "$t" "not installed (the registry tests need them): sudo apt-get install docker-registry skopeo"; return
+    fi
+    local did="present"
+    [[ $INSTALLED == *" docker-registry "* ]] && did="installed"
+    report registry "$t" "$did: docker-registry $(docker-registry --version 2>/dev/null | awk '{print $3}'), $(skopeo --version 2>/dev/null)"
 }
 
 for part in "${ALL_PARTS[@]}"; do

@@ -24,10 +24,13 @@ import pytest
 __all__ = ["BAD_LINE", "bad_entries", "watch"]
 
 # A log line at ERROR or above, in the formats of this project's parts (cloud and agent:
-# "time LEVEL name: message"; Celery: "[time: ERROR/MainProcess] ..."), or a traceback.
-BAD_LINE = re.compile(r"\b(ERROR|CRITICAL)\b|Traceback \(most recent call last\)")
-# Where a new log record begins: a timestamp, a bracketed timestamp, or Python's default format.
-RECORD_START = re.compile(r"^(\[?\d{4}-\d\d-\d\d[ T]\d\d:\d\d|[A-Z]+:[\w.]+:|(DEBUG|INFO|WARNING|ERROR|CRITICAL)\b)")
+# "time LEVEL name: message"; Celery: "[time: ERROR/MainProcess] ..."; Go's logrus, as the
+# registry writes: 'time="..." level=error msg=...'), or a traceback.
+BAD_LINE = re.compile(r"\b(ERROR|CRITICAL)\b|\blevel=(error|fatal|panic)\b|Traceback \(most recent call last\)")
+# Where a new log record begins: a timestamp, a bracketed timestamp, logrus's time="...", or Python's default format.
+RECORD_START = re.compile(
+    r'^(\[?\d{4}-\d\d-\d\d[ T]\d\d:\d\d|time="\d{4}-|[A-Z]+:[\w.]+:|(DEBUG|INFO|WARNING|ERROR|CRITICAL)\b)'
+)
 MAX_ENTRY_LINES = 60
 
 

@@ -32,6 +32,17 @@ def test_an_error_line_carries_its_traceback_and_stops_at_the_next_record() -> N
     assert entries[1] == "[2026-12-02 04:05:25,000: ERROR/MainProcess] Task skills.tasks.launch raised: boom"
 
 
+def test_the_registrys_logrus_error_lines_are_errors_and_its_warnings_are_not() -> None:
+    log = (
+        'time="2026-12-02T06:49:31Z" level=warning msg="error authorizing context: invalid token"\n'
+        'time="2026-12-02T06:49:31Z" level=error msg="response completed with error" err.code="blob unknown"\n'
+        'time="2026-12-02T06:49:32Z" level=info msg="response completed"\n'
+    )
+    assert bad_entries(log) == [
+        'time="2026-12-02T06:49:31Z" level=error msg="response completed with error" err.code="blob unknown"'
+    ]
+
+
 def test_info_and_warning_lines_are_not_errors() -> None:
     assert bad_entries("2026-12-02 04:05:24,074 INFO x: the word error in lower case\nWARNING y: late\n") == []
 

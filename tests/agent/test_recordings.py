@@ -302,6 +302,11 @@ async def test_limits_end_a_recording_and_bad_input_or_another_user_changes_noth
                 running = await start(client, "rec-2", topics=["/steady"])
                 assert running.status_code == 201
                 rid = running.json()["id"]
+                # Once the robot said it records: what follows must change nothing, its own progress included.
+                deadline = time.monotonic() + 15
+                while (await client.get(f"/api/robot/rec-2/recordings/{rid}")).json()["status"] != "recording":
+                    assert time.monotonic() < deadline, "the recording never started"
+                    await asyncio.sleep(0.1)
                 before = (await client.get("/api/robot/rec-2/recordings")).json()
                 newest = (await client.get("/api/robot/rec-2/recordings?limit=1")).json()
                 assert [r["id"] for r in newest] == [before[0]["id"]] and len(before) >= 2

@@ -1,0 +1,11 @@
+"""Routes of the registry's API."""
+
+from __future__ import annotations
+
+from django.urls import path
+
+from . import views
+
+urlpatterns = [
+    path("registry/token", views.TokenView.as_view(), name="registry-token"),
+]

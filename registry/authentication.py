@@ -1,0 +1,43 @@
+"""HTTP Basic for the token server: a user's password or API token, or a robot's id and token."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rest_framework.exceptions import AuthenticationFailed, Throttled
+
+from robots.authentication import PasswordAuthentication
+from robots.models import TOKEN_PREFIX
+from robots.services import API_TOKEN_PREFIX, LoginBlocked, api_token, login_robot
+
+REALM = "bridgeOS registry"
+
+
+class RegistryAuthentication(PasswordAuthentication):
+    """Tell the credential by its token's prefix: `bat_` an API token, `brt_` a robot's token, else a password.
+
+    A robot authenticates as its owner (``request.user``) with itself as ``request.auth``, so the
+    grant rules can hold it to its owner's pulls.
+    """
+
+    www_authenticate_realm = REALM
+
+    def authenticate_credentials(self, userid: str, password: str, request: Any = None) -> tuple[Any, Any]:
+        if "\x00" in userid or "\x00" in password:
+            # PostgreSQL cannot even look such a name up (it would be a 500).
+            raise AuthenticationFailed("Invalid username/password.")
+        if password.startswith(API_TOKEN_PREFIX):
+            token = api_token(password)
+            if token is None or token.user.get_username() != userid:
+                raise AuthenticationFailed("Invalid or expired API token for this user.")
+            return token.user, token
+        if password.startswith(TOKEN_PREFIX):
+            address = request.META.get("REMOTE_ADDR", "") if request is not None else ""
+            try:
+                robot = login_robot(userid, password, address)
+            except LoginBlocked as exc:
+                raise Throttled(wait=exc.retry_s, detail="Too many failed logins; try again later.") from None
+            if robot is None:
+                raise AuthenticationFailed("Invalid robot id/token.")
+            return robot.owner, robot
+        return super().authenticate_credentials(userid, password, request)
