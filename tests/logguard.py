@@ -21,17 +21,24 @@ from pathlib import Path
 
 import pytest
 
-__all__ = ["BAD_LINE", "bad_entries", "watch"]
+__all__ = ["BAD_LINE", "bad_entries", "is_bad", "watch"]
 
 # A log line at ERROR or above, in the formats of this project's parts (cloud and agent:
 # "time LEVEL name: message"; Celery: "[time: ERROR/MainProcess] ..."; Go's logrus, as the
 # registry writes: 'time="..." level=error msg=...'), or a traceback.
-BAD_LINE = re.compile(r"\b(ERROR|CRITICAL)\b|\blevel=(error|fatal|panic)\b|Traceback \(most recent call last\)")
+BAD_LINE = re.compile(r"\b(ERROR|CRITICAL)\b|(?:^|\s)level=(error|fatal|panic)\b|Traceback \(most recent call last\)")
+# daphne's access log: a request line, whose URL is the client's text (a query may well say level=error).
+ACCESS_LINE = re.compile(r'^\S+:\d+ - - \[[^\]]+\] "')
 # Where a new log record begins: a timestamp, a bracketed timestamp, logrus's time="...", or Python's default format.
 RECORD_START = re.compile(
     r'^(\[?\d{4}-\d\d-\d\d[ T]\d\d:\d\d|time="\d{4}-|[A-Z]+:[\w.]+:|(DEBUG|INFO|WARNING|ERROR|CRITICAL)\b)'
 )
 MAX_ENTRY_LINES = 60
+
+
+def is_bad(line: str) -> bool:
+    """Tell whether a log line is an error or a traceback's start (a request line of an access log never is)."""
+    return BAD_LINE.search(line) is not None and not ACCESS_LINE.match(line)
 
 
 def bad_entries(text: str) -> list[str]:
@@ -41,7 +48,7 @@ def bad_entries(text: str) -> list[str]:
     index = 0
     while index < len(lines):
         line = lines[index]
-        if not BAD_LINE.search(line):
+        if not is_bad(line):
             index += 1
             continue
         entry = [line]
@@ -49,7 +56,9 @@ def bad_entries(text: str) -> list[str]:
         # A traceback carries on until its exception line; any entry until the next record begins.
         while index < len(lines) and len(entry) < MAX_ENTRY_LINES:
             following = lines[index]
-            if RECORD_START.match(following) and not following.startswith("Traceback"):
+            if (RECORD_START.match(following) or ACCESS_LINE.match(following)) and not following.startswith(
+                "Traceback"
+            ):
                 break
             entry.append(following)
             index += 1

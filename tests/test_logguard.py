@@ -43,6 +43,13 @@ def test_the_registrys_logrus_error_lines_are_errors_and_its_warnings_are_not() 
     ]
 
 
+def test_a_request_line_of_an_access_log_is_never_an_error_whatever_its_url_says() -> None:
+    access = '127.0.0.1:54916 - - [02/Dec/2026:07:16:47] "GET /api/events?level=error&kind=ERROR" 400 436'
+    assert bad_entries(access + "\n") == []
+    # Nor does it carry on an error entry before it.
+    assert bad_entries("2026-12-02 04:05:24,075 ERROR a: b\n" + access + "\n") == ["2026-12-02 04:05:24,075 ERROR a: b"]
+
+
 def test_info_and_warning_lines_are_not_errors() -> None:
     assert bad_entries("2026-12-02 04:05:24,074 INFO x: the word error in lower case\nWARNING y: late\n") == []
 
