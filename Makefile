@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: run test test-fast services images lint bench chaos install clean deploy undeploy
+.PHONY: run test test-fast services images lint docs bench chaos install clean deploy undeploy
 
 ## Create .venv and install the cloud, the agent and the test tools (torch first: the CPU build on disk).
 install: $(STAMP)
@@ -44,10 +44,19 @@ deploy:
 undeploy:
 	@bash scripts/deploy.sh down $(UNDEPLOY_ARGS)
 
+## ruff, mypy, the generated reference pages against the code, and the documentation site with --strict (broken links fail).
 lint: install
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
+	$(PY) scripts/docs_reference.py --check
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+
+## Regenerate docs/reference/ from the code and build the documentation site into .data/site (mkdocs.yml).
+docs: install
+	$(PY) scripts/docs_reference.py
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+	@echo "== docs: open .data/site/index.html, or run $(VENV)/bin/mkdocs serve -a 127.0.0.1:8001"
 
 ## Run every benchmark and write .data/bench/report.md beside the thesis's figures (BENCH_ARGS="--quick", "--only router", "--strict").
 bench: install
