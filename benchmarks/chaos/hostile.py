@@ -724,6 +724,7 @@ NO_ROBOT = {
     "metrics": "operator scrape, limited to BRIDGEOS_METRICS_ALLOW/TOKEN, not a per-user door",
     "api/auth": "exchanges a password for a token",
     "api/auth/renew": "renews the caller's own token",
+    "api/registry/token": "grants repositories of the caller's own namespace only (tests/registry prove it)",
     "api/templates": "catalog, shared by design; writes are staff only",
     "api/templates/<int:template_id>": "catalog, shared by design; writes are staff only",
     "api/schema/": "the OpenAPI schema",
