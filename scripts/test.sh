@@ -6,6 +6,7 @@ cd "$(dirname "$0")/.."
 export DATABASE_URL="${TEST_DATABASE_URL:-postgres://postgres@127.0.0.1:5432/test}"
 # A Redis database of its own, so tests never see another process's queues or groups.
 export REDIS_URL="${TEST_REDIS_URL:-redis://127.0.0.1:6379/14}"
+# The tests' data directory: a fresh temporary one per run unless given, so no run sees another's files.
 export BRIDGEOS_DATA_DIR="${BRIDGEOS_DATA_DIR:-$(mktemp -d /tmp/bridgeos-test.XXXXXX)}"
 export ROS_MASTER_URI="${ROS_MASTER_URI:-http://127.0.0.1:11311}"
 export PYTHONDONTWRITEBYTECODE=1

@@ -41,6 +41,16 @@ def wait_for_port(port: int, process: subprocess.Popen, timeout: float = 30.0) -
     raise TimeoutError(f"nothing listened on port {port} within {timeout} s")
 
 
+def stop_process(process: subprocess.Popen, timeout: float = 10) -> None:
+    """Ask a process to end (SIGTERM), and kill it if it has not within ``timeout`` seconds."""
+    process.terminate()
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
 def service_env(db_name: str) -> dict[str, str]:
     """Return the environment a server process needs to share the test database."""
     from django.conf import settings
@@ -90,11 +100,7 @@ def daphne_server(django_db_setup, django_db_blocker, tmp_path_factory) -> Itera
         wait_for_port(port, process)
         yield Server("127.0.0.1", port, log)
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
+        stop_process(process)
         with django_db_blocker.unblock():
             close_other_sessions()
 
@@ -119,13 +125,7 @@ def another_daphne(log: Path, **env: str) -> Iterator[tuple[Server, subprocess.P
         wait_for_port(port, process)
         yield Server("127.0.0.1", port, log), process
     finally:
-        if process.poll() is None:
-            process.terminate()
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-        process.wait(timeout=10)
+        stop_process(process)
 
 
 def close_other_sessions() -> None:
@@ -169,11 +169,7 @@ def celery_worker_process(django_db_setup, django_db_blocker, tmp_path_factory) 
                 raise RuntimeError(f"Celery worker did not start; its log:\n{log.read_text()[-3000:]}")
         yield log
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            process.kill()
+        stop_process(process, timeout=15)
         with django_db_blocker.unblock():
             # A task that was still running when its test ended may have launched a copy since.
             remove_cloud_copies()

@@ -17,7 +17,7 @@ from django.contrib.auth import get_user_model
 from django.core.management import call_command
 
 from robots.services import create_robot, issue_api_token
-from tests.conftest import free_port, wait_for_port
+from tests.conftest import free_port, stop_process, wait_for_port
 from tests.logguard import watch
 
 PASSWORD = "correct-horse-battery-42"
@@ -61,12 +61,7 @@ def serving(config: Path, host: str, log: Path) -> Iterator[Path]:
         wait_for_port(int(host.rpartition(":")[2]), process)
         yield log
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop_process(process)
 
 
 @dataclass
