@@ -220,14 +220,22 @@ async def test_stored_messages_are_replayed_to_a_new_instance(world):
     assert nodes.messages("late") == [("t", seq) for seq in range(8, 13)]
 
 
-async def test_statistics_count_what_was_routed(world):
+async def test_statistics_count_what_was_routed(world, tmp_path):
     router = await world.make(world.config([world.chatter()]), talker="robot", listener="robot")
     nodes = world.nodes
     nodes.run("listener", "listener", namespace=ns("listener", "robot"))
     if world.ros == 1:
         assert await router.wait_ready("listener", "robot", 30)
+    gate = tmp_path / "go"
     args = ("--tag", "s", "--rate", "200", "--count", "200", "--wait", "--linger", "30", *world.settle)
+    if world.ros == 2:
+        args += ("--gate", str(gate))
     nodes.run("talker", "talker", *args, namespace=ns("talker", "robot"))
+    if world.ros == 2:
+        # The listener's delivery opens once the talker is seen; a fixed settle was too short on
+        # a loaded CI machine, so the talker starts only when the listener has matched it.
+        assert await router.wait_ready("listener", "robot", 30)
+    gate.touch()
     await eventually(lambda: len(nodes.messages("listener")) >= 200, what="every message")
     stats = router.statistics()["/chatter"]
     assert stats["messages"] == 200 and stats["subscribers"]["listener"]["messages"] == 200
