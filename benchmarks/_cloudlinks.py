@@ -212,7 +212,7 @@ def start_relay(link: _netshape.Link, master: str, home: Path, started: list[sub
 async def one_run(link: _netshape.Link, relay: bool, warmup: float, window: float) -> dict[str, Any]:
     """Run the Skill with every movable component in the cloud; return the link's bytes per second."""
     from bridgeos_agent.router import RouterSettings, SkillRouter
-    from bridgeos_agent.router.cloudrelay import CloudLink
+    from bridgeos_agent.router.cloudlink import CloudLink
     from bridgeos_agent.skillconfig import parse_skill_config
 
     with tempfile.TemporaryDirectory(prefix="cloudlinks-") as tmp, processes() as started:

@@ -22,7 +22,8 @@ import pytest
 
 import bridgeos_agent
 from bridgeos_agent.router import RouterSettings, SkillRouter
-from bridgeos_agent.router.cloudrelay import CloudLink, FrameLog, fingerprint, link_from_env
+from bridgeos_agent.router.cloudlink import CloudLink, link_from_env
+from bridgeos_agent.router.handover import FrameLog, fingerprint
 from bridgeos_agent.skillconfig import parse_skill_config
 from tests.agent.roshelpers import Nodes, private_rosmaster
 from tests.agent.test_router import eventually

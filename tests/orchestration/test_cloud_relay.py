@@ -26,7 +26,7 @@ from bridgeos_agent.controller import RobotController
 from bridgeos_agent.link import Link
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.router import RouterSettings, SkillRouter
-from bridgeos_agent.router.cloudrelay import CloudLink
+from bridgeos_agent.router.cloudlink import CloudLink
 from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
 from skills.models import CloudRelay, Component

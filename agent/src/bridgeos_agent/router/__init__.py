@@ -13,10 +13,11 @@ of marked topics for new instances, counts everything for the Skill Manager and 
 
 Cloud-side routing (``cloudrelay``): the same router run in the cloud for one robot's Skill, a
 cloud relay, delivers the (topic, subscriber) pairs whose two ends are both active in the cloud,
-so their bytes do not cross the robot's link. The robot's router hands those pairs over and
-takes them back at an exact cut point (one relay per pair at any moment, nothing lost or
-repeated), stops receiving cloud streams nobody on the robot needs, adds the relay's counts to
-its own, and relays everything itself (said once in its log) when no relay answers.
+so their bytes do not cross the robot's link. Through its link to the relay (``cloudlink``)
+the robot's router hands those pairs over and takes them back at an exact cut point
+(``handover``: one relay per pair at any moment, nothing lost or repeated), stops receiving
+cloud streams nobody on the robot needs, adds the relay's counts to its own, and relays
+everything itself (said once in its log) when no relay answers.
 Routes of ROS 2 components (``"ros": 2``) go through rclpy instead (``router.ros2``, imported
 only when such a route exists): serialized messages mirroring the publisher's QoS, services,
 actions as their hidden services and topics, the robot's graph and the cloud's (a client of

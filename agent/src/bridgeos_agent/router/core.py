@@ -28,7 +28,7 @@ from bridgeos_agent.tcpros import TOPIC_STATISTICS_DEFINITION, TOPIC_STATISTICS_
 
 if TYPE_CHECKING:
     from bridgeos_agent.hosts import SkillHost
-    from bridgeos_agent.router.cloudrelay import CloudLink
+    from bridgeos_agent.router.cloudlink import CloudLink
     from bridgeos_agent.supervisor import SkillSupervisor
 
 __all__ = ["SkillRouter", "skill_router_plugin"]
@@ -334,7 +334,7 @@ async def skill_router_plugin(supervisor: SkillSupervisor) -> None:
     for name, location in record.locations.items():
         if location in LOCATIONS and name in record.config.components:
             router.set_active(name, location)
-    from bridgeos_agent.router.cloudrelay import CloudLink, link_from_env  # (it builds on this module)
+    from bridgeos_agent.router.cloudlink import CloudLink, link_from_env  # (it builds on this module)
 
     # The relay the cloud named at login, else the one the environment names, else none.
     offered = getattr(controller, "cloud_relays", {}).get(supervisor.skill)

@@ -85,7 +85,7 @@ class RoutedTopic:
         self.store: deque[bytes] | None = deque(maxlen=route.store) if route.store else None
         self.has_header = False
         self.node_pub = ""
-        self.log: Any = None  # cloudrelay.FrameLog of the cloud source's recent frames, when a cloud relay is linked
+        self.log: Any = None  # handover.FrameLog of the cloud source's recent frames, when a cloud relay is linked
         self.parked = False  # a cloud relay delivering none of this topic: it only logs the frames
         self.last_rate = 0.0  # messages/s over the last statistics window
         self.last_age: float | None = None  # mean age of header.stamp then (s), when the type has a header
