@@ -1,14 +1,12 @@
 """Route a Skill's ROS 2 topics, services and actions with rclpy (serialized messages, the publisher's QoS).
 
-A topic's router endpoints are made once its first publisher is seen: DDS discovery tells the
-publisher's reliability and durability (not its history), and the router mirrors them, so a
-best-effort stream stays best-effort and a transient-local ``/map`` reaches late joiners (the
-router keeps ``store`` messages, at least 1, for them; volatile topics keep 5000 to ride out bursts).
-Services are served on the canonical name and each call goes to the server's active instance;
-an action is relayed as its hidden services (``<name>/_action/send_goal``, ``get_result``,
-``cancel_goal``) and topics (``<name>/_action/feedback``, ``status``). Cloud instances are
-reached in the "cloud" graph when the controller gave one (a client of the robot's Fast DDS
-discovery server), else in the robot's graph. rclpy is imported only when a ROS 2 route exists.
+Topics are relayed here (the hot path, the statistics windows and the routes' life); their
+publishers are found and the router's endpoints opened with the publishers' QoS in
+router/ros2discovery.py; services, and an action's hidden services, in router/ros2services.py.
+An action is relayed as its hidden services and topics (``<name>/_action/feedback``,
+``status``). Cloud instances are reached in the "cloud" graph when the controller gave one (a
+client of the robot's Fast DDS discovery server), else in the robot's graph. rclpy is
+imported only when a ROS 2 route exists.
 """
 
 from __future__ import annotations
@@ -16,66 +14,27 @@ from __future__ import annotations
 import asyncio
 import logging
 import struct
-import threading
 import time
-from collections import OrderedDict, deque
 from collections.abc import Callable
 from typing import Any
 
 from bridgeos_agent.ros2graph import Ros2Graph, Ros2TypeError, interface_class, rclpy_missing
 from bridgeos_agent.rosnames import canonical_name, instance_name
-from bridgeos_agent.router.routes import Delivery, RoutedService, RoutedTopic, RouterBase
+from bridgeos_agent.router.ros2discovery import Ros2Discovery, Ros2Topic
+from bridgeos_agent.router.ros2services import ACTION_SERVICES, Ros2Service, Ros2ServiceRouting, loose_route
+from bridgeos_agent.router.routes import Delivery
 from bridgeos_agent.router.settings import Where, locations
-from bridgeos_agent.skillconfig import ServiceRoute, SkillConfig, TopicRoute
+from bridgeos_agent.skillconfig import SkillConfig, TopicRoute
 
 __all__ = ["ACTION_SERVICES", "ACTION_TOPICS", "Ros2Routing", "Ros2Service", "Ros2Topic"]
 
 logger = logging.getLogger(__name__)
 
-# rcl_action's hidden names under an action's name.
-ACTION_SERVICES = ("_action/send_goal", "_action/cancel_goal", "_action/get_result")
+# rcl_action's hidden topics under an action's name (its services: ros2services.ACTION_SERVICES).
 ACTION_TOPICS = ("_action/feedback", "_action/status")
-VOLATILE_DEPTH = 5000
-CALL_TIMEOUT = 30.0
-RESULT_TIMEOUT = 3600.0  # get_result answers only when the goal ends
-PER_PASS = 64  # graph lookups per discovery pass (every 50 ms)
 
 
-class Ros2Topic(RoutedTopic):
-    """A routed ROS 2 topic: its type, the sources seen so far and the QoS mirrored."""
-
-    __slots__ = ("matched", "msg_class", "own", "qos", "sources")
-
-    def __init__(self, route: TopicRoute, msg_class: type, now: float) -> None:
-        super().__init__(route, None, now)
-        self.msg_class = msg_class
-        self.qos: Any = None  # the QoS of the router's publications, from the first publisher seen
-        self.sources: dict[str, list[Any]] = {}  # name -> [where or None, subscription or None]
-        self.own: OrderedDict[tuple[int, bytes], None] = OrderedDict()  # what we sent on the canonical name
-        self.matched: dict[tuple[str, str], int] = {}  # (subscriber, where) -> readers its sink matched, last seen
-        fields = list(msg_class.get_fields_and_field_types().values())  # type: ignore[attr-defined]
-        self.has_header = bool(fields) and fields[0] == "std_msgs/Header"
-
-
-class Ros2Service(RoutedService):
-    """A relayed ROS 2 service: its class, the canonical server and a client per instance."""
-
-    __slots__ = ("clients", "server", "srv_class", "timeout")
-
-    def __init__(self, route: ServiceRoute, srv_class: type, timeout: float) -> None:
-        super().__init__(route)
-        self.srv_class = srv_class
-        self.server: Any = None
-        self.clients: dict[str, Any] = {}
-        self.timeout = timeout
-
-
-def _loose_route(kind: Any, **fields: Any) -> Any:
-    """Build a route without the config's validation (an action's hidden names and types)."""
-    return kind.model_construct(**fields)
-
-
-class Ros2Routing(RouterBase):
+class Ros2Routing(Ros2ServiceRouting, Ros2Discovery):
     """The ROS 2 half of the Skill Router."""
 
     on_route_error: Callable[[str, str], None] | None
@@ -110,26 +69,6 @@ class Ros2Routing(RouterBase):
     def _ros2_topic_routes(self, config: SkillConfig) -> list[TopicRoute]:
         return [t for t in config.router.topics if self._version(config, t.publisher) == 2]
 
-    def _ros2_service_routes(self, config: SkillConfig) -> list[tuple[ServiceRoute, type, float]]:
-        """Return the ROS 2 services to relay, an action's three among them, with their classes."""
-        found: list[tuple[ServiceRoute, type, float]] = []
-        for route in config.router.services:
-            if self._version(config, route.server) == 2:
-                srv = self._load(route.name, route.type, "srv")
-                if srv is not None:
-                    found.append((route, srv, CALL_TIMEOUT))
-        for action in config.router.actions:
-            cls = self._load(action.name, action.type, "action")
-            if cls is None:
-                continue
-            impl = cls.Impl
-            classes = (impl.SendGoalService, impl.CancelGoalService, impl.GetResultService)
-            for suffix, srv in zip(ACTION_SERVICES, classes, strict=True):
-                name = f"{canonical_name(action.name)}/{suffix}"
-                route = _loose_route(ServiceRoute, name=name, type=f"{action.type}:{suffix}", server=action.server)
-                found.append((route, srv, RESULT_TIMEOUT if suffix.endswith("get_result") else CALL_TIMEOUT))
-        return found
-
     def _ros2_action_topics(self, config: SkillConfig) -> list[tuple[TopicRoute, type]]:
         found: list[tuple[TopicRoute, type]] = []
         for action in config.router.actions:
@@ -139,7 +78,7 @@ class Ros2Routing(RouterBase):
             impl = cls.Impl
             for suffix, msg in zip(ACTION_TOPICS, (impl.FeedbackMessage, impl.GoalStatusMessage), strict=True):
                 name = f"{canonical_name(action.name)}/{suffix}"
-                route = _loose_route(
+                route = loose_route(
                     TopicRoute, name=name, type=f"{action.type}:{suffix}", publisher=action.server, subscribers=[]
                 )
                 found.append((route, msg))
@@ -327,192 +266,6 @@ class Ros2Routing(RouterBase):
                 if publisher is not None:
                     self._side(where).relay_node.destroy_publisher(publisher)
 
-    async def _r2_discover_loop(self) -> None:
-        passes = 0
-        while True:
-            passes += 1
-            try:
-                self._r2_discover()
-                self._r2_replay()
-                if passes % 4 == 0:
-                    self._r2_check_qos()
-            except Exception:  # one bad graph answer must not end routing
-                logger.exception("skill %s: ROS 2 discovery pass failed", self.skill)
-            await asyncio.sleep(0.05)
-
-    def _r2_discover(self) -> None:
-        """Subscribe each source once a publisher shows up there, mirroring its QoS.
-
-        A name present in the graph is asked about its publishers (a graph-wide lookup), at most
-        ``PER_PASS`` names a pass: a canonical name stays present through the router's own
-        publisher, and asking about all of them every pass would cost O(topics x endpoints).
-        """
-        names: dict[int, set[str]] = {}
-        instances: list[tuple[Ros2Topic, str, list[Any], Any]] = []
-        canonicals: list[tuple[Ros2Topic, str, list[Any], Any]] = []
-        for topic in list(self._topics.values()):
-            if not isinstance(topic, Ros2Topic):
-                continue
-            for name, source in topic.sources.items():
-                if source[1] is not None:
-                    continue
-                side = self._side(source[0])
-                present = names.get(id(side))
-                if present is None:
-                    present = names[id(side)] = {n for n, _ in side.node.get_topic_names_and_types()}
-                if name in present:
-                    (canonicals if source[0] is None else instances).append((topic, name, source, side))
-        # An instance's publisher is what a placement waits for: those first, then a turn of the rest.
-        found = instances + canonicals
-        if len(found) > PER_PASS:
-            start = self._r2_cursor % len(found)
-            found = (found[start:] + found[:start])[:PER_PASS]
-            self._r2_cursor = start + PER_PASS
-        for topic, name, source, side in found:
-            if source[1] is None:
-                self._r2_try_source(topic, name, source, side)
-
-    def _r2_replay(self) -> None:
-        """Give a subscriber instance that just connected the topic's stored messages (state sync, as ROS 1's).
-
-        Its sink had no reader before: nobody else hears them twice. Under the calls lock, which the
-        relay holds for a topic with a store, so no live message slips in between or out.
-        """
-        for topic in list(self._topics.values()):
-            if not isinstance(topic, Ros2Topic) or topic.store is None or topic.qos is None:
-                continue
-            for component, delivery in topic.deliveries.items():
-                for where in ("robot", "cloud"):
-                    publisher = getattr(delivery, where)
-                    if publisher is None:
-                        continue
-                    count = publisher.get_subscription_count()
-                    if count and not topic.matched.get((component, where)) and topic.store:
-                        with self._calls_lock:
-                            for data in topic.store:
-                                publisher.publish(data)
-                    topic.matched[(component, where)] = count
-
-    def _r2_try_source(self, topic: Ros2Topic, name: str, source: list[Any], side: Any) -> None:
-        infos = side.node.get_publishers_info_by_topic(name)
-        own = side.node.get_name()
-        infos = [i for i in infos if i.node_name not in (own, own + "_services", own + "_relay")]
-        if not infos:
-            return
-        info = infos[0]
-        wanted = _type_name(topic.msg_class)
-        if info.topic_type != wanted:
-            self._route_error(topic.canonical, f"{name} is published as {info.topic_type}, the route says {wanted}")
-            return
-        self._r2_subscribe(topic, name, source, info.qos_profile.reliability, info.qos_profile.durability)
-
-    def _r2_open(self, topic: Ros2Topic, reliability: Any, durability: Any) -> None:
-        """Open a topic's endpoints as when its wanted instances' publishers of this QoS show up."""
-        publisher = topic.route.publisher
-        for name, source in topic.sources.items():
-            if source[1] is None and source[0] is not None and self._r2_wants(publisher, source[0]):
-                self._r2_subscribe(topic, name, source, reliability, durability)
-
-    def _r2_wants(self, component: str, where: Where) -> bool:
-        """Tell whether an instance's endpoints should be open: it is active or the controller asked for it."""
-        return self._active.get(component) == where or (component, where) in self._r2_wanted
-
-    def _r2_want(self, component: str, where: Where) -> None:
-        """Open the endpoints that deliver to an instance (it is placed, waited for or switched to)."""
-        if (component, where) in self._r2_wanted:
-            return
-        self._r2_wanted.add((component, where))
-        if not self._r2_sides:
-            return
-        for topic in list(self._topics.values()):
-            if isinstance(topic, Ros2Topic) and topic.qos is not None:
-                delivery = topic.deliveries.get(component)
-                if delivery is not None and getattr(delivery, where) is None:
-                    self._r2_make_sink(topic, component, delivery, where)
-
-    def _r2_subscribe(self, topic: Ros2Topic, name: str, source: list[Any], reliability: Any, durability: Any) -> None:
-        """Subscribe one source with the QoS its publisher offers (the sinks too, for the first)."""
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile
-
-        where = source[0]
-        durable = durability == DurabilityPolicy.TRANSIENT_LOCAL
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=max(1, topic.route.store) if durable else VOLATILE_DEPTH,
-            reliability=reliability,
-            durability=durability,
-        )
-        if topic.qos is None:
-            topic.qos = qos
-            if durable and topic.store is None:
-                topic.store = deque(maxlen=1)  # a latched message reaches a moved subscriber too
-            self._r2_make_sinks(topic)
-        if not durable:
-            # The router's own reader keeps all: falling behind in a burst must not cost messages.
-            qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=reliability, durability=durability)
-        source[1] = self._side(where).relay.subscribe(
-            topic.msg_class,
-            name,
-            qos,
-            lambda data, msg_info, topic=topic, where=where: self._r2_relay(topic, where, data, msg_info),
-        )
-        if where is not None:
-            topic.node_pub = name
-
-    def _r2_make_sinks(self, topic: Ros2Topic) -> None:
-        from rclpy.event_handler import PublisherEventCallbacks
-
-        # On the relay's node, which no executor spins: an executor would walk every publisher's
-        # event handlers each time an endpoint is added (quadratic at thousands of topics).
-        quiet = PublisherEventCallbacks(use_default_callbacks=False)
-        robot = self._side(None).relay_node
-        topic.canonical_pub = robot.create_publisher(topic.msg_class, topic.canonical, topic.qos, event_callbacks=quiet)
-        for component, delivery in topic.deliveries.items():
-            for where in locations(self.config.components[component].location):
-                if self._r2_wants(component, where):
-                    self._r2_make_sink(topic, component, delivery, where)
-
-    def _r2_make_sink(self, topic: Ros2Topic, component: str, delivery: Delivery, where: Where) -> None:
-        """Publish a topic into one subscriber instance's namespace, with the publisher's QoS."""
-        from rclpy.event_handler import PublisherEventCallbacks
-
-        quiet = PublisherEventCallbacks(use_default_callbacks=False)
-        name = instance_name(topic.route.name, self.skill, component, where)
-        node = self._side(where).relay_node
-        setattr(delivery, where, node.create_publisher(topic.msg_class, name, topic.qos, event_callbacks=quiet))
-
-    def _r2_check_qos(self) -> None:
-        """Report subscribers that ask for a QoS the router's publication (the publisher's) does not offer.
-
-        ``PER_PASS`` topics a call, in turn: counting a name's subscribers walks the whole graph.
-        """
-        from rclpy.qos import QoSCompatibility, qos_check_compatible
-
-        opened = [t for t in self._topics.values() if isinstance(t, Ros2Topic) and t.qos is not None]
-        if len(opened) > PER_PASS:
-            start = self._r2_qos_cursor % len(opened)
-            opened = (opened[start:] + opened[:start])[:PER_PASS]
-            self._r2_qos_cursor = start + PER_PASS
-        for topic in opened:
-            sinks: list[tuple[Any, Any]] = [(None, topic.canonical_pub)]
-            for delivery in topic.deliveries.values():
-                sinks += [(where, getattr(delivery, where)) for where in ("robot", "cloud")]
-            for where, publisher in sinks:
-                if publisher is None:
-                    continue
-                node = self._side(where).relay_node
-                name = publisher.topic_name
-                if publisher.get_subscription_count() >= node.count_subscribers(name):
-                    continue  # every subscriber matched
-                for info in node.get_subscriptions_info_by_topic(name):
-                    compatibility, reason = qos_check_compatible(topic.qos, info.qos_profile)
-                    if compatibility == QoSCompatibility.ERROR:
-                        self._route_error(
-                            topic.canonical,
-                            f"a subscriber of {name} asks for a QoS the publisher does not offer ({reason}); "
-                            "it gets nothing",
-                        )
-
     def _r2_relay(self, topic: Ros2Topic, source: Where | None, data: bytes, info: dict[str, Any]) -> None:
         """Relay one serialized message: the ROS 2 hot path (an executor thread)."""
         payload = len(data)
@@ -599,67 +352,6 @@ class Ros2Routing(RouterBase):
 
     # ------------------------------------------------------------------ services
 
-    def _r2_add_service(self, route: ServiceRoute, srv_class: type, timeout: float) -> None:
-        service = Ros2Service(route, srv_class, timeout)
-        robot = self._side(None)
-        service.server = robot.service_node.create_service(
-            srv_class,
-            service.canonical,
-            lambda request, response: self._r2_serve(service, request, response),
-            callback_group=robot.group,
-        )
-        for where in locations(self.config.components[route.server].location):
-            side = self._side(where)
-            name = instance_name(route.name, self.skill, route.server, where)
-            service.clients[where] = side.service_node.create_client(srv_class, name, callback_group=side.group)
-        self.route_errors.pop(service.canonical, None)
-        self._r2_services[service.canonical] = service
-
-    def _r2_remove_service(self, canonical: str) -> None:
-        service = self._r2_services.pop(canonical, None)
-        if service is None:
-            return
-        self._side(None).service_node.destroy_service(service.server)
-        for where, client in service.clients.items():
-            self._side(where).service_node.destroy_client(client)
-
-    def _r2_serve(self, service: Ros2Service, request: Any, response: Any) -> Any:
-        """Answer one call with the active server instance's answer (a service executor thread).
-
-        The call counts as in flight at that instance until it is answered: a switch away waits for it.
-        """
-        server = service.route.server
-        with self._calls_lock:
-            where = self._active.get(server)
-            if where is not None:
-                self._inflight[(server, where)] = self._inflight.get((server, where), 0) + 1
-        try:
-            return self._r2_call(service, where, request, response)
-        finally:
-            if where is not None:
-                self._leave((server, where), self._r2_loop)
-
-    def _r2_call(self, service: Ros2Service, where: Where | None, request: Any, response: Any) -> Any:
-        from rclpy.serialization import serialize_message
-
-        client = service.clients.get(where) if where else None
-        if client is None or not client.wait_for_service(timeout_sec=min(5.0, service.timeout)):
-            service.errors += 1
-            logger.warning("skill %s: %s: no server instance answers (%s)", self.skill, service.canonical, where)
-            return response
-        done = threading.Event()
-        future = client.call_async(request)
-        future.add_done_callback(lambda _: done.set())
-        if not done.wait(service.timeout) or future.result() is None:
-            client.remove_pending_request(future)
-            service.errors += 1
-            logger.warning("skill %s: %s: the %s instance did not answer", self.skill, service.canonical, where)
-            return response
-        answer = future.result()
-        service.calls += 1
-        service.bytes += len(serialize_message(request)) + len(serialize_message(answer))
-        return answer
-
     # ------------------------------------------------------------------ readiness and statistics
 
     def _r2_ready(self, component: str, location: Where) -> bool:
@@ -687,13 +379,6 @@ class Ros2Routing(RouterBase):
                 if client is None or not client.service_is_ready():
                     return False
         return True
-
-    def r2_statistics(self) -> dict[str, dict[str, Any]]:
-        """Return the ROS 2 services' totals (the topics are in ``statistics()``)."""
-        return {
-            name: {"kind": "service", "server": s.route.server, "calls": s.calls, "bytes": s.bytes, "errors": s.errors}
-            for name, s in self._r2_services.items()
-        }
 
     def _r2_publish_statistics(self, windows: list[Any]) -> None:
         """Publish closed windows on the robot graph's /statistics as diagnostic_msgs/DiagnosticArray."""
@@ -727,9 +412,3 @@ class Ros2Routing(RouterBase):
                 DiagnosticStatus(level=DiagnosticStatus.OK, name=window.topic, hardware_id=self.skill, values=values)
             )
         publisher.publish(array)
-
-
-def _type_name(msg_class: type) -> str:
-    """Return 'pkg/msg/Type' for a generated class (an action's messages are 'pkg/action/T_...')."""
-    module = msg_class.__module__.split(".")
-    return f"{module[0]}/{module[1]}/{msg_class.__name__}"
