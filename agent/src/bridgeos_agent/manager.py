@@ -19,7 +19,6 @@ import dataclasses
 import functools
 import json
 import logging
-import math
 import time
 from collections import deque
 from typing import TYPE_CHECKING, Any, cast
@@ -31,11 +30,11 @@ from bridgeos_agent.decision import (
     DecisionInput,
     DecisionModel,
     Features,
-    Outcome,
     Side,
     decide_and_learn,
     train_due,
 )
+from bridgeos_agent.decisioninputs import Usage, decision_event, free_share, means, observed_outcome
 from bridgeos_agent.decisionmodel import _load_torch
 from bridgeos_agent.heuristics import Resources
 from bridgeos_agent.monitor import Reporter
@@ -216,8 +215,8 @@ class SkillManager:
             self._usage[name] = (where, window, latest, True)
         if not window:
             return None
-        cpu, ram = _means(window)
-        return _Usage(cpu=cpu, ram=ram)
+        cpu, ram = means(window)
+        return Usage(cpu=cpu, ram=ram)
 
     def _inputs(self, names: list[str]) -> tuple[list[str], list[DecisionInput], dict[str, Any]]:
         """Build each component's decision input; return the components costed, their inputs and costs."""
@@ -284,9 +283,9 @@ class SkillManager:
             # A move to the robot needs room there; unknown (no sample yet) counts as room.
             resources_ok = location == "robot" or not free or needs.fits(Resources(**free))
             features = Features(
-                cpu_available=_share(free.get("cpu"), capacity.cpu),
-                ram_available=_share(free.get("ram"), capacity.ram),
-                bandwidth_available=_share(values.get("bandwidth_available"), capacity.bandwidth),
+                cpu_available=free_share(free.get("cpu"), capacity.cpu),
+                ram_available=free_share(free.get("ram"), capacity.ram),
+                bandwidth_available=free_share(values.get("bandwidth_available"), capacity.bandwidth),
                 battery=(values["battery"] / 100) if "battery" in values else 1.0,
                 latency=rtt,
                 loss=loss[location],
@@ -294,7 +293,7 @@ class SkillManager:
                 cost_robot=estimate.cost_robot,
                 cost_cloud=estimate.cost_cloud,
             )
-            outcome = self._outcome(
+            outcome = observed_outcome(
                 estimator,
                 policy,
                 bool(config.ros_version),
@@ -323,54 +322,6 @@ class SkillManager:
                 )
             )
         return costed, inputs, costs
-
-    def _outcome(
-        self,
-        estimator: PolicyEstimator,
-        policy: str,
-        ros: bool,
-        location: Side,
-        estimate: PolicyCosts,
-        needs: Resources,
-        measured: Any,
-        metrics: Metrics,
-        features: Features,
-        capacity: Resources,
-    ) -> Outcome | None:
-        """Return what running where it runs cost a component, beside what the estimate says of it from elsewhere.
-
-        The cost where it runs is the estimate's own, from what was measured there. On the robot the
-        runtime measures its CPU and RAM: from the cloud the estimate would cost the robot with the
-        declared ones instead, and that difference is what the network learns. In the cloud nothing
-        more is measured than the estimate uses, so the outcome there is the estimate (error 0).
-        """
-        if location == "cloud":
-            return Outcome("cloud", estimate.cost_cloud, estimate.cost_cloud, features)
-        if measured is None:
-            return None  # no measurement yet (just moved here): nothing happened that the estimate did not assume
-        # The robot as the estimate sees it from the cloud: free what the component uses, take what it declares.
-        elsewhere = dataclasses.replace(
-            metrics,
-            cpu_free=max(0.0, metrics.cpu_free + measured.cpu - needs.cpu),
-            ram_free=max(0.0, metrics.ram_free + measured.ram - needs.ram),
-        )
-        try:
-            seen = estimator.cost(policy, "robot", needs, elsewhere, ros)
-        except ValueError:
-            return None
-        # Built directly, not by dataclasses.replace: half of 2000 components on the robot, every decision.
-        view = Features(
-            cpu_available=_share(metrics.cpu_free + measured.cpu, capacity.cpu),
-            ram_available=_share(metrics.ram_free + measured.ram, capacity.ram),
-            bandwidth_available=features.bandwidth_available,
-            latency=features.latency,
-            loss=features.loss,
-            battery=features.battery,
-            location="robot",
-            cost_robot=seen,
-            cost_cloud=estimate.cost_cloud,
-        )
-        return Outcome("robot", estimate.cost_robot, seen, view)
 
     async def step(self, *, wait: bool = True) -> list[Decision]:
         """Decide once for every movable component and carry out the moves.
@@ -558,81 +509,6 @@ class SkillManager:
             points.extend({"name": name, "value": float(value), "ts": now} for name, value in sample.values.items())
         if points:
             self.store.publish(points)
-
-
-def decision_event(
-    decision: Decision,
-    estimate: PolicyCosts,
-    decided_at: float,
-    duration_s: float,
-    error: str | None,
-    skill_id: str,
-) -> dict[str, Any]:
-    """Describe a carried-out move as the data of an ``offloading_decision`` event."""
-    inputs = {
-        key: (value if isinstance(value, str) else float(value))
-        for key, value in decision.features.items()
-        if isinstance(value, str) or math.isfinite(value)
-    }
-    prediction = decision.prediction
-    data: dict[str, Any] = {
-        "skill": skill_id,
-        "component": decision.component,
-        "location": decision.location,
-        "target": decision.target,
-        "outcome": "failed" if error else "moved",
-        "reason": decision.reason[:1000],
-        "policy": estimate.policy,
-        "cost_robot": _finite(estimate.cost_robot),
-        "cost_cloud": _finite(estimate.cost_cloud),
-        "estimated_reward": _finite(decision.estimated_reward),
-        "prediction": prediction if prediction is not None and math.isfinite(prediction) else None,
-        "threshold": float(decision.threshold),
-        "hysteresis": float(decision.hysteresis),
-        "trained": decision.trained,
-        "samples_seen": decision.samples_seen,
-        "inputs": inputs,
-        "decided_by": decision.decided_by,
-        "network_error": _optional(decision.network_error),
-        "estimate_error": _optional(decision.estimate_error),
-        "decided_at": decided_at,
-        "duration_s": max(0.0, duration_s),
-    }
-    if error:
-        data["error"] = error[:2000]
-    return data
-
-
-def _finite(value: float) -> float:
-    """Return a float the protocol accepts: an infinite cost is clamped to the largest float."""
-    value = float(value)
-    if math.isnan(value):
-        return 0.0
-    return max(-1.7e308, min(1.7e308, value))
-
-
-def _optional(value: float | None) -> float | None:
-    """Return a finite float or None, as the protocol's optional figures."""
-    return float(value) if value is not None and math.isfinite(value) else None
-
-
-@dataclasses.dataclass(frozen=True, slots=True)
-class _Usage:
-    """A component's averaged CPU (cores) and RAM (MiB)."""
-
-    cpu: float
-    ram: float
-
-
-def _means(window: deque[tuple[float, float]]) -> tuple[float, float]:
-    """Return the mean CPU and RAM of a window of measurements."""
-    return sum(c for c, _ in window) / len(window), sum(r for _, r in window) / len(window)
-
-
-def _share(free: float | None, capacity: float) -> float:
-    if free is None or capacity <= 0:
-        return 1.0
-    return max(0.0, min(1.0, free / capacity))
 
 
 async def skill_manager_plugin(supervisor: SkillSupervisor) -> None:
