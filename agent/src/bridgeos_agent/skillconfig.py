@@ -2,27 +2,63 @@
 
 from __future__ import annotations
 
-import shlex
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from importlib import resources
 from typing import Annotated, Any, Literal
 
 from pydantic import (
-    BaseModel,
-    BeforeValidator,
     ConfigDict,
     Field,
     StringConstraints,
-    WithJsonSchema,
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
+from bridgeos_agent.configtypes import (
+    ENV_NAME_PATTERN,
+    HTTP_PREFIX_PATTERN,
+    IDENTIFIER_PATTERN,
+    IMAGE_PATTERN,
+    JSON_SCHEMA_DIALECT,
+    MAX_COST_FUNCTION_LENGTH,
+    PLACEMENT_PATTERN,
+    ROS_NAME_PATTERN,
+    ROS_TYPE_PATTERN,
+    SLUG_PATTERN,
+    VOLUME_PATTERN,
+    Activation,
+    Command,
+    EnvName,
+    FiniteFloat,
+    Identifier,
+    Issue,
+    Location,
+    NonNegative,
+    PlacementConstraint,
+    Policy,
+    Port,
+    Slug,
+    StrictModel,
+    VolumeName,
+    config_issues,
+    raise_issues,
+    reject_duplicates,
+)
 from bridgeos_agent.policies import cost_function_issues
 from bridgeos_agent.rosnames import graph_segment
+from bridgeos_agent.routeconfig import ActionRoute, HttpRoute, RouterConfig, ServiceRoute, TopicRoute
 
 __all__ = [
+    "ENV_NAME_PATTERN",
+    "HTTP_PREFIX_PATTERN",
+    "IDENTIFIER_PATTERN",
+    "IMAGE_PATTERN",
+    "PLACEMENT_PATTERN",
+    "ROS_NAME_PATTERN",
+    "ROS_TYPE_PATTERN",
+    "SLUG_PATTERN",
+    "VOLUME_PATTERN",
+    "ActionRoute",
     "ComponentConfig",
     "ComponentResources",
     "HttpRoute",
@@ -41,106 +77,8 @@ __all__ = [
     "skill_config_json_schema",
 ]
 
-JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
-# Ids end up in URLs, container names, ROS namespaces and env values, so keep them plain.
-SLUG_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
-# Docker rejects volume names outside this pattern (moby's RestrictedNamePattern).
-VOLUME_PATTERN = r"^[a-zA-Z0-9][a-zA-Z0-9_.-]{1,127}$"
-# Absolute or relative ROS graph names; "~" (private) names are refused because the
-# router resolves them in its own namespace, not the component's.
-ROS_NAME_PATTERN = r"^/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$"
-# ROS 1 spells a type 'package/Type'; ROS 2 also 'package/msg/Type' (srv, action).
-ROS_TYPE_PATTERN = r"^[A-Za-z][A-Za-z0-9_]*/((msg|srv|action)/)?[A-Za-z][A-Za-z0-9_]*$"
-IDENTIFIER_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]{0,63}$"
-ENV_NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*$"
-HTTP_PREFIX_PATTERN = r"^/[A-Za-z0-9._~!$&'()*+,;=:@%/-]*$"
-IMAGE_PATTERN = r"^[^\s]{1,255}$"
-# Docker Swarm's constraint syntax: an attribute, == or !=, a value.
-PLACEMENT_PATTERN = r"^[A-Za-z][A-Za-z0-9_.-]{0,127} ?(==|!=) ?[^\s]{1,128}$"
-
-Slug = Annotated[str, StringConstraints(pattern=SLUG_PATTERN)]
-VolumeName = Annotated[str, StringConstraints(pattern=VOLUME_PATTERN)]
-RosName = Annotated[str, StringConstraints(pattern=ROS_NAME_PATTERN, max_length=256)]
-RosType = Annotated[str, StringConstraints(pattern=ROS_TYPE_PATTERN, max_length=256)]
-Identifier = Annotated[str, StringConstraints(pattern=IDENTIFIER_PATTERN)]
-EnvName = Annotated[str, StringConstraints(pattern=ENV_NAME_PATTERN, max_length=256)]
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Port = Annotated[int, Field(ge=1, le=65535)]
-PlacementConstraint = Annotated[str, StringConstraints(pattern=PLACEMENT_PATTERN)]
-
-Location = Literal["robot", "cloud", "either"]
-Policy = Literal["energy", "network", "monetary", "performance", "custom"]
-Activation = Literal["relu", "tanh", "sigmoid"]
-HttpMethod = Literal["GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"]
-
-MAX_COST_FUNCTION_LENGTH = 2000
-
-Issue = tuple[tuple[str | int, ...], str]
-
-
-def _split_command(value: Any) -> Any:
-    """Split a command given as one string the way a shell would, without a shell."""
-    if isinstance(value, str):
-        try:
-            return shlex.split(value)
-        except ValueError as exc:
-            raise ValueError(f"cannot split command string: {exc}") from None
-    return value
-
-
-Command = Annotated[
-    list[str],
-    BeforeValidator(_split_command),
-    WithJsonSchema(
-        {
-            "anyOf": [
-                {"type": "array", "items": {"type": "string"}},
-                {"type": "string"},
-            ],
-            "description": "Argument vector, or one string split like a shell would.",
-        },
-        mode="validation",
-    ),
-]
-
-
-def _unique(values: Sequence[Any], what: str) -> None:
-    """Reject a sequence that holds the same value twice."""
-    seen: set[Any] = set()
-    for value in values:
-        if value in seen:
-            raise ValueError(f"duplicate {what} {value!r}")
-        seen.add(value)
-
-
-def _raise_issues(issues: list[Issue]) -> None:
-    """Raise one error carrying every cross-field issue with its own relative path."""
-    if issues:
-        summary = "; ".join(f"{'.'.join(str(p) for p in path)}: {msg}" if path else msg for path, msg in issues)
-        raise PydanticCustomError(
-            "skill_config",
-            "{summary}",
-            {"summary": summary, "issues": tuple(issues)},
-        )
-
-
-def config_issues(ctx: dict[str, Any] | None) -> list[Issue]:
-    """Return the per-path issues a cross-field validator attached to an error's ctx."""
-    if not ctx:
-        return []
-    issues = ctx.get("issues") or ()
-    return [(tuple(path), str(msg)) for path, msg in issues]
-
-
-class _Model(BaseModel):
-    """Reject unknown fields so typos surface as errors instead of silent defaults."""
-
-    model_config = ConfigDict(extra="forbid", str_strip_whitespace=False)
-
-
-class NeuralNetworkConfig(_Model):
+class NeuralNetworkConfig(StrictModel):
     """Shape and train the per-component decision network (Algorithms 8 and 9)."""
 
     hidden_layers: list[Annotated[int, Field(ge=1, le=1024)]] = Field(
@@ -176,7 +114,7 @@ class NeuralNetworkConfig(_Model):
     )
 
 
-class ManagerConfig(_Model):
+class ManagerConfig(StrictModel):
     """Configure a Skill Manager's dynamic offloading decisions."""
 
     policy: Policy = Field(
@@ -236,100 +174,11 @@ class ManagerConfig(_Model):
             issues += [(("cost_functions",), f"policy 'custom' needs a cost function for {loc!r}") for loc in missing]
         for key, message in cost_function_issues(self.cost_functions, self.constants):
             issues.append((("cost_functions",) if key is None else ("cost_functions", key), message))
-        _raise_issues(issues)
+        raise_issues(issues)
         return self
 
 
-class TopicRoute(_Model):
-    """Route one ROS topic from its publisher to its subscribers."""
-
-    name: RosName
-    type: RosType = Field(description="ROS message type, 'package/Message'.")
-    publisher: Slug = Field(description="Id of the component publishing the topic.")
-    subscribers: list[Slug] = Field(default_factory=list)
-    store: int = Field(
-        default=0,
-        ge=0,
-        le=100_000,
-        description="Last N messages kept and replayed to a migrated subscriber.",
-    )
-
-    @field_validator("subscribers")
-    @classmethod
-    def _unique_subscribers(cls, value: list[str]) -> list[str]:
-        """Reject a subscriber listed twice."""
-        _unique(value, "subscriber")
-        return value
-
-
-class ServiceRoute(_Model):
-    """Proxy one ROS service to the component serving it."""
-
-    name: RosName
-    type: RosType = Field(description="ROS service type, 'package/Service'.")
-    server: Slug = Field(description="Id of the component serving the service.")
-
-
-class ActionRoute(_Model):
-    """Relay one ROS 2 action (its goal, result and cancel services and its feedback and status topics)."""
-
-    name: RosName
-    type: RosType = Field(description="ROS 2 action type, 'package/action/Action'.")
-    server: Slug = Field(description="Id of the component serving the action.")
-
-
-def _only_get() -> list[HttpMethod]:
-    return ["GET"]
-
-
-class HttpRoute(_Model):
-    """Proxy HTTP requests under a path prefix to a component."""
-
-    component: Slug
-    prefix: Annotated[str, StringConstraints(pattern=HTTP_PREFIX_PATTERN, max_length=256)] = "/"
-    methods: list[HttpMethod] = Field(default_factory=_only_get, min_length=1)
-    port: Port | None = Field(
-        default=None,
-        description="Component port to forward to; the first port of its launch spec if unset.",
-    )
-
-    @field_validator("methods")
-    @classmethod
-    def _unique_methods(cls, value: list[str]) -> list[str]:
-        """Reject a method listed twice."""
-        _unique(value, "method")
-        return value
-
-
-class RouterConfig(_Model):
-    """Configure a Skill Router's ROS topics, ROS services and HTTP routes."""
-
-    topics: list[TopicRoute] = Field(default_factory=list)
-    services: list[ServiceRoute] = Field(default_factory=list)
-    actions: list[ActionRoute] = Field(default_factory=list, description="ROS 2 actions.")
-    http: list[HttpRoute] = Field(default_factory=list)
-
-    @model_validator(mode="after")
-    def _unique_routes(self) -> RouterConfig:
-        """Reject two topics, two services or two HTTP prefixes with the same name."""
-        issues: list[Issue] = []
-        for field, keys in (
-            ("topics", [t.name.lstrip("/") for t in self.topics]),
-            ("services", [s.name.lstrip("/") for s in self.services]),
-            ("actions", [a.name.lstrip("/") for a in self.actions]),
-            ("http", [h.prefix.rstrip("/") or "/" for h in self.http]),
-        ):
-            seen: set[str] = set()
-            for index, key in enumerate(keys):
-                if key in seen:
-                    what = "prefix" if field == "http" else "name"
-                    issues.append(((field, index, what), f"duplicate {what} {key!r}"))
-                seen.add(key)
-        _raise_issues(issues)
-        return self
-
-
-class ComponentResources(_Model):
+class ComponentResources(StrictModel):
     """State what a component needs to run: the allocator's requiredResources."""
 
     cpu: NonNegative = Field(default=0.0, description="CPU cores.")
@@ -339,7 +188,7 @@ class ComponentResources(_Model):
     io: NonNegative = Field(default=0.0, description="Disk I/O in MB/s.")
 
 
-class LaunchSpec(_Model):
+class LaunchSpec(StrictModel):
     """Say how to start a component in one location, with Docker or as a process."""
 
     image: Annotated[str, StringConstraints(pattern=IMAGE_PATTERN)] | None = Field(
@@ -361,7 +210,7 @@ class LaunchSpec(_Model):
     @classmethod
     def _unique_ports(cls, value: list[int]) -> list[int]:
         """Reject a port listed twice."""
-        _unique(value, "port")
+        reject_duplicates(value, "port")
         return value
 
     @field_validator("command")
@@ -376,11 +225,11 @@ class LaunchSpec(_Model):
     def _image_or_command(self) -> LaunchSpec:
         """Require something to start: an image, a command, or both."""
         if self.image is None and self.command is None:
-            _raise_issues([((), "a launch spec needs an 'image' or a 'command'")])
+            raise_issues([((), "a launch spec needs an 'image' or a 'command'")])
         return self
 
 
-class ComponentConfig(_Model):
+class ComponentConfig(StrictModel):
     """Describe one Skill component and how to launch it on the robot and in the cloud."""
 
     name: Annotated[str, StringConstraints(min_length=1, max_length=128)]
@@ -401,14 +250,14 @@ class ComponentConfig(_Model):
     @classmethod
     def _unique_links(cls, value: list[str]) -> list[str]:
         """Reject a link listed twice."""
-        _unique(value, "link")
+        reject_duplicates(value, "link")
         return value
 
     @model_validator(mode="after")
     def _launch_specs_for_location(self) -> ComponentConfig:
         """Require a launch spec for every location the component may run in."""
         needed = ("robot", "cloud") if self.location == "either" else (self.location,)
-        _raise_issues(
+        raise_issues(
             [
                 ((loc,), f"location {self.location!r} requires a {loc!r} launch spec")
                 for loc in needed
@@ -429,7 +278,7 @@ class ComponentConfig(_Model):
         return self.robot if location == "robot" else self.cloud
 
 
-class SkillConfig(_Model):
+class SkillConfig(StrictModel):
     """Validate a whole Skill configuration file (thesis Table 4.1)."""
 
     model_config = ConfigDict(
@@ -455,7 +304,7 @@ class SkillConfig(_Model):
     @classmethod
     def _unique_volumes(cls, value: list[str]) -> list[str]:
         """Reject a volume listed twice."""
-        _unique(value, "volume")
+        reject_duplicates(value, "volume")
         return value
 
     @model_validator(mode="after")
@@ -465,7 +314,7 @@ class SkillConfig(_Model):
         issues += self._name_issues()
         issues += self._link_issues()
         issues += self._route_issues()
-        _raise_issues(issues)
+        raise_issues(issues)
         return self
 
     def _name_issues(self) -> Iterable[Issue]:
