@@ -17,6 +17,7 @@ from bridgeos_cloud.consumers import ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
 from monitoring import prometheus
 from monitoring.live import LIVE_GROUP
+from robots import access
 from robots import services as robots
 
 from . import services
@@ -64,7 +65,7 @@ class ClientConsumer(ProtocolConsumer):
         """Accept an API token, or with none the session of a logged-in dashboard."""
         token = protocol.parse_payload(envelope).token
         if token is not None:
-            user = await database_sync_to_async(robots.authenticate_api_token)(token)
+            user = await database_sync_to_async(access.authenticate_api_token)(token)
         else:
             session_user = self.scope.get("user")
             user = session_user if session_user is not None and session_user.is_authenticated else None
@@ -101,7 +102,7 @@ class ClientConsumer(ProtocolConsumer):
         now = time.monotonic()
         if force or now - self.visible_loaded_at > VISIBLE_REFRESH_S:
             self.visible_loaded_at = now
-            self.visible = await database_sync_to_async(robots.visible_robot_ids)(self.user)
+            self.visible = await database_sync_to_async(access.visible_robot_ids)(self.user)
 
     async def sees(self, robot_id: str, *, recheck: bool = False) -> bool:
         """Tell whether the user may see a robot, catching robots added since connecting."""
@@ -154,7 +155,7 @@ class ClientConsumer(ProtocolConsumer):
             )
             return
         try:
-            if not await database_sync_to_async(robots.can_see)(self.user, robot_id):
+            if not await database_sync_to_async(access.can_see)(self.user, robot_id):
                 raise NotFound(f"no robot {robot_id!r}", field="data.robot")
             if envelope.event in STORED_THEN_RELAYED:
                 await database_sync_to_async(services.store_config_change)(envelope.event, robot_id, payload)

@@ -25,8 +25,9 @@ from monitoring.services import latest_metrics
 from recordings.choices import RosProfile
 from recordings.models import Recording
 from recordings.services import DEFAULT_MAX_BYTES, DEFAULT_MAX_DURATION_S
+from robots.access import visible_robots
 from robots.models import Robot
-from robots.services import robot_config, update_robot_config, visible_robots
+from robots.services import robot_config, update_robot_config
 from skills.models import Component, Skill, SkillTemplate
 from skills.services import component_state, skill_state
 from skills.state import fleet_state_json

@@ -6,9 +6,10 @@ from typing import Any
 
 from rest_framework.exceptions import AuthenticationFailed, Throttled
 
+from robots.access import API_TOKEN_PREFIX, api_token
 from robots.authentication import PasswordAuthentication
 from robots.models import TOKEN_PREFIX
-from robots.services import API_TOKEN_PREFIX, LoginBlocked, api_token, login_robot
+from robots.services import LoginBlocked, login_robot
 
 REALM = "bridgeOS registry"
 

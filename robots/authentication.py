@@ -11,7 +11,7 @@ from bridgeos_cloud import bruteforce
 from monitoring.choices import Level
 from monitoring.services import record_event
 
-from .services import api_token
+from .access import api_token
 
 
 class ApiTokenAuthentication(TokenAuthentication):

@@ -37,7 +37,7 @@ from bridgeos_agent.protocol import BlobWindow, Event
 from bridgeos_cloud.ratelimit import TokenBucket
 from monitoring import prometheus
 
-from . import services
+from .access import open_bridge
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ class BridgeConsumer(AsyncWebsocketConsumer):
             await self.close()  # a Foxglove door without a Foxglove subprotocol: a 403, like any refusal
             return
         token, ticket = self.credentials()
-        access = await database_sync_to_async(services.open_bridge)(self.robot_id, token=token, ticket=ticket)
+        access = await database_sync_to_async(open_bridge)(self.robot_id, token=token, ticket=ticket)
         if access is None:
             # Unknown robot, someone else's, bad or spent credentials: the same 403 for all.
             await self.close()

@@ -1,9 +1,8 @@
-"""Domain actions on robots: creation and credentials."""
+"""Domain actions on robots: creation, credentials, connections and commands (who may reach which robot: access.py)."""
 
 from __future__ import annotations
 
 import asyncio
-import functools
 import hmac
 import json
 import secrets
@@ -17,7 +16,7 @@ from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import connection, transaction
-from django.db.models import Q, QuerySet
+from django.db.models import Q
 from django.utils import timezone
 
 from bridgeos_agent import protocol
@@ -30,6 +29,7 @@ from monitoring.choices import Level
 from monitoring.live import publish_all_on_commit, publish_on_commit
 from monitoring.services import record_event, record_events
 
+from .access import API_TOKEN_PREFIX, BRIDGE_TICKET_PREFIX
 from .choices import RobotStatus
 from .models import ApiToken, BridgeTicket, Robot, hash_token
 from .signals import cloud_relays_wanted, credentials_rotated, ros2_discovery_wanted, ros_master_wanted
@@ -401,92 +401,12 @@ async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any],
     return reply
 
 
-# --------------------------------------------------------------------------- who sees what
-
-
-def visible_robots(user: AbstractBaseUser) -> QuerySet[Robot]:
-    """Return the robots a user may see: their own, or all for staff."""
-    robots = Robot.objects.all()
-    return robots if user.is_staff else robots.filter(owner=user)
-
-
-def visible_robot_ids(user: AbstractBaseUser) -> set[str] | None:
-    """Return the ids of the robots a user may see, or None when they may see all."""
-    return None if user.is_staff else set(visible_robots(user).values_list("id", flat=True))
-
-
-def robot_scope(user: AbstractBaseUser) -> QuerySet[Robot] | None:
-    """Return the robots a user's view is limited to, or None for staff (who also see fleet-wide records)."""
-    return None if user.is_staff else visible_robots(user)
-
-
-def can_see(user: AbstractBaseUser, robot_id: str) -> bool:
-    """Tell whether a user may see and command a robot."""
-    return visible_robots(user).filter(id=robot_id).exists()
-
-
-API_TOKEN_PREFIX = "bat_"
-
-
 def issue_api_token(user: AbstractBaseUser) -> tuple[str, ApiToken]:
     """Create an API token for a user and return its key (shown only now) and the token."""
     key = API_TOKEN_PREFIX + secrets.token_urlsafe(32)
     lifetime = timedelta(seconds=settings.BRIDGEOS["API_TOKEN_TTL_S"])
     token = ApiToken.objects.create(user=user, key_hash=hash_token(key), expires_at=timezone.now() + lifetime)
     return key, token
-
-
-def api_token(key: str) -> ApiToken | None:
-    """Return the unexpired token with this key whose user is active, else None."""
-    if not key.startswith(API_TOKEN_PREFIX):
-        return None
-    if connection.vendor == "postgresql":
-        token = _api_token_by_hash(hash_token(key))
-    else:
-        token = ApiToken.objects.select_related("user").filter(key_hash=hash_token(key)).first()
-    if token is None or token.expired or not token.user.is_active:
-        return None
-    return token
-
-
-@functools.cache
-def _api_token_query() -> tuple[str, list[str], list[str]]:
-    """Return the SQL that reads a token with its user by key hash, and the field names of each part."""
-    user = ApiToken._meta.get_field("user")
-    user_model = user.related_model
-    token_fields = [field.attname for field in ApiToken._meta.concrete_fields]
-    user_fields = [field.attname for field in user_model._meta.concrete_fields]
-    qn = connection.ops.quote_name
-    columns = [f"t.{qn(field.column)}" for field in ApiToken._meta.concrete_fields]
-    columns += [f"u.{qn(field.column)}" for field in user_model._meta.concrete_fields]
-    sql = (
-        f"SELECT {', '.join(columns)} FROM {qn(ApiToken._meta.db_table)} t"
-        f" JOIN {qn(user_model._meta.db_table)} u ON u.{qn(user_model._meta.pk.column)} = t.{qn(user.column)}"
-        f" WHERE t.{qn(ApiToken._meta.get_field('key_hash').column)} = %s"
-    )
-    return sql, token_fields, user_fields
-
-
-def _api_token_by_hash(key_hash: str) -> ApiToken | None:
-    """Return the token with this key hash and its user, in one query compiled once per process.
-
-    Every API request authenticates: building this query through the ORM each time (a join,
-    an ordering, model instances) was the largest share of a read's CPU under load.
-    """
-    sql, token_fields, user_fields = _api_token_query()
-    with connection.cursor() as cursor:
-        cursor.execute(sql, [key_hash])
-        row = cursor.fetchone()
-    if row is None:
-        return None
-    token = ApiToken.from_db(connection.alias, token_fields, row[: len(token_fields)])
-    token.user = ApiToken._meta.get_field("user").related_model.from_db(
-        connection.alias, user_fields, row[len(token_fields) :]
-    )
-    return token
-
-
-BRIDGE_TICKET_PREFIX = "bbt_"
 
 
 def issue_bridge_ticket(user: AbstractBaseUser, robot: Robot) -> tuple[str, datetime]:
@@ -501,63 +421,11 @@ def issue_bridge_ticket(user: AbstractBaseUser, robot: Robot) -> tuple[str, date
     return key, expires_at
 
 
-def redeem_bridge_ticket(key: str, robot_id: str) -> AbstractBaseUser | None:
-    """Spend a ticket for a robot: return its user if it was unexpired, unused, for this robot and still allowed."""
-    if not key.startswith(BRIDGE_TICKET_PREFIX) or len(key) > 100:
-        return None
-    with transaction.atomic():
-        ticket = (
-            BridgeTicket.objects.select_for_update()
-            .select_related("user")
-            .filter(key_hash=hash_token(key), robot_id=robot_id)
-            .first()
-        )
-        if ticket is None:
-            return None
-        ticket.delete()  # used once, even when it turns out expired
-    user = ticket.user
-    if ticket.expires_at <= timezone.now() or not user.is_active or not can_see(user, robot_id):
-        return None
-    return user
-
-
-@dataclass(frozen=True)
-class BridgeAccess:
-    """Who opened a bridge to a robot, and the channel of the robot's connection ("" when offline)."""
-
-    user_id: int
-    robot_id: str
-    channel: str
-
-
-def open_bridge(robot_id: str, *, token: str | None = None, ticket: str | None = None) -> BridgeAccess | None:
-    """Check a bridge client's API token or ticket for a robot; None when refused (the robot may not exist)."""
-    user = None
-    if token:
-        found = api_token(token)
-        user = found.user if found is not None and can_see(found.user, robot_id) else None
-    elif ticket:
-        user = redeem_bridge_ticket(ticket, robot_id)
-    if user is None:
-        return None
-    row = Robot.objects.filter(id=robot_id).values_list("connected", "channel").first()
-    if row is None:
-        return None
-    connected, channel = row
-    return BridgeAccess(user.pk, robot_id, channel if connected else "")
-
-
 def renew_api_token(token: ApiToken) -> ApiToken:
     """Extend a token's validity by its full lifetime from now."""
     token.expires_at = timezone.now() + timedelta(seconds=settings.BRIDGEOS["API_TOKEN_TTL_S"])
     token.save(update_fields=["expires_at"])
     return token
-
-
-def authenticate_api_token(key: str) -> AbstractBaseUser | None:
-    """Return the active user an unexpired API token belongs to, else None."""
-    token = api_token(key)
-    return None if token is None else token.user
 
 
 def robot_config(robot_id: str) -> dict[str, Any]:

@@ -15,7 +15,7 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from bridgeos_agent.skillconfig import SLUG_PATTERN
-from robots.services import robot_scope, visible_robots
+from robots.access import robot_scope, visible_robots
 
 from .. import services
 from ..models import Event

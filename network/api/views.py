@@ -14,6 +14,7 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from monitoring.services import record_event
+from robots import access
 from robots import services as robots
 from robots.authentication import ApiTokenAuthentication
 from robots.models import TOKEN_PREFIX, Robot
@@ -66,7 +67,7 @@ class RobotVpnView(APIView):
         if self.robot is not None:
             robot, who = self.robot, f"robot {robot_id}"
         else:
-            robot = get_object_or_404(robots.visible_robots(request.user), id=robot_id)
+            robot = get_object_or_404(access.visible_robots(request.user), id=robot_id)
             who = f"user {request.user.get_username()}"
         try:
             profile = services.client_profile(robot)

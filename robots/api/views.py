@@ -23,7 +23,7 @@ from bridgeos_agent.protocol import Event
 from monitoring.services import record_event
 from skills.state import fleet_fields_json, fleet_state_json
 
-from .. import services
+from .. import access, services
 from ..authentication import ApiTokenAuthentication, PasswordAuthentication
 from ..models import ApiToken, Robot
 from .commands import relay, relay_to_fleet, wait_seconds
@@ -58,7 +58,7 @@ def django_errors(exc: DjangoValidationError) -> ValidationError:
 
 def state_of(request: Request, robot_id: str) -> dict:
     """Return the state of one of the user's robots, or 404, as every robot route renders it."""
-    found = json.loads(fleet_state_json(services.visible_robots(request.user).filter(id=robot_id)))
+    found = json.loads(fleet_state_json(access.visible_robots(request.user).filter(id=robot_id)))
     if not found:
         raise Http404(f"No robot {robot_id!r}.")
     return found[0]
@@ -93,7 +93,7 @@ def fleet_page(request: Request, robots: QuerySet[Robot], query: dict) -> HttpRe
 
 def robot_of(request: Request, robot_id: str) -> Robot:
     """Return one of the user's robots; another user's robot is a 404, as if it did not exist."""
-    return get_object_or_404(services.visible_robots(request.user), id=robot_id)
+    return get_object_or_404(access.visible_robots(request.user), id=robot_id)
 
 
 class AuthView(APIView):
@@ -145,7 +145,7 @@ class RobotListView(APIView):
         "`{count, next, previous, results}`. `fields` keeps only those fields of each robot.",
     )
     def get(self, request: Request) -> HttpResponse:
-        robots = services.visible_robots(request.user)
+        robots = access.visible_robots(request.user)
         connected = request.query_params.get("connected")
         if connected is not None:
             if connected not in ("true", "false"):
@@ -190,7 +190,7 @@ class RobotDetailView(APIView):
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str) -> HttpResponse:
-        return json_state(request, services.visible_robots(request.user).filter(id=robot_id), one=True)
+        return json_state(request, access.visible_robots(request.user).filter(id=robot_id), one=True)
 
     @extend_schema(request=RobotUpdateSerializer, responses={200: RobotSerializer, 400: OpenApiResponse()})
     def patch(self, request: Request, robot_id: str) -> Response:
@@ -214,7 +214,7 @@ class RobotInfoView(APIView):
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str) -> HttpResponse:
-        return json_state(request, services.visible_robots(request.user).filter(id=robot_id), one=True)
+        return json_state(request, access.visible_robots(request.user).filter(id=robot_id), one=True)
 
 
 class RobotTokenView(APIView):
@@ -262,5 +262,5 @@ class FleetCommandView(APIView):
     @extend_schema(request=None, parameters=[WAIT], responses={200: FleetCommandSerializer})
     def post(self, request: Request) -> Response:
         wait = wait_seconds(request)
-        robot_ids = list(services.visible_robots(request.user).filter(connected=True).values_list("id", flat=True))
+        robot_ids = list(access.visible_robots(request.user).filter(connected=True).values_list("id", flat=True))
         return relay_to_fleet(robot_ids, self.event, wait)

@@ -14,9 +14,9 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from bridgeos_agent.protocol import Event
+from robots.access import visible_robots
 from robots.api.commands import relay, wait_seconds
 from robots.api.views import COMMAND_RESPONSES, WAIT, django_errors, robot_of
-from robots.services import visible_robots
 
 from .. import services, state
 from ..cloud.volumes import volume_quota, volume_usage
