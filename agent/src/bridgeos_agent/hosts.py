@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from bridgeos_agent.protocol import Envelope, Event
 
 if TYPE_CHECKING:
-    from bridgeos_agent.controller import AgentSettings
+    from bridgeos_agent.agentsettings import AgentSettings
     from bridgeos_agent.metrics import AgentMetrics
     from bridgeos_agent.monitor import ResourceMonitor
     from bridgeos_agent.robotconfig import RobotConfig

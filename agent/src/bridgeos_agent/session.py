@@ -29,7 +29,7 @@ from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.tasks import TaskOwner
 
 if TYPE_CHECKING:
-    from bridgeos_agent.controller import AgentSettings
+    from bridgeos_agent.agentsettings import AgentSettings
 
 __all__ = ["EXIT_REFUSED", "RETRY_CODES", "AuthenticationRefused", "Reply", "Session", "ws_scheme"]
 
