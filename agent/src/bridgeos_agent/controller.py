@@ -73,12 +73,18 @@ class RobotController:
             memory_bytes=settings.outbox_memory_bytes,
         )
         self.metrics = AgentMetrics(settings.robot)  # what --metrics serves (bridgeos_agent.metrics)
+        options = dict(settings.runtime_options)
+        if settings.runtime == "docker":
+            from bridgeos_agent.runtime.images import RegistryLogin
+
+            # Images the robot lacks come from its cloud's registry, with tokens only its cloud grants.
+            options.setdefault("registry", RegistryLogin.for_cloud(settings.master, settings.robot, settings.token))
         self.runtime: Runtime = runtime or create_runtime(
             settings.runtime,
             settings.robot,
             data_dir=self.data_dir / "runtime",
             on_status=self.placement.on_runtime_status,
-            **settings.runtime_options,
+            **options,
         )
         if runtime is not None and runtime.on_status is None:
             runtime.on_status = self.placement.on_runtime_status

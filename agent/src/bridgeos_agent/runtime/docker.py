@@ -19,8 +19,8 @@ stream for all the robot's containers (``runtime.engine``); a component's superv
 waiting for its container's death.
 Docker SDK calls are blocking, so they run in one small thread pool sized to the SDK's
 connection pool; stats requests, which Docker holds until its next once-a-second
-collection, go straight to its unix socket from the event loop, all at once. Images are
-never pulled: no registry is reachable from a robot here.
+collection, go straight to its unix socket from the event loop, all at once. An image the
+engine lacks is pulled from the cloud's registry first (``runtime.images``).
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ from bridgeos_agent.runtime.base import (
     check_ids,
 )
 from bridgeos_agent.runtime.engine import LABEL_ROBOT, DeathFollower, Deaths, open_client
+from bridgeos_agent.runtime.images import ImagePuller, Progress, RegistryLogin
 from bridgeos_agent.runtime.lifecycle import Supervised, SupervisedRuntime
 from bridgeos_agent.runtime.usage import MIB, docker_usage, get_json
 
@@ -110,6 +111,8 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         workers: int = 8,
         log_max_bytes: int = 10 * MIB,
         ros_network: str = "host",
+        registry: RegistryLogin | None = None,
+        disk_reserve_mb: float = 256,
     ) -> None:
         super().__init__(robot, data_dir=data_dir, on_status=on_status)
         if ros_network not in ROS_NETWORKS:
@@ -138,6 +141,8 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         self._reconciling: set[asyncio.Task[None]] = set()
         self._socket_path: str | None = None  # Docker's unix socket, when that is how we reach it
         self._stats_slots = asyncio.Semaphore(STATS_CONCURRENCY)
+        self.images = ImagePuller(registry, self._call, disk_reserve=int(disk_reserve_mb * MIB))
+        self.on_pull: Callable[[str, str], Progress] | None = None  # (skill, component) -> a pull's progress
 
     # --- names ---------------------------------------------------------------------
 
@@ -429,11 +434,16 @@ class DockerRuntime(SupervisedRuntime[_Container]):
             raise RuntimeFailure(f"{who}: Docker could not prepare its network or volumes: {exc.explanation}") from None
         config = self._container_config(api, spec)
         try:
-            container_id, running = await self._create(api, config)
+            try:
+                container_id, running = await self._create(api, config)
+            except docker.errors.ImageNotFound:  # the first start of this image on the robot: pull it
+                progress = self.on_pull(spec.skill, spec.component) if self.on_pull else None
+                await self.images.ensure(api, image, who, progress)
+                container_id, running = await self._create(api, config)
         except docker.errors.ImageNotFound:
             raise RuntimeFailure(
-                f"{who}: image {image!r} is not on this robot and no registry is reachable: build it here "
-                f"(docker/build-images.sh builds the bridgeos/* images; otherwise docker build -t {image} DIR)"
+                f"{who}: image {image!r} went from this robot as it started: build or pull it again "
+                f"(docker/build-images.sh builds the bridgeos/* images)"
             ) from None
         except docker.errors.APIError as exc:
             raise RuntimeFailure(f"{who}: Docker could not create its container: {exc.explanation}") from None

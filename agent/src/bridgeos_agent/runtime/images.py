@@ -1,0 +1,282 @@
+"""Bring a component's image to the robot from the cloud's registry, with a token got with the robot's own credentials.
+
+An image already in the robot's engine starts as it is, without touching any registry (an
+offline robot restarts its Skills). One the engine lacks is pulled when its reference names a
+registry (``host[:port]/repository[:tag|@digest]``): the agent asks the registry for its token
+realm (Distribution's token authentication), asks that realm, which must be the robot's own
+cloud, for a pull token with the robot's id and robot token, and hands the engine only that
+short-lived token (``X-Registry-Auth``'s ``registrytoken``), never the robot token, which
+never reaches a component either. Before pulling, the free disk under Docker's data root must
+hold the image's compressed size three times over (the download and the unpacked layers) plus
+a reserve; else the pull is refused as ``disk_full`` with the sizes named. Progress (bytes done
+and total) goes to a callback as the engine reports it. Two components of one image share one
+pull.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import logging
+import re
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import urlsplit
+
+import aiohttp
+import docker.errors
+from docker.api import APIClient
+
+from bridgeos_agent.runtime.base import RuntimeFailure
+from bridgeos_agent.runtime.usage import MIB
+
+__all__ = ["DiskFull", "ImagePuller", "RegistryLogin", "split_reference"]
+
+logger = logging.getLogger(__name__)
+
+UNPACKED_FACTOR = 3  # the download and the unpacked layers, of a compressed size
+MANIFEST_TYPES = (
+    "application/vnd.docker.distribution.manifest.v2+json",
+    "application/vnd.oci.image.manifest.v1+json",
+    "application/vnd.docker.distribution.manifest.list.v2+json",
+    "application/vnd.oci.image.index.v1+json",
+)
+CHALLENGE_PARAM = re.compile(r'(\w+)="([^"]*)"')
+
+Progress = Callable[[int, int], None]  # (bytes done, bytes in all)
+
+
+class DiskFull(RuntimeFailure):
+    """The robot's disk cannot hold an image (``disk_full``)."""
+
+    code = "disk_full"
+
+
+@dataclass(frozen=True)
+class RegistryLogin:
+    """The robot's credentials, and the only token realm they are ever sent to: its own cloud."""
+
+    robot: str
+    token: str
+    cloud: str  # scheme://host[:port] of the cloud
+
+    @classmethod
+    def for_cloud(cls, master: str, robot: str, token: str) -> RegistryLogin:
+        """Build the login for the cloud an agent connects to (its ``--master`` URL, ws(s) or http(s))."""
+        parts = urlsplit(master)
+        scheme = {"ws": "http", "wss": "https"}.get(parts.scheme, parts.scheme)
+        return cls(robot, token, f"{scheme}://{parts.netloc}")
+
+    def owns(self, realm: str) -> bool:
+        """Tell whether a token realm is this robot's cloud."""
+        parts = urlsplit(realm)
+        return f"{parts.scheme}://{parts.netloc}" == self.cloud
+
+
+def split_reference(image: str) -> tuple[str | None, str, str]:
+    """Split an image reference into (registry or None, repository, tag or digest), as Docker reads it."""
+    name, _, digest = image.partition("@")
+    first, slash, rest = name.partition("/")
+    registry = first if slash and ("." in first or ":" in first or first == "localhost") else None
+    path, tag = (rest if registry else name), ""
+    if ":" in path.rsplit("/", 1)[-1]:
+        path, _, tag = path.rpartition(":")
+    return registry, path, digest or tag or "latest"
+
+
+def _loopback(registry: str) -> bool:
+    host = registry.rsplit(":", 1)[0].strip("[]") if registry.count(":") <= 1 else registry.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class ImagePuller:
+    """Pull the images a robot's engine lacks, one pull per image at a time."""
+
+    def __init__(
+        self,
+        login: RegistryLogin | None,
+        call: Callable[..., Any],
+        *,
+        disk_reserve: int = 256 * MIB,
+    ) -> None:
+        self.login = login
+        self._call = call  # runs a blocking Docker SDK call in the runtime's thread pool
+        self.disk_reserve = disk_reserve
+        self._pulls: dict[str, asyncio.Future[None]] = {}
+        self.bytes_pulled = 0
+
+    async def ensure(self, api: APIClient, image: str, who: str, progress: Progress | None = None) -> bool:
+        """Make sure the engine has ``image``; return whether it was pulled. RuntimeFailure says why not."""
+        try:
+            await self._call(api.inspect_image, image)
+            return False
+        except docker.errors.ImageNotFound:
+            pass
+        except docker.errors.APIError as exc:
+            raise RuntimeFailure(f"{who}: Docker could not look up image {image!r}: {exc.explanation}") from None
+        pending = self._pulls.get(image)
+        if pending is None:
+            pending = self._pulls[image] = asyncio.ensure_future(self._pull(api, image, who, progress))
+            pending.add_done_callback(lambda _: self._pulls.pop(image, None))
+        await asyncio.shield(pending)
+        return True
+
+    async def _pull(self, api: APIClient, image: str, who: str, progress: Progress | None) -> None:
+        registry, repository, reference = split_reference(image)
+        if registry is None:
+            raise RuntimeFailure(
+                f"{who}: image {image!r} is not on this robot and names no registry: push it to the cloud's "
+                "registry and name it REGISTRY/NAMESPACE/NAME, or build it here (docker/build-images.sh builds "
+                f"the bridgeos/* images; otherwise docker build -t {image} DIR)"
+            )
+        started = time.monotonic()
+        base = f"{'http' if _loopback(registry) else 'https'}://{registry}"
+        async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=30)) as session:
+            token = await self._token(session, base, repository, who, image)
+            sizes = await self._layers(session, base, repository, reference, token, who)
+        total = sum(sizes.values())
+        await self._check_disk(api, image, total, who)
+        logger.info("%s: pulling %s (%.1f MB) from %s", who, image, total / 1e6, registry)
+        auth = {"registrytoken": token} if token else None
+        loop = asyncio.get_running_loop()
+        report = None
+        if progress is not None:
+            report = lambda done: loop.call_soon_threadsafe(progress, done, total)  # noqa: E731
+        done = await self._call(
+            self._stream, api, f"{registry}/{repository}", reference, auth, sizes, report, who, image
+        )
+        self.bytes_pulled += done
+        if progress is not None:
+            progress(total, total)
+        logger.info("%s: pulled %s in %.1f s", who, image, time.monotonic() - started)
+
+    async def _token(self, session: aiohttp.ClientSession, base: str, repository: str, who: str, image: str) -> str:
+        """Return a pull token from the registry's realm, or "" when the registry asks for none."""
+        try:
+            async with session.get(f"{base}/v2/") as answer:
+                challenge = answer.headers.get("WWW-Authenticate", "")
+                status = answer.status
+        except (aiohttp.ClientError, OSError, TimeoutError) as exc:
+            raise RuntimeFailure(
+                f"{who}: image {image!r} is not on this robot and its registry {base} cannot be reached "
+                f"({exc or type(exc).__name__}); it starts once the registry answers"
+            ) from None
+        if status == 200:
+            return ""
+        params = dict(CHALLENGE_PARAM.findall(challenge))
+        realm = params.get("realm", "")
+        if status != 401 or not challenge.lower().startswith("bearer ") or not realm:
+            raise RuntimeFailure(f"{who}: registry {base} answered {status} without a token realm to pull {image!r}")
+        if self.login is None or not self.login.owns(realm):
+            cloud = self.login.cloud if self.login else "none"
+            raise RuntimeFailure(
+                f"{who}: registry {base} sends its clients to {realm} for tokens, not to this robot's cloud "
+                f"({cloud}); the robot's credentials go to its own cloud only"
+            )
+        query = {"service": params.get("service", ""), "scope": f"repository:{repository}:pull"}
+        auth = aiohttp.BasicAuth(self.login.robot, self.login.token)
+        try:
+            async with session.get(realm, params=query, auth=auth) as answer:
+                body = await answer.json(content_type=None) if answer.status == 200 else {}
+                status = answer.status
+        except (aiohttp.ClientError, OSError, TimeoutError, ValueError) as exc:
+            raise RuntimeFailure(
+                f"{who}: the cloud's token realm did not answer ({exc or type(exc).__name__})"
+            ) from None
+        token = body.get("token") or body.get("access_token") if isinstance(body, dict) else None
+        if status != 200 or not token:
+            raise RuntimeFailure(f"{who}: the cloud refused this robot a token to pull {image!r} ({status})")
+        return str(token)
+
+    async def _layers(
+        self, session: aiohttp.ClientSession, base: str, repository: str, reference: str, token: str, who: str
+    ) -> dict[str, int]:
+        """Return an image's blobs' compressed sizes by the short id the engine reports them by ({} when unknown)."""
+        headers = {"Accept": ", ".join(MANIFEST_TYPES)}
+        if token:
+            headers["Authorization"] = f"Bearer {token}"
+        url = f"{base}/v2/{repository}/manifests/{reference}"
+        for _ in range(2):  # an index names the linux/amd64 manifest: one more step
+            async with session.get(url, headers=headers) as answer:
+                if answer.status == 401 or answer.status == 403:
+                    raise RuntimeFailure(
+                        f"{who}: the registry refused this robot {repository}:{reference} ({answer.status})"
+                    )
+                if answer.status == 404:
+                    raise RuntimeFailure(f"{who}: the registry has no image {repository}:{reference}")
+                if answer.status != 200:
+                    return {}
+                manifest = await answer.json(content_type=None)
+            if "manifests" in manifest:
+                chosen = next(
+                    (m for m in manifest["manifests"] if m.get("platform", {}).get("architecture") == "amd64"),
+                    manifest["manifests"][0] if manifest["manifests"] else None,
+                )
+                if chosen is None:
+                    return {}
+                url = f"{base}/v2/{repository}/manifests/{chosen['digest']}"
+                continue
+            parts = [manifest.get("config") or {}, *manifest.get("layers", [])]
+            return {str(part.get("digest", "")).partition(":")[2][:12]: int(part.get("size", 0)) for part in parts}
+        return {}
+
+    async def _check_disk(self, api: APIClient, image: str, size: int, who: str) -> None:
+        """Refuse a pull the disk under Docker's data root cannot hold (``disk_full``)."""
+        try:
+            root = (await self._call(api.info)).get("DockerRootDir") or "/var/lib/docker"
+            free = shutil.disk_usage(root).free
+        except (docker.errors.APIError, OSError):
+            return  # an engine elsewhere: its own disk is its to guard
+        needed = size * UNPACKED_FACTOR + self.disk_reserve
+        if free < needed:
+            raise DiskFull(
+                f"{who}: disk_full: image {image!r} needs about {needed / MIB:.0f} MiB ({size / MIB:.1f} MiB "
+                f"compressed, x{UNPACKED_FACTOR}, plus a {self.disk_reserve / MIB:.0f} MiB reserve) and "
+                f"{root} has {free / MIB:.0f} MiB free"
+            )
+
+    @staticmethod
+    def _stream(
+        api: APIClient,
+        repository: str,
+        reference: str,
+        auth: dict[str, str] | None,
+        sizes: dict[str, int],
+        report: Callable[[int], Any] | None,
+        who: str,
+        image: str,
+    ) -> int:
+        """Pull through the engine (a worker thread), reporting bytes done; return the bytes downloaded."""
+        done: dict[str, int] = {}  # short blob id -> bytes of it the robot holds
+        fetched: set[str] = set()  # blobs downloaded, not found already there
+        last = 0.0
+        try:
+            for chunk in api.pull(repository, tag=reference, stream=True, decode=True, auth_config=auth):
+                if "error" in chunk or "errorDetail" in chunk:
+                    detail = chunk.get("errorDetail", {}).get("message") or chunk.get("error")
+                    raise RuntimeFailure(f"{who}: pulling {image!r} failed: {detail}")
+                layer, status = chunk.get("id", ""), chunk.get("status", "")
+                detail = chunk.get("progressDetail") or {}
+                if status == "Downloading" and "current" in detail:
+                    done[layer] = int(detail["current"])
+                    fetched.add(layer)
+                elif status in ("Download complete", "Pull complete", "Already exists") and layer in sizes:
+                    done[layer] = sizes[layer]
+                    if status != "Already exists":
+                        fetched.add(layer)
+                now = time.monotonic()
+                if report is not None and now - last >= 0.25:
+                    last = now
+                    report(sum(done.values()))
+        except docker.errors.APIError as exc:
+            refused = f"{who}: the registry would not give {image!r} to this robot"
+            raise RuntimeFailure(f"{refused}: {exc.explanation}") from None
+        return sum(sizes.get(layer, done.get(layer, 0)) for layer in fetched)
