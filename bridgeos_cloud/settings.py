@@ -358,6 +358,13 @@ BRIDGEOS = {
     "REGISTRY_ISSUER": env_str("BRIDGEOS_REGISTRY_ISSUER", "bridgeos-cloud"),
     "REGISTRY_SERVICE": env_str("BRIDGEOS_REGISTRY_SERVICE", "bridgeos-registry"),
     "REGISTRY_TOKEN_TTL_S": env_float("BRIDGEOS_REGISTRY_TOKEN_TTL_S", 300.0),
+    # The cloud's own registry as images name it (host[:port]); a Skill's images there are pinned
+    # by digest when it is added (registry/pinning.py). Empty: images are kept as written. How the
+    # cloud reaches it (default http on loopback, else https) and the CA file its certificate is
+    # checked with (default: the system's).
+    "REGISTRY_HOST": env_str("BRIDGEOS_REGISTRY_HOST", ""),
+    "REGISTRY_URL": env_str("BRIDGEOS_REGISTRY_URL", ""),
+    "REGISTRY_CA": env_str("BRIDGEOS_REGISTRY_CA", ""),
 }
 
 # Robots' subnets (IPAM pools), the VPN and TLS: see network/conf.py and the README.

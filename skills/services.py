@@ -17,6 +17,7 @@ from monitoring import prometheus
 from monitoring.choices import Level, Source
 from monitoring.live import publish_on_commit
 from monitoring.services import record_event, storable
+from registry.pinning import pin_images
 from robots.models import Robot
 from robots.services import client_frame
 
@@ -31,7 +32,7 @@ if TYPE_CHECKING:
 
 def add_skill(robot: Robot, config: dict[str, Any]) -> Skill:
     """Add a Skill and its components to a robot, all or nothing."""
-    normalised = validated_config(parse_skill_config, config)
+    normalised = pin_images(validated_config(parse_skill_config, config), robot.owner)
     skill_id = normalised["skill_id"]
     with transaction.atomic():
         if Skill.objects.filter(robot=robot, skill_id=skill_id).exists():

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import secrets
 import shutil
 import subprocess
+import tarfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,3 +123,17 @@ def bearer(daphne_server, account: Account, *scopes: str) -> dict[str, str]:
     answer = ask_token(daphne_server, account, *scopes)
     assert answer.status_code == 200, answer.text
     return {"Authorization": f"Bearer {answer.json()['token']}"}
+
+
+@pytest.fixture(scope="module")
+def tiny_image(tmp_path_factory) -> str:
+    """Import a one-layer image of one small file (unique per run) into the local engine."""
+    base = tmp_path_factory.mktemp("image")
+    (base / "hello.txt").write_text(f"hello from the registry tests {secrets.token_hex(8)}\n")
+    with tarfile.open(base / "rootfs.tar", "w") as tar:
+        tar.add(base / "hello.txt", arcname="hello.txt")
+    name = f"bridgeos-test/registry-hello:{secrets.token_hex(4)}"
+    done = subprocess.run(["docker", "import", str(base / "rootfs.tar"), name], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    yield name
+    subprocess.run(["docker", "rmi", "-f", name], capture_output=True)

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import os
-import secrets
 import subprocess
-import tarfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -27,20 +25,6 @@ pytestmark = [pytest.mark.docker, pytest.mark.django_db(transaction=True), pytes
 def run(*args: str, env: dict[str, str] | None = None, stdin: str | None = None) -> subprocess.CompletedProcess:
     """Run a client command, keeping what it printed for the assertion message."""
     return subprocess.run(args, capture_output=True, text=True, env=env, input=stdin, timeout=60)
-
-
-@pytest.fixture(scope="module")
-def tiny_image(tmp_path_factory) -> str:
-    """Import a one-layer image of one small file (unique per run) into the local engine."""
-    base = tmp_path_factory.mktemp("image")
-    (base / "hello.txt").write_text(f"hello from the registry tests {secrets.token_hex(8)}\n")
-    with tarfile.open(base / "rootfs.tar", "w") as tar:
-        tar.add(base / "hello.txt", arcname="hello.txt")
-    name = f"bridgeos-test/registry-hello:{secrets.token_hex(4)}"
-    done = run("docker", "import", str(base / "rootfs.tar"), name)
-    assert done.returncode == 0, done.stderr
-    yield name
-    run("docker", "rmi", "-f", name)
 
 
 def push(registry, source: str, target: str, who: Account) -> subprocess.CompletedProcess:

@@ -12,9 +12,10 @@ from pathlib import Path
 import pytest
 from docker.api import APIClient
 
+from bridgeos_agent.imagerefs import split_reference
 from bridgeos_agent.runtime import ComponentSpec, RuntimeFailure
 from bridgeos_agent.runtime.docker import DockerRuntime
-from bridgeos_agent.runtime.images import DiskFull, ImagePuller, RegistryLogin, split_reference
+from bridgeos_agent.runtime.images import DiskFull, ImagePuller, RegistryLogin
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
 
 from .conftest import make_fleet

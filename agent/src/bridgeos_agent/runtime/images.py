@@ -30,10 +30,11 @@ import aiohttp
 import docker.errors
 from docker.api import APIClient
 
+from bridgeos_agent.imagerefs import split_reference
 from bridgeos_agent.runtime.base import RuntimeFailure
 from bridgeos_agent.runtime.usage import MIB
 
-__all__ = ["DiskFull", "ImagePuller", "RegistryLogin", "split_reference"]
+__all__ = ["DiskFull", "ImagePuller", "RegistryLogin"]
 
 logger = logging.getLogger(__name__)
 
@@ -74,17 +75,6 @@ class RegistryLogin:
         """Tell whether a token realm is this robot's cloud."""
         parts = urlsplit(realm)
         return f"{parts.scheme}://{parts.netloc}" == self.cloud
-
-
-def split_reference(image: str) -> tuple[str | None, str, str]:
-    """Split an image reference into (registry or None, repository, tag or digest), as Docker reads it."""
-    name, _, digest = image.partition("@")
-    first, slash, rest = name.partition("/")
-    registry = first if slash and ("." in first or ":" in first or first == "localhost") else None
-    path, tag = (rest if registry else name), ""
-    if ":" in path.rsplit("/", 1)[-1]:
-        path, _, tag = path.rpartition(":")
-    return registry, path, digest or tag or "latest"
 
 
 def _loopback(registry: str) -> bool:
