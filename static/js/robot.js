@@ -175,6 +175,7 @@ function renderComponent(sid, component) {
   const location = el("span", { class: "badge", dataset: { location: key } });
   const status = el("span", { class: "badge", dataset: { status: key } });
   const reason = el("span", { class: "reason", dataset: { reason: key } });
+  const pull = el("progress", { class: "pull", dataset: { pull: key }, hidden: "" });
   const allowed = component.location;
   const where = el(
     "select",
@@ -203,7 +204,7 @@ function renderComponent(sid, component) {
     el("th", { scope: "row" }, el("span", {}, cid), el("span", { class: "sub" }, component.name ?? "")),
     el("td", { dataset: { label: "May run" } }, ALLOWED[allowed] ?? allowed),
     el("td", { dataset: { label: "Location" } }, location),
-    el("td", { dataset: { label: "Status" } }, status, reason),
+    el("td", { dataset: { label: "Status" } }, status, reason, pull),
     el(
       "td",
       { class: "commands" },
@@ -211,7 +212,7 @@ function renderComponent(sid, component) {
       outcome,
     ),
   );
-  componentRows.set(key, { location, status, reason, migrate, outcome, where });
+  componentRows.set(key, { location, status, reason, pull, migrate, outcome, where });
   updateComponent(sid, cid);
   return row;
 }
@@ -229,6 +230,17 @@ function updateComponent(sid, cid) {
   // Why it is in that status (why it failed), as the robot said; nothing once it runs again.
   setText(cells.reason, component.message || "");
   cells.status.title = component.message || "";
+  // Its image on the way to the robot: bytes pulled of its compressed size, until it runs.
+  const pull = component.container?.robot?.pull;
+  const pulling = Boolean(pull) && component.status !== "running" && component.status !== "failed";
+  cells.pull.hidden = !pulling;
+  if (pulling) {
+    cells.pull.max = Math.max(pull.total, 1);
+    cells.pull.value = Math.min(pull.done, cells.pull.max);
+    const mb = (bytes) => (bytes / 1e6).toFixed(1);
+    cells.pull.title = `pulling ${pull.image}: ${mb(pull.done)} of ${mb(pull.total)} MB`;
+    cells.pull.setAttribute("aria-label", cells.pull.title);
+  }
   const movable = component.location === "either" && Boolean(active);
   cells.migrate.disabled = !movable;
   setText(cells.migrate, movable ? `Migrate to ${active === "robot" ? "cloud" : "robot"}` : "Migrate");
@@ -520,6 +532,13 @@ for (const event of ["component_status", "component_location"]) {
     updateComponent(frame.data.skill, frame.data.component);
   });
 }
+live.on("component_information", (frame) => {
+  if (!mine(frame)) return;
+  const component = findComponent(frame.data.skill, frame.data.component);
+  if (!component) return;
+  component.container = { ...(component.container ?? {}), [frame.data.location]: frame.data.container };
+  updateComponent(frame.data.skill, frame.data.component);
+});
 live.on(DECISION_EVENT, (frame) => {
   if (!mine(frame)) return;
   decisionRows.push(decisionFromEvent(frame.data));

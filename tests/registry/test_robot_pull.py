@@ -9,6 +9,7 @@ import subprocess
 import tarfile
 from pathlib import Path
 
+import httpx
 import pytest
 from docker.api import APIClient
 
@@ -114,7 +115,7 @@ async def test_a_robot_pulls_its_owners_image_it_never_had_and_runs_it(daphne_se
     login = RegistryLogin.for_cloud(daphne_server.url, fleet.alice_robot.name, fleet.alice_robot.secret)
     runtime = DockerRuntime(fleet.alice_robot.name, data_dir=tmp_path, registry=login)
     seen: list[tuple[int, int]] = []
-    runtime.on_pull = lambda skill, component: lambda done, total: seen.append((done, total))
+    runtime.on_pull = lambda skill, component, image: lambda done, total: seen.append((done, total))
     try:
         await started(runtime, spec(fleet.alice_robot.name, image))
         assert runtime.images.bytes_pulled > 0
@@ -173,4 +174,66 @@ async def test_a_pull_the_disk_cannot_hold_is_refused_as_disk_full_and_a_local_i
         offline = ImagePuller(RegistryLogin("alice-bot", "x", "http://127.0.0.1:9"), call)
         assert await offline.ensure(api, image, "component pull/hello") is False
     finally:
+        run("docker", "rmi", "-f", image)
+
+
+async def test_an_agent_pulls_a_skills_image_tells_the_cloud_how_far_it_is_and_runs_it(
+    daphne_server, published, fleet, tmp_path
+):
+    from asgiref.sync import sync_to_async
+
+    from bridgeos_agent.controller import AgentSettings, RobotController
+    from bridgeos_agent.link import Link
+    from bridgeos_agent.protocol import Event
+    from robots.models import Robot
+    from skills.models import Component
+    from skills.services import add_skill
+
+    image = published("alice/agent:1")
+    robot = fleet.alice_robot.name
+    launch = {"image": image, "command": ["/bin/sleep", "600"]}
+    skill = {
+        "skill": "Pull",
+        "skill_id": "pull",
+        "components": {"hello": {"name": "Hello", "location": "robot", "robot": launch}},
+    }
+    await sync_to_async(lambda: add_skill(Robot.objects.get(id=robot), skill))()
+    viewer = Link(daphne_server.ws_url + "/ws/client/")
+    await viewer.connect(Event.AUTHENTICATION_CLIENT, {"token": fleet.alice_token.secret})
+    settings = AgentSettings(
+        master=daphne_server.ws_url,
+        robot=robot,
+        token=fleet.alice_robot.secret,
+        data_dir=tmp_path / "agent",
+        runtime="docker",
+        simulate=True,
+        stop_components_on_exit=True,
+    )
+    controller = RobotController(settings)
+    task = asyncio.create_task(controller.run())
+    try:
+        await asyncio.wait_for(controller.config_from_cloud.wait(), 20)
+        headers = {"Authorization": f"Token {fleet.alice_token.secret}"}
+        async with httpx.AsyncClient(base_url=daphne_server.url, headers=headers, timeout=60) as api:
+            answer = await api.post(f"/api/robot/{robot}/skill/pull/start", params={"wait": 30})
+        assert answer.status_code == 200, answer.text
+        progress = []
+        while not progress or progress[-1]["done"] < progress[-1]["total"]:
+            frame = await viewer.next(Event.COMPONENT_INFORMATION, timeout=30)
+            pull = frame.data["container"].get("pull")
+            if pull:
+                progress.append(pull)
+        assert progress[-1]["image"] == image and progress[-1]["total"] > 0
+        for _ in range(100):
+            component = await sync_to_async(Component.objects.get)(skill__robot_id=robot, component_id="hello")
+            if component.status == "running":
+                break
+            await asyncio.sleep(0.2)
+        assert component.status == "running", component.message
+        assert controller.metrics.image_bytes[("pull", "hello")] > 0
+    finally:
+        controller.stop()
+        await asyncio.wait_for(task, 30)
+        await viewer.close()
+        remove_robot_objects(robot)
         run("docker", "rmi", "-f", image)

@@ -88,6 +88,8 @@ class RobotController:
         )
         if runtime is not None and runtime.on_status is None:
             runtime.on_status = self.placement.on_runtime_status
+        if hasattr(self.runtime, "on_pull"):  # a runtime that pulls images reports their progress
+            self.runtime.on_pull = self.placement.pull_progress
         if plugins is None:
             from bridgeos_agent.manager import skill_manager_plugin
             from bridgeos_agent.router import skill_router_plugin

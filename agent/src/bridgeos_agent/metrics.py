@@ -55,6 +55,7 @@ class AgentMetrics:
         self.decisions: Counter[tuple[str, str]] = Counter()  # (skill, stay|migrate)
         self.migrations: Counter[tuple[str, str]] = Counter()  # (skill, done|failed|abandoned)
         self.component_restarts: Counter[tuple[str, str]] = Counter()  # (skill, component)
+        self.image_bytes: Counter[tuple[str, str]] = Counter()  # (skill, component): compressed bytes pulled
 
     def connected(self) -> None:
         """Count an accepted connection to the cloud (every one after the first is a reconnect)."""
@@ -72,6 +73,10 @@ class AgentMetrics:
     def component_restarted(self, skill: str, component: str) -> None:
         """Count a crashed component's restart by the runtime."""
         self.component_restarts[(skill, component)] += 1
+
+    def image_pulled(self, skill: str, component: str, count: int) -> None:
+        """Count bytes of a component's image pulled from the registry."""
+        self.image_bytes[(skill, component)] += count
 
 
 class AgentCollector(Collector):
@@ -115,6 +120,13 @@ class AgentCollector(Collector):
             ["skill", "component"],
             robot,
             counts.component_restarts,
+        )
+        yield _counter(
+            f"{PREFIX}_image_pull_bytes",
+            "Bytes (compressed) of components' images pulled from the registry.",
+            ["skill", "component"],
+            robot,
+            counts.image_bytes,
         )
         yield from self._routers(robot)
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from bridgeos_agent.allocation import (
@@ -38,6 +40,8 @@ if TYPE_CHECKING:
     from bridgeos_agent.controller import RobotController
 
 __all__ = ["Placement", "check_location", "migration_target"]
+
+PULL_REPORT_S = 1.0  # how often a pull's progress goes to the cloud
 
 
 def check_location(name: str, required: str, location: str) -> None:
@@ -373,6 +377,25 @@ class Placement:
         router = record.context("router")
         if router is not None and router.active(name) is None:
             self.route(record, name, location)
+
+    def pull_progress(self, skill: str, component: str, image: str) -> Callable[[int, int], None]:
+        """Return what reports a pull of a component's image: to the cloud at most once a second and at its end."""
+        controller = self.controller
+        told = {"at": 0.0}
+        counted = {"bytes": 0}  # the bytes done when the cloud was last told
+
+        def report(done: int, total: int) -> None:
+            now = time.monotonic()
+            if done < total and now - told["at"] < PULL_REPORT_S:
+                return
+            controller.metrics.image_pulled(skill, component, max(0, done - counted["bytes"]))
+            told["at"], counted["bytes"] = now, done
+            pull = {"image": image[:256], "done": done, "total": total}
+            container = {"runtime": controller.runtime.name, "image": image[:256], "pull": pull}
+            data = {"skill": skill, "component": component, "location": "robot", "container": container}
+            controller.spawn(controller.emit(Event.COMPONENT_INFORMATION, data))
+
+        return report
 
     async def set_status(
         self, record: SkillRecord, name: str, status: CS, location: str | None, message: str | None = None

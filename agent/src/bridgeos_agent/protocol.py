@@ -93,6 +93,7 @@ __all__ = [
     "Payload",
     "Pending",
     "ProtocolError",
+    "PullProgress",
     "RecordingChunk",
     "RecordingStart",
     "RecordingStatus",
@@ -497,6 +498,14 @@ class ComponentStop(RobotScoped):
     location: Target | None = None
 
 
+class PullProgress(Payload):
+    """Say how far the robot is in pulling a component's image (bytes of its compressed layers)."""
+
+    image: ShortText
+    done: Annotated[int, Strict(), Field(ge=0)]
+    total: Annotated[int, Strict(), Field(ge=0)]
+
+
 class ContainerInfo(Payload):
     """Describe the container or process running a component."""
 
@@ -512,6 +521,7 @@ class ContainerInfo(Payload):
     pid: Annotated[int, Strict(), Field(ge=1)] | None = None
     runtime: ShortText | None = None
     namespace: ShortText | None = None
+    pull: PullProgress | None = None  # while its image is being pulled, before it runs
 
 
 class ComponentInformation(RobotScoped):

@@ -142,7 +142,7 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         self._socket_path: str | None = None  # Docker's unix socket, when that is how we reach it
         self._stats_slots = asyncio.Semaphore(STATS_CONCURRENCY)
         self.images = ImagePuller(registry, self._call, disk_reserve=int(disk_reserve_mb * MIB))
-        self.on_pull: Callable[[str, str], Progress] | None = None  # (skill, component) -> a pull's progress
+        self.on_pull: Callable[[str, str, str], Progress] | None = None  # (skill, component, image) -> progress
 
     # --- names ---------------------------------------------------------------------
 
@@ -437,7 +437,7 @@ class DockerRuntime(SupervisedRuntime[_Container]):
             try:
                 container_id, running = await self._create(api, config)
             except docker.errors.ImageNotFound:  # the first start of this image on the robot: pull it
-                progress = self.on_pull(spec.skill, spec.component) if self.on_pull else None
+                progress = self.on_pull(spec.skill, spec.component, image) if self.on_pull else None
                 await self.images.ensure(api, image, who, progress)
                 container_id, running = await self._create(api, config)
         except docker.errors.ImageNotFound:
