@@ -28,7 +28,8 @@ from typing import Any
 
 from benchmarks._common import log
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._cloudenv import changed, cloud_env, snapshot, start_daphne
+from benchmarks.chaos.rig import changed, snapshot, start_daphne
+from benchmarks.chaos.rig import shared_cloud_env as cloud_env
 
 NAME = "hostile"
 INJECTS = "hostile input: fuzzed frames on every WebSocket door, schemathesis on every API route, cross-tenant access"

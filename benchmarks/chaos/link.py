@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._netrig import (
+from benchmarks.chaos.rig import (
     Agent,
     Cloud,
     RobotLink,

@@ -25,20 +25,20 @@ from pathlib import Path
 import psycopg
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._rig import (
+from benchmarks.chaos.rig import (
     BIN,
     Beat,
-    Cloud,
+    CloudServer,
     Fleet,
     Worker,
-    cloud_env,
     count_stored,
     create_robots,
-    default_database_url,
-    default_redis_url,
-    eventually,
+    database_url,
     prepare_database,
+    private_env,
+    redis_url,
     scratch_dir,
+    wait_until,
 )
 
 NAME = "processes"
@@ -52,17 +52,17 @@ def run(quick: bool) -> list[Outcome]:
     workdir = scratch_dir(NAME)
     queue = f"chaos-{uuid.uuid4().hex[:8]}"
     visibility = 3.0 if quick else 10.0
-    env = cloud_env(
-        default_database_url(),
-        default_redis_url(),
+    env = private_env(
+        database_url(),
+        redis_url(),
         workdir,
         queue,
         CELERY_VISIBILITY_TIMEOUT_S=str(visibility),
         CELERY_UNACKED_RESTORE_S="1",
         BRIDGEOS_CLOUD_RECONCILE_S="1",
     )
-    prepare_database(env["DATABASE_URL"], env)
-    worker = Worker(env, workdir)
+    prepare_database(env)
+    worker = Worker(env, workdir / "worker.log")
     # Its start-up overlaps the daphne case; the worker case needs it only later.
     worker.start(wait=False)
     try:
@@ -81,7 +81,7 @@ def daphne_killed(env: dict[str, str], workdir: Path, *, robots: int, down_s: fl
     injected = f"daphne kill -9, down {down_s:.0f} s, {robots} robots streaming"
     prefix = f"chaos-dk-{uuid.uuid4().hex[:6]}"
     pairs = create_robots(env, prefix, robots)
-    cloud = Cloud(env, workdir)
+    cloud = CloudServer(env, workdir / "daphne.log")
     fleet = Fleet(cloud.ws_url, pairs, workdir)
     try:
         cloud.start()
@@ -173,16 +173,16 @@ def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility
             capture_output=True,
             cwd=str(workdir),
         )
-        eventually(lambda: _waiting_delete(database_url), timeout=30, what="the task waiting on the metric table")
+        wait_until(lambda: _waiting_delete(database_url), "the task waiting on the metric table", 30)
         worker.kill()
         holder.rollback()
         left_after_kill = _count_old(database_url, robot)
         restarted_at = time.monotonic()
         worker.start()
         try:
-            eventually(lambda: _count_old(database_url, robot) == 0, timeout=visibility + 60, what="the task done")
+            wait_until(lambda: _count_old(database_url, robot) == 0, "the task done", visibility + 60)
             recover_s = round(time.monotonic() - restarted_at, 2)
-            eventually(lambda: worker.succeeded("monitoring.tasks.prune_metrics"), timeout=10, what="its success")
+            wait_until(lambda: worker.succeeded("monitoring.tasks.prune_metrics"), "its success", 10)
         except TimeoutError:
             recover_s = None
         done = worker.succeeded("monitoring.tasks.prune_metrics")
@@ -213,16 +213,16 @@ def beat_killed(env: dict[str, str], workdir: Path, worker: Worker) -> Outcome:
         if worker.process is None or worker.process.poll() is not None:
             worker.start()
         beat.start()
-        eventually(lambda: worker.succeeded(task) >= 2, timeout=30, what="two reconcile rounds")
+        wait_until(lambda: worker.succeeded(task) >= 2, "two reconcile rounds", 30)
         beat.kill()
         time.sleep(1.0)
         before = worker.succeeded(task)
         restarted_at = time.monotonic()
         beat.start()
         try:
-            eventually(lambda: worker.succeeded(task) > before, timeout=30, what="a round after beat's restart")
+            wait_until(lambda: worker.succeeded(task) > before, "a round after beat's restart", 30)
             recover_s = round(time.monotonic() - restarted_at, 2)
-            eventually(lambda: worker.succeeded(task) >= before + 3, timeout=30, what="three rounds after it")
+            wait_until(lambda: worker.succeeded(task) >= before + 3, "three rounds after it", 30)
         except TimeoutError:
             recover_s = None
         after = worker.succeeded(task)

@@ -18,17 +18,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._rig import (
-    Cloud,
+from benchmarks.chaos.rig import (
+    CloudServer,
     Fleet,
     PrivatePostgres,
     PrivateRedis,
-    cloud_env,
     count_stored,
     create_robots,
-    eventually,
     prepare_database,
+    private_env,
     scratch_dir,
+    wait_until,
 )
 
 NAME = "stores"
@@ -47,9 +47,9 @@ def run(quick: bool) -> list[Outcome]:
         redis.start()
         postgres.init()
         postgres.start()
-        env = cloud_env(postgres.url, redis.url, workdir, f"chaos-{uuid.uuid4().hex[:8]}")
-        prepare_database(postgres.url, env)
-        cloud = Cloud(env, workdir)
+        env = private_env(postgres.url, redis.url, workdir, f"chaos-{uuid.uuid4().hex[:8]}")
+        prepare_database(env)
+        cloud = CloudServer(env, workdir / "daphne.log")
         cloud.start()
         robots = 10 if quick else 50
         pairs = create_robots(env, f"chaos-st-{uuid.uuid4().hex[:6]}", 2 * robots)
@@ -87,7 +87,7 @@ def run(quick: bool) -> list[Outcome]:
 def _break_store(
     injected: str,
     env: dict[str, str],
-    cloud: Cloud,
+    cloud: CloudServer,
     fleet_dir: Path,
     pairs: list[tuple[str, str]],
     *,
@@ -111,11 +111,11 @@ def _break_store(
         back_at = time.monotonic()
         made_before = fleet.sent()
         try:
-            eventually(
+            wait_until(
                 lambda: count_stored(database_url, robots).distinct >= made_before,
-                timeout=120,
-                every=0.2,
-                what="every point made before the store's return stored",
+                "every point made before the store's return stored",
+                120,
+                interval=0.2,
             )
             recover_s: float | None = round(time.monotonic() - back_at, 2)
         except TimeoutError:
