@@ -23,18 +23,7 @@ from pathlib import Path
 import psycopg
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos.rig import (
-    Agent,
-    CloudServer,
-    api_token,
-    create_robots,
-    database_url,
-    prepare_database,
-    private_env,
-    redis_url,
-    scratch_dir,
-    wait_until,
-)
+from benchmarks.chaos.rig import Agent, Cloud, api_token, create_robots, wait_until
 
 NAME = "agentkill"
 INJECTS = "agent kill -9 with a backlog (cloud down) and a running component, then restarted"
@@ -124,24 +113,22 @@ def _alive(pid: int) -> bool:
 
 def run(quick: bool) -> list[Outcome]:
     """Play the kill once; one outcome."""
-    workdir = scratch_dir(NAME)
-    env = private_env(database_url(), redis_url(), workdir, f"chaos-{uuid.uuid4().hex[:8]}")
-    prepare_database(env)
+    cloud = Cloud(NAME)
+    env, workdir, daphne = cloud.env, cloud.dir, cloud.server
     database = env["DATABASE_URL"]
     robot, token = create_robots(env, f"chaos-ak-{uuid.uuid4().hex[:6]}", 1)[0]
     key = api_token(env)
     starts = workdir / "starts"
     starts.touch()
-    cloud = CloudServer(env, workdir / "daphne.log")
     agent: Agent | None = None
     outbox = workdir / "agent" / "outbox.sqlite3"
     try:
-        cloud.start()
+        daphne.start()
         # Its components kept on exit, as a robot's are: the restarted agent must re-adopt them.
         agent = Agent(
             robot,
             token,
-            cloud.ws_url,
+            daphne.ws_url,
             workdir / "agent",
             workdir / "agent.log",
             sample_interval=0.2,
@@ -149,14 +136,14 @@ def run(quick: bool) -> list[Outcome]:
             options=("--firewall", "off"),
         )
         wait_until(lambda: _robot_connected(database, robot), "the agent connected", 60)
-        base = f"http://127.0.0.1:{cloud.port}/api/robot/{robot}"
+        base = f"http://127.0.0.1:{daphne.port}/api/robot/{robot}"
         _post(base, "/skill/add", key, {"config": _skill_config(starts)})
         _post(base, f"/skill/{SKILL}/start?wait=30", key)
         wait_until(lambda: starts.read_text().strip(), "the component started", 60)
         component_pid = int(starts.read_text().split()[0])
         time.sleep(1.0)
         # The cloud goes away: the robot keeps measuring into its outbox.
-        cloud.kill()
+        daphne.kill()
         time.sleep(4.0 if quick else 15.0)
         agent.kill()
         backlog = _backlog(outbox)
@@ -165,7 +152,7 @@ def run(quick: bool) -> list[Outcome]:
         wait_until(lambda: "re-adopted" in agent.log_text() or agent.process.poll() is not None, "re-adopt", 30)
         time.sleep(1.0 if quick else 5.0)
         back_at = time.monotonic()
-        cloud.start()
+        daphne.start()
         wait_until(lambda: _owed(outbox) == 0, "the backlog acked", 90, interval=0.1)
         recover_s = round(time.monotonic() - back_at, 2)
         time.sleep(2.0)  # room for a second start of the component, were the skill_start applied again

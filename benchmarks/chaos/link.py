@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 
+from benchmarks._common import log
 from benchmarks.chaos import Outcome
 from benchmarks.chaos.rig import (
     Agent,
@@ -23,7 +24,6 @@ from benchmarks.chaos.rig import (
     RobotLink,
     instances,
     kill_instances,
-    log,
     settled_points,
     tail,
     wait_until,

@@ -19,14 +19,13 @@ from pathlib import Path
 
 from benchmarks.chaos import Outcome
 from benchmarks.chaos.rig import (
+    Cloud,
     CloudServer,
     Fleet,
     PrivatePostgres,
     PrivateRedis,
     count_stored,
     create_robots,
-    prepare_database,
-    private_env,
     scratch_dir,
     wait_until,
 )
@@ -42,15 +41,14 @@ def run(quick: bool) -> list[Outcome]:
     workdir = scratch_dir(NAME)
     redis = PrivateRedis(workdir)
     postgres = PrivatePostgres(workdir)
-    cloud = None
+    cloud: Cloud | None = None
     try:
         redis.start()
         postgres.init()
         postgres.start()
-        env = private_env(postgres.url, redis.url, workdir, f"chaos-{uuid.uuid4().hex[:8]}")
-        prepare_database(env)
-        cloud = CloudServer(env, workdir / "daphne.log")
+        cloud = Cloud(NAME, database=postgres.url, redis=redis.url)
         cloud.start()
+        env = cloud.env
         robots = 10 if quick else 50
         pairs = create_robots(env, f"chaos-st-{uuid.uuid4().hex[:6]}", 2 * robots)
         faults: list[tuple[str, float, Callable[[], None], Callable[[], None]]] = [
@@ -66,7 +64,7 @@ def run(quick: bool) -> list[Outcome]:
             _break_store(
                 f"{what}, down {down_s:.0f} s, {robots} robots streaming",
                 env,
-                cloud,
+                cloud.server,
                 workdir / f"fleet-{n}",
                 pairs[n * robots : (n + 1) * robots],
                 stream_s=2.0 if quick else 10.0,
@@ -79,6 +77,7 @@ def run(quick: bool) -> list[Outcome]:
     finally:
         if cloud is not None:
             cloud.stop()
+            shutil.rmtree(cloud.dir, ignore_errors=True)
         redis.stop()
         postgres.stop("immediate")
         shutil.rmtree(workdir, ignore_errors=True)

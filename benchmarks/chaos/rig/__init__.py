@@ -12,12 +12,8 @@
 
 from __future__ import annotations
 
-from benchmarks._common import log
 from benchmarks.chaos.rig.base import (
     BIN,
-    database_url,
-    kill_group,
-    redis_url,
     scratch_dir,
     tail,
     wait_until,
@@ -29,8 +25,6 @@ from benchmarks.chaos.rig.cloud import (
     Worker,
     api_token,
     create_robots,
-    prepare_database,
-    private_env,
     shared_cloud_env,
     start_daphne,
 )
@@ -55,14 +49,8 @@ __all__ = [
     "changed",
     "count_stored",
     "create_robots",
-    "database_url",
     "instances",
-    "kill_group",
     "kill_instances",
-    "log",
-    "prepare_database",
-    "private_env",
-    "redis_url",
     "scratch_dir",
     "settled_points",
     "shared_cloud_env",

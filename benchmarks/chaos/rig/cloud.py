@@ -241,18 +241,33 @@ def api_token(env: dict[str, str]) -> str:
 
 
 class Cloud:
-    """A whole private cloud: its database migrated, daphne, and a Celery worker when cloud copies must run."""
+    """A whole private cloud: its env, its database migrated, daphne, and a Celery worker to start with it or apart.
 
-    def __init__(self, name: str, *, host: str = "127.0.0.1", celery: bool = False) -> None:
+    ``database`` and ``redis`` name stores of the scenario's own (default: the suite's); ``extra``
+    adds to the cloud's environment.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        host: str = "127.0.0.1",
+        celery: bool = False,
+        concurrency: int = 2,
+        database: str | None = None,
+        redis: str | None = None,
+        **extra: str,
+    ) -> None:
         self.dir = scratch_dir(name)
         self.env = private_env(
-            database_url(),
-            redis_url(),
+            database or database_url(),
+            redis or redis_url(),
             self.dir / "cloud",
             f"chaos-{name}-{uuid.uuid4().hex[:8]}",
             BRIDGEOS_CLOUD_ID=f"chaos-{name}-{uuid.uuid4().hex[:6]}",
             BRIDGEOS_CLOUD_ROS_MASTERS="0",
             BRIDGEOS_COMMAND_WAIT_S="30",
+            **extra,
         )
         if host != "127.0.0.1":
             self.env["ALLOWED_HOSTS"] = f"{host},127.0.0.1,localhost"
@@ -260,21 +275,22 @@ class Cloud:
         prepare_database(self.env)
         log(f"{name}: database migrated in {time.monotonic() - started:.1f} s")
         self.server = CloudServer(self.env, self.dir / "daphne.log", host=host)
-        self.worker = Worker(self.env, self.dir / "worker.log", concurrency=2) if celery else None
+        self.worker = Worker(self.env, self.dir / "worker.log", concurrency=concurrency)
+        self.celery = celery
 
     def start(self) -> None:
+        """Start daphne, and the worker if the cloud runs one from the start (wait for it with wait_celery)."""
         self.server.start()
-        if self.worker is not None:
+        if self.celery:
             self.worker.start(wait=False)
 
     def wait_celery(self, timeout: float = 60.0) -> None:
         """Wait until the worker consumes its queue (if the cloud has one)."""
-        if self.worker is not None:
+        if self.celery:
             self.worker.wait_ready(timeout)
 
     def stop(self) -> None:
-        if self.worker is not None:
-            self.worker.stop()
+        self.worker.stop()
         self.server.kill()
 
     def add_robot(self, robot: str, *, config: dict | None = None, skills: list[dict] = ()) -> tuple[str, str]:
