@@ -23,18 +23,7 @@ from pathlib import Path
 import psycopg
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._rig import (
-    AgentProcess,
-    Cloud,
-    api_token,
-    cloud_env,
-    create_robots,
-    default_database_url,
-    default_redis_url,
-    eventually,
-    prepare_database,
-    scratch_dir,
-)
+from benchmarks.chaos.rig import Agent, Cloud, api_token, create_robots, wait_until
 
 NAME = "agentkill"
 INJECTS = "agent kill -9 with a backlog (cloud down) and a running component, then restarted"
@@ -124,49 +113,56 @@ def _alive(pid: int) -> bool:
 
 def run(quick: bool) -> list[Outcome]:
     """Play the kill once; one outcome."""
-    workdir = scratch_dir(NAME)
-    env = cloud_env(default_database_url(), default_redis_url(), workdir, f"chaos-{uuid.uuid4().hex[:8]}")
-    prepare_database(env["DATABASE_URL"], env)
-    database_url = env["DATABASE_URL"]
+    cloud = Cloud(NAME)
+    env, workdir, daphne = cloud.env, cloud.dir, cloud.server
+    database = env["DATABASE_URL"]
     robot, token = create_robots(env, f"chaos-ak-{uuid.uuid4().hex[:6]}", 1)[0]
     key = api_token(env)
     starts = workdir / "starts"
     starts.touch()
-    cloud = Cloud(env, workdir)
-    agent = AgentProcess(
-        cloud.ws_url, robot, token, workdir / "agent", "--simulate", "--runtime", "process", "--sample-interval", "0.2"
-    )
+    agent: Agent | None = None
     outbox = workdir / "agent" / "outbox.sqlite3"
     try:
-        cloud.start()
-        agent.start()
-        eventually(lambda: _robot_connected(database_url, robot), timeout=60, what="the agent connected")
-        base = f"http://127.0.0.1:{cloud.port}/api/robot/{robot}"
+        daphne.start()
+        # Its components kept on exit, as a robot's are: the restarted agent must re-adopt them.
+        agent = Agent(
+            robot,
+            token,
+            daphne.ws_url,
+            workdir / "agent",
+            workdir / "agent.log",
+            sample_interval=0.2,
+            keep_components=True,
+            options=("--firewall", "off"),
+        )
+        wait_until(lambda: _robot_connected(database, robot), "the agent connected", 60)
+        base = f"http://127.0.0.1:{daphne.port}/api/robot/{robot}"
         _post(base, "/skill/add", key, {"config": _skill_config(starts)})
         _post(base, f"/skill/{SKILL}/start?wait=30", key)
-        eventually(lambda: starts.read_text().strip(), timeout=60, what="the component started")
+        wait_until(lambda: starts.read_text().strip(), "the component started", 60)
         component_pid = int(starts.read_text().split()[0])
         time.sleep(1.0)
         # The cloud goes away: the robot keeps measuring into its outbox.
-        cloud.kill()
+        daphne.kill()
         time.sleep(4.0 if quick else 15.0)
         agent.kill()
         backlog = _backlog(outbox)
         survived_kill = _alive(component_pid)
         agent.start()
-        eventually(lambda: "re-adopted" in agent.log() or agent.process.poll() is not None, timeout=30, what="re-adopt")
+        wait_until(lambda: "re-adopted" in agent.log_text() or agent.process.poll() is not None, "re-adopt", 30)
         time.sleep(1.0 if quick else 5.0)
         back_at = time.monotonic()
-        cloud.start()
-        eventually(lambda: _owed(outbox) == 0, timeout=90, every=0.1, what="the backlog acked")
+        daphne.start()
+        wait_until(lambda: _owed(outbox) == 0, "the backlog acked", 90, interval=0.1)
         recover_s = round(time.monotonic() - back_at, 2)
         time.sleep(2.0)  # room for a second start of the component, were the skill_start applied again
         started = starts.read_text().split()
         still_running = _alive(component_pid)
-        stored = _stored(database_url, robot)
-        readopted = "re-adopted 1 running component" in agent.log()
+        stored = _stored(database, robot)
+        readopted = "re-adopted 1 running component" in agent.log_text()
     finally:
-        agent.stop()
+        if agent is not None:
+            agent.stop()
         cloud.stop()
         # The agent leaves its components running on exit (for the next agent to adopt): end every copy here.
         for pid in {int(p) for p in starts.read_text().split()} if starts.exists() else ():

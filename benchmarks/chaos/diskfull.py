@@ -22,8 +22,9 @@ import subprocess
 import time
 from pathlib import Path
 
+from benchmarks._common import log
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._netrig import Agent, Cloud, kill_instances, log, settled_points, tail, wait_until
+from benchmarks.chaos.rig import Agent, Cloud, kill_instances, settled_points, tail, wait_until
 
 NAME = "diskfull"
 INJECTS = "the agent's data disk (a small tmpfs) filled to the last byte, then the cloud killed meanwhile"

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import psutil
 
-from benchmarks._common import percentile
+from benchmarks._common import log, percentile
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._netrig import Agent, Cloud, kill_instances, log, settled_points, tail, wait_until
+from benchmarks.chaos.rig import Agent, Cloud, kill_instances, settled_points, tail, wait_until
 
 NAME = "hog"
 INJECTS = "a component eating every core and memory past its limits (0.5 CPU, 100 MiB)"

@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import time
 
+from benchmarks._common import log
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._netrig import (
+from benchmarks.chaos.rig import (
     Agent,
     Cloud,
     RobotLink,
     instances,
     kill_instances,
-    log,
     settled_points,
     tail,
     wait_until,

@@ -24,7 +24,7 @@ from typing import Any
 
 from benchmarks._common import log, percentile
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._cloudenv import cloud_env, start_daphne
+from benchmarks.chaos.rig import shared_cloud_env, start_daphne
 
 NAME = "load"
 ROBOT_PREFIX = "load-"
@@ -269,7 +269,7 @@ def stored_points() -> tuple[int, int]:
 
 def play(robots: int, seconds: float, command_rate: float) -> Outcome:
     """Stream from ``robots`` robots for ``seconds`` while commands go out at ``command_rate`` per second."""
-    env = cloud_env()
+    env = shared_cloud_env()
     tokens, api_token = prepare(robots)
     daphne = start_daphne(env, NAME)
     ctx = mp.get_context("spawn")

@@ -20,26 +20,11 @@ import subprocess
 import sys
 import time
 import uuid
-from pathlib import Path
 
 import psycopg
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._rig import (
-    BIN,
-    Beat,
-    Cloud,
-    Fleet,
-    Worker,
-    cloud_env,
-    count_stored,
-    create_robots,
-    default_database_url,
-    default_redis_url,
-    eventually,
-    prepare_database,
-    scratch_dir,
-)
+from benchmarks.chaos.rig import BIN, Beat, Cloud, Fleet, count_stored, create_robots, wait_until
 
 NAME = "processes"
 INJECTS = "kill -9 of daphne (robots streaming), of the Celery worker mid-task, and of beat"
@@ -49,49 +34,43 @@ RECONNECT_GOAL_S = 5.0
 
 def run(quick: bool) -> list[Outcome]:
     """Play the three kills; one outcome each."""
-    workdir = scratch_dir(NAME)
-    queue = f"chaos-{uuid.uuid4().hex[:8]}"
     visibility = 3.0 if quick else 10.0
-    env = cloud_env(
-        default_database_url(),
-        default_redis_url(),
-        workdir,
-        queue,
+    cloud = Cloud(
+        NAME,
+        concurrency=1,
         CELERY_VISIBILITY_TIMEOUT_S=str(visibility),
         CELERY_UNACKED_RESTORE_S="1",
         BRIDGEOS_CLOUD_RECONCILE_S="1",
     )
-    prepare_database(env["DATABASE_URL"], env)
-    worker = Worker(env, workdir)
     # Its start-up overlaps the daphne case; the worker case needs it only later.
-    worker.start(wait=False)
+    cloud.worker.start(wait=False)
     try:
         return [
-            daphne_killed(env, workdir, robots=10 if quick else 50, down_s=3.0 if quick else 12.0, quick=quick),
-            worker_killed(env, workdir, worker, visibility),
-            beat_killed(env, workdir, worker),
+            daphne_killed(cloud, robots=10 if quick else 50, down_s=3.0 if quick else 12.0, quick=quick),
+            worker_killed(cloud, visibility),
+            beat_killed(cloud),
         ]
     finally:
-        worker.stop()
-        shutil.rmtree(workdir, ignore_errors=True)
+        cloud.stop()
+        shutil.rmtree(cloud.dir, ignore_errors=True)
 
 
-def daphne_killed(env: dict[str, str], workdir: Path, *, robots: int, down_s: float, quick: bool) -> Outcome:
+def daphne_killed(cloud: Cloud, *, robots: int, down_s: float, quick: bool) -> Outcome:
     """kill -9 daphne while the fleet streams; restart it on the same port; count what was stored."""
     injected = f"daphne kill -9, down {down_s:.0f} s, {robots} robots streaming"
+    env, daphne = cloud.env, cloud.server
     prefix = f"chaos-dk-{uuid.uuid4().hex[:6]}"
     pairs = create_robots(env, prefix, robots)
-    cloud = Cloud(env, workdir)
-    fleet = Fleet(cloud.ws_url, pairs, workdir)
+    fleet = Fleet(daphne.ws_url, pairs, cloud.dir)
     try:
-        cloud.start()
+        daphne.start()
         fleet.start()
         fleet.wait_connected(timeout=60)
         time.sleep(2.0 if quick else 10.0)
         killed_at = time.time()
-        cloud.kill()
+        daphne.kill()
         time.sleep(down_s)
-        back_at = cloud.start()
+        back_at = daphne.start()
         last_connected = fleet.wait_connected(since=killed_at, timeout=120)
         reconnect_s = round(last_connected - back_at, 2)
         time.sleep(1.0 if quick else 10.0)
@@ -101,7 +80,7 @@ def daphne_killed(env: dict[str, str], workdir: Path, *, robots: int, down_s: fl
         stored = count_stored(env["DATABASE_URL"], [robot for robot, _ in pairs])
     finally:
         fleet.stop()
-        cloud.stop()
+        daphne.stop()
     lost = max(0, sent - stored.distinct)
     passed = lost == 0 and stored.duplicated == 0 and stored.distinct == sent and reconnect_s <= RECONNECT_GOAL_S
     return Outcome(
@@ -150,8 +129,9 @@ def _waiting_delete(database_url: str) -> bool:
     return bool(row and row[0])
 
 
-def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility: float) -> Outcome:
+def worker_killed(cloud: Cloud, visibility: float) -> Outcome:
     """kill -9 the worker (and its pool) while a retention task is mid-way; a new worker must finish it."""
+    env, worker = cloud.env, cloud.worker
     injected = "Celery worker kill -9 mid-task (prune_metrics blocked on a table lock)"
     database_url = env["DATABASE_URL"]
     prefix = f"chaos-wk-{uuid.uuid4().hex[:6]}"
@@ -171,18 +151,18 @@ def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility
             env={**os.environ, **env},
             check=True,
             capture_output=True,
-            cwd=str(workdir),
+            cwd=str(cloud.dir),
         )
-        eventually(lambda: _waiting_delete(database_url), timeout=30, what="the task waiting on the metric table")
+        wait_until(lambda: _waiting_delete(database_url), "the task waiting on the metric table", 30)
         worker.kill()
         holder.rollback()
         left_after_kill = _count_old(database_url, robot)
         restarted_at = time.monotonic()
         worker.start()
         try:
-            eventually(lambda: _count_old(database_url, robot) == 0, timeout=visibility + 60, what="the task done")
+            wait_until(lambda: _count_old(database_url, robot) == 0, "the task done", visibility + 60)
             recover_s = round(time.monotonic() - restarted_at, 2)
-            eventually(lambda: worker.succeeded("monitoring.tasks.prune_metrics"), timeout=10, what="its success")
+            wait_until(lambda: worker.succeeded("monitoring.tasks.prune_metrics"), "its success", 10)
         except TimeoutError:
             recover_s = None
         done = worker.succeeded("monitoring.tasks.prune_metrics")
@@ -204,25 +184,26 @@ def worker_killed(env: dict[str, str], workdir: Path, worker: Worker, visibility
     )
 
 
-def beat_killed(env: dict[str, str], workdir: Path, worker: Worker) -> Outcome:
+def beat_killed(cloud: Cloud) -> Outcome:
     """kill -9 beat while the reconciler's round runs every second; restarted, the rounds resume."""
     injected = "Celery beat kill -9 (reconcile every 1 s)"
     task = "skills.tasks.reconcile_cloud"
-    beat = Beat(env, workdir)
+    worker = cloud.worker
+    beat = Beat(cloud.env, cloud.dir)
     try:
         if worker.process is None or worker.process.poll() is not None:
             worker.start()
         beat.start()
-        eventually(lambda: worker.succeeded(task) >= 2, timeout=30, what="two reconcile rounds")
+        wait_until(lambda: worker.succeeded(task) >= 2, "two reconcile rounds", 30)
         beat.kill()
         time.sleep(1.0)
         before = worker.succeeded(task)
         restarted_at = time.monotonic()
         beat.start()
         try:
-            eventually(lambda: worker.succeeded(task) > before, timeout=30, what="a round after beat's restart")
+            wait_until(lambda: worker.succeeded(task) > before, "a round after beat's restart", 30)
             recover_s = round(time.monotonic() - restarted_at, 2)
-            eventually(lambda: worker.succeeded(task) >= before + 3, timeout=30, what="three rounds after it")
+            wait_until(lambda: worker.succeeded(task) >= before + 3, "three rounds after it", 30)
         except TimeoutError:
             recover_s = None
         after = worker.succeeded(task)

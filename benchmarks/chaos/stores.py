@@ -18,17 +18,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 from benchmarks.chaos import Outcome
-from benchmarks.chaos._rig import (
+from benchmarks.chaos.rig import (
     Cloud,
+    CloudServer,
     Fleet,
     PrivatePostgres,
     PrivateRedis,
-    cloud_env,
     count_stored,
     create_robots,
-    eventually,
-    prepare_database,
     scratch_dir,
+    wait_until,
 )
 
 NAME = "stores"
@@ -42,15 +41,14 @@ def run(quick: bool) -> list[Outcome]:
     workdir = scratch_dir(NAME)
     redis = PrivateRedis(workdir)
     postgres = PrivatePostgres(workdir)
-    cloud = None
+    cloud: Cloud | None = None
     try:
         redis.start()
         postgres.init()
         postgres.start()
-        env = cloud_env(postgres.url, redis.url, workdir, f"chaos-{uuid.uuid4().hex[:8]}")
-        prepare_database(postgres.url, env)
-        cloud = Cloud(env, workdir)
+        cloud = Cloud(NAME, database=postgres.url, redis=redis.url)
         cloud.start()
+        env = cloud.env
         robots = 10 if quick else 50
         pairs = create_robots(env, f"chaos-st-{uuid.uuid4().hex[:6]}", 2 * robots)
         faults: list[tuple[str, float, Callable[[], None], Callable[[], None]]] = [
@@ -66,7 +64,7 @@ def run(quick: bool) -> list[Outcome]:
             _break_store(
                 f"{what}, down {down_s:.0f} s, {robots} robots streaming",
                 env,
-                cloud,
+                cloud.server,
                 workdir / f"fleet-{n}",
                 pairs[n * robots : (n + 1) * robots],
                 stream_s=2.0 if quick else 10.0,
@@ -79,6 +77,7 @@ def run(quick: bool) -> list[Outcome]:
     finally:
         if cloud is not None:
             cloud.stop()
+            shutil.rmtree(cloud.dir, ignore_errors=True)
         redis.stop()
         postgres.stop("immediate")
         shutil.rmtree(workdir, ignore_errors=True)
@@ -87,7 +86,7 @@ def run(quick: bool) -> list[Outcome]:
 def _break_store(
     injected: str,
     env: dict[str, str],
-    cloud: Cloud,
+    cloud: CloudServer,
     fleet_dir: Path,
     pairs: list[tuple[str, str]],
     *,
@@ -111,11 +110,11 @@ def _break_store(
         back_at = time.monotonic()
         made_before = fleet.sent()
         try:
-            eventually(
+            wait_until(
                 lambda: count_stored(database_url, robots).distinct >= made_before,
-                timeout=120,
-                every=0.2,
-                what="every point made before the store's return stored",
+                "every point made before the store's return stored",
+                120,
+                interval=0.2,
             )
             recover_s: float | None = round(time.monotonic() - back_at, 2)
         except TimeoutError:

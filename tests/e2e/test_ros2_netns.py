@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.chaos._netrig import Agent, Cloud, RobotLink, instances, kill_instances, tail, wait_until
+from benchmarks.chaos.rig import Agent, Cloud, RobotLink, instances, kill_instances, tail, wait_until
 from bridgeos_agent.ros2graph import rclpy_missing
 from tests.net.netns import run
 

@@ -1,56 +1,13 @@
-"""The cloud a hostile or load scenario plays against: its database, Redis, a daphne, and state snapshots."""
+"""What a cloud served from this process holds: a digest of every table, to prove a request changed nothing."""
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
-from pathlib import Path
 
-from benchmarks._common import Daphne, ensure_postgres_database, migrate, setup_django
-
-# Used when the runner plays the scenario on its own (the test suite hands it the test database instead).
-DEFAULT_DATABASE_URL = "postgres://postgres@127.0.0.1:5432/bridgeos_chaos"
-DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/13"
 # Robot columns a connection or a disconnection rewrites: they are presence, not state a frame may change.
 PRESENCE_COLUMNS = {"connected", "last_seen", "channel", "ros_master", "status"}
 PRESENCE_EVENTS = ("connection_established", "connection_lost")
-
-
-def cloud_env() -> dict[str, str]:
-    """Return the environment of the cloud under test, setting Django up in this process if it is not yet."""
-    from django.apps import apps
-
-    if apps.ready:
-        # Inside the test suite (or after another scenario): serve the database this process already uses.
-        from django.conf import settings
-
-        db = settings.DATABASES["default"]
-        url = f"postgres://{db['USER']}@{db['HOST'] or '127.0.0.1'}:{db['PORT'] or 5432}/{db['NAME']}"
-        env = {"DATABASE_URL": url}
-        for key in ("REDIS_URL", "BRIDGEOS_DATA_DIR"):
-            if os.environ.get(key):
-                env[key] = os.environ[key]
-        env.setdefault("BRIDGEOS_DATA_DIR", tempfile.mkdtemp(prefix="bridgeos-chaos-"))
-        return env
-    env = {
-        "DATABASE_URL": os.environ.get("CHAOS_DATABASE_URL", DEFAULT_DATABASE_URL),
-        "REDIS_URL": os.environ.get("CHAOS_REDIS_URL", DEFAULT_REDIS_URL),
-        "BRIDGEOS_DATA_DIR": tempfile.mkdtemp(prefix="bridgeos-chaos-"),
-    }
-    ensure_postgres_database(env["DATABASE_URL"])
-    migrate(env)
-    setup_django(env)
-    return env
-
-
-def start_daphne(env: dict[str, str], name: str, extra: dict[str, str] | None = None) -> Daphne:
-    """Start a daphne of the scenario's own and wait until it listens."""
-    log_path = Path(env["BRIDGEOS_DATA_DIR"]) / f"{name}-daphne.log"
-    daphne = Daphne({**env, **(extra or {})}, log_path)
-    daphne.wait()
-    return daphne
 
 
 def snapshot() -> dict[str, str]:

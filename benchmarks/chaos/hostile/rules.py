@@ -1,0 +1,115 @@
+"""The doors of the cloud and the rules of who may pass: every route, and why a route takes no robot."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+from collections.abc import Iterator
+from typing import Any
+
+from benchmarks.chaos.hostile.world import SKILL, World
+
+
+def http_routes() -> list[tuple[str, Any]]:
+    """Every URL pattern the cloud serves (but the admin's own pages), as (route, callback)."""
+    from django.urls import URLPattern, URLResolver, get_resolver
+
+    def walk(patterns: list, prefix: str) -> Iterator[tuple[str, Any]]:
+        for pattern in patterns:
+            if isinstance(pattern, URLResolver):
+                yield from walk(pattern.url_patterns, prefix + str(pattern.pattern))
+            elif isinstance(pattern, URLPattern):
+                yield prefix + str(pattern.pattern), pattern.callback
+
+    return [
+        (route, callback) for route, callback in walk(get_resolver().url_patterns, "") if not route.startswith("admin/")
+    ]
+
+
+def methods_of(callback: Any) -> list[str]:
+    """The HTTP methods a view answers (GET and POST for a plain function view)."""
+    view = getattr(callback, "cls", None) or getattr(callback, "view_class", None)
+    if view is None:
+        return ["GET", "POST"]
+    return [m.upper() for m in ("get", "post", "put", "patch", "delete") if hasattr(view, m)]
+
+
+# Routes that take no robot: what each gives and why no robot of another user can be reached there.
+NO_ROBOT = {
+    "": "the fleet page: lists only the user's robots (checked below)",
+    "skills/": "the catalog of Skill templates, shared by design",
+    "events/": "the event log page: filled by /api/events (checked below)",
+    "validate/skill-config": "validates a posted config, touches no robot",
+    "validate/robot-config": "validates a posted config, touches no robot",
+    "accounts/login/": "login form",
+    "accounts/logout/": "logout",
+    "api/health": "liveness, no robot data",
+    "metrics": "operator scrape, limited to BRIDGEOS_METRICS_ALLOW/TOKEN, not a per-user door",
+    "api/auth": "exchanges a password for a token",
+    "api/auth/renew": "renews the caller's own token",
+    "api/registry/token": "grants repositories of the caller's own namespace only (tests/registry prove it)",
+    "api/templates": "catalog, shared by design; writes are staff only",
+    "api/templates/<int:template_id>": "catalog, shared by design; writes are staff only",
+    "api/schema/": "the OpenAPI schema",
+    "api/docs/": "the API docs page",
+}
+# Routes that take robots in the body or query string, or act on every robot the caller may see.
+ROBOTS_IN_BODY = {
+    "api/robot",
+    "api/robot/start",
+    "api/robot/stop",
+    "api/robot/shutdown",
+    "api/database/query",
+    "api/events",
+}
+
+
+def published_robot_routes() -> set[str]:
+    """The paths of the OpenAPI schema that name a robot: the resolver's enumeration must reach each."""
+    from drf_spectacular.generators import SchemaGenerator
+
+    with contextlib.redirect_stderr(io.StringIO()):  # drf-spectacular's naming warnings, printed elsewhere too
+        paths = SchemaGenerator().get_schema(request=None, public=True)["paths"]
+    return {path for path in paths if "{robot_id}" in path}
+
+
+def fill_route(route: str, world: World, robot: str, copy_token: str) -> str:
+    values = {
+        "robot_id": robot,
+        "skill_id": SKILL,
+        "component_id": "sampler",
+        "template_id": str(world.template_id),
+        "token": copy_token,
+        "path": "status",
+        "recording_id": world.recording_id,
+    }
+    return "/" + re.sub(r"<(?:\w+:)?(\w+)>", lambda m: values[m.group(1)], route)
+
+
+def destructive_rank(call: tuple[str, str]) -> int:
+    """Order robot calls so what would remove a skill, cut alice-bot's link or delete it comes last, in that order."""
+    route, method = call
+    if method == "DELETE":
+        return 3
+    if route.endswith(("/token", "/shutdown")):
+        return 2
+    return 1 if route.endswith("/remove") else 0
+
+
+def websocket_routes() -> list[str]:
+    """Every WebSocket route of the cloud's own protocol (event, id and data frames), read from its routing."""
+    from bridgeos_cloud.routing import websocket_urlpatterns
+
+    return [str(p.pattern) for p in websocket_urlpatterns if "robot_id" not in str(p.pattern)]
+
+
+def bridge_routes() -> list[str]:
+    """The rosbridge and Foxglove doors of a robot: authorised at the handshake, their frames the robot's to read.
+
+    Their bad input and floods are tested against a real agent (tests/cloud/test_bridge_relay.py);
+    here every intruder's handshake on Alice's robot must be refused.
+    """
+    from bridgeos_cloud.routing import websocket_urlpatterns
+
+    return [str(p.pattern) for p in websocket_urlpatterns if "robot_id" in str(p.pattern)]
