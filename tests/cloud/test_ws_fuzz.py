@@ -115,7 +115,7 @@ def test_any_fuzzed_first_frame_is_refused(daphne_server, frame):
 
 
 def test_a_nul_byte_in_a_robots_error_report_is_logged_not_an_internal_error(robot_socket):
-    # Found by the fault suite's fuzzer (benchmarks/chaos/hostile.py): PostgreSQL refuses NUL in text.
+    # Found by the fault suite's fuzzer (benchmarks/chaos/hostile/): PostgreSQL refuses NUL in text.
     report = {"message": "disk\x00full", "field": "data.x\x00", "code": "no_space"}
     robot_socket.send(json.dumps({"event": "error_message", "id": "nul-report", "data": report}))
     robot_socket.send(json.dumps({"event": "robot_config_get", "id": "after-nul", "data": {}}))
