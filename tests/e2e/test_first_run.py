@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import threading
@@ -34,11 +35,12 @@ STOP_S = 120  # from Ctrl-C until every process of the run is gone
 class Run:
     """`make run` in a session of its own, its terminal read line by line."""
 
-    def __init__(self, data: Path, port: int) -> None:
+    def __init__(self, data: Path, port: int, registry_port: int) -> None:
         env = {k: v for k, v in os.environ.items() if k not in ("DATABASE_URL", "PROMETHEUS_MULTIPROC_DIR")}
         env.update(
             BRIDGEOS_DATA_DIR=str(data),  # clean: the embedded SQLite database, new logs
             BRIDGEOS_PORT=str(port),
+            BRIDGEOS_REGISTRY_PORT=str(registry_port),
             # A Redis database of its own, as `make run` takes database 0 on a machine of its own.
             REDIS_URL="redis://127.0.0.1:6379/13",
         )
@@ -191,7 +193,8 @@ def test_make_run_from_a_clean_data_directory_runs_every_demo_component_and_leav
     data = tmp_path / "data"
     port = free_port()
     services, networks = docker_names("service"), docker_names("network")
-    run = Run(data, port)
+    registry_port = free_port()
+    run = Run(data, port, registry_port)
     try:
         run.wait_for_line("Press Ctrl-C", START_S)
         login = re.search(r"Operator account created: (\S+) / (\S+)", run.output)
@@ -199,6 +202,21 @@ def test_make_run_from_a_clean_data_directory_runs_every_demo_component_and_leav
         username, password = login.groups()
         base_url = f"http://127.0.0.1:{port}"
         token = httpx.get(f"{base_url}/api/auth", auth=(username, password)).raise_for_status().json()["token"]
+        if shutil.which("docker-registry"):
+            # The run's registry sends its clients to this cloud for tokens, and takes this cloud's.
+            challenge = httpx.get(f"http://127.0.0.1:{registry_port}/v2/", timeout=10)
+            assert challenge.status_code == 401
+            assert f'realm="{base_url}/api/registry/token"' in challenge.headers["WWW-Authenticate"]
+            granted = httpx.get(
+                f"{base_url}/api/registry/token",
+                params={"service": "bridgeos-registry", "scope": f"repository:{username}/x:pull"},
+                auth=(username, password),
+            ).raise_for_status()
+            listed = httpx.get(
+                f"http://127.0.0.1:{registry_port}/v2/{username}/x/tags/list",
+                headers={"Authorization": f"Bearer {granted.json()['token']}"},
+            )
+            assert listed.status_code == 404, listed.text  # authorised: the repository just does not exist
         api = httpx.Client(base_url=base_url, headers={"Authorization": f"Token {token}"}, timeout=30)
 
         # Every component of every demo Skill runs, on the robot or in the cloud (they move meanwhile).
@@ -241,7 +259,7 @@ def test_make_run_from_a_clean_data_directory_runs_every_demo_component_and_leav
     output = run.output
     assert not re.search(r"warn|error|traceback|GET /|POST /", output, re.IGNORECASE), output
     statuses = [line.split(":")[0].strip() for line in output.splitlines() if line.startswith("  ") and ":" in line]
-    for part in ("database", "runtime", "celery", "daphne", "demo", "metrics"):
+    for part in ("database", "runtime", "celery", "daphne", "registry", "demo", "metrics"):
         assert statuses.count(part) == 1, output
     assert "cloud copies run as swarm" in output
     for name in ("daphne.log", "celery.log", "demo_fleet.log"):
