@@ -197,7 +197,8 @@ async def measure_ingest(frames: list[tuple[str, str]], pairs: int) -> dict:
 
 async def measure_router(pairs: int, windows: int, window_s: float) -> dict:
     """Route flat-out pairs through one router; alternate windows with /metrics scraped or not."""
-    from router import PUB_NS, Pairs, rosmaster, skill_config
+    from _harness import rosmaster
+    from router import PUB_NS, Pairs, skill_config
     from router import settings as router_settings
 
     from bridgeos_agent import metrics
