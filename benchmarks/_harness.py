@@ -123,31 +123,23 @@ class Cloud:
         self.processes.append(process)
         return process
 
-    def start_agent(self, daphne: Daphne, robot_id: str, token: str, *flags: str, env: dict[str, str] | None = None):
-        """Start `bridgeos-agent run` for one robot against a daphne, with its data under the data directory."""
+    def start_agent(
+        self, daphne: Daphne, robot_id: str, token: str, *flags: str, env: dict[str, str] | None = None
+    ) -> subprocess.Popen[bytes]:
+        """Start `bridgeos-agent run` for one robot against a daphne, its data under the data directory."""
         argv = [str(Path(sys.executable).parent / "bridgeos-agent"), "run", "--master", daphne.ws_url]
         argv += ["--robot", robot_id, "--token", token, "--data-dir", str(self.data_dir / "agent"), *flags]
-        # The agent is the robot, not the cloud: it gets this process's environment, not the cloud's.
-        with (self.data_dir / "agent.log").open("wb") as out:
-            process = subprocess.Popen(
-                argv,
-                cwd=ROOT,
-                env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-        self.processes.append(process)
-        return process
+        return self.start_process("agent", argv, env)
 
     def stop(self) -> None:
-        """Stop what was started, the newest first: helpers, workers, then the daphnes."""
+        """Stop what was started, the newest first: helpers, workers, then the daphnes; once."""
         for process in reversed(self.processes):
             stop_process(process, 15)
         for worker in reversed(self.workers):
             worker.stop()
         for daphne in self.daphnes:
             daphne.stop(timeout=self.stop_timeout)
+        self.processes, self.workers = [], []
 
     def log_tails(self) -> None:
         for daphne in self.daphnes:
