@@ -28,6 +28,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # imported as benchmarks._harness too (vpn.py)
+
 from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, free_port, log, migrate, setup_django
 
 HOST_PYTHON = "/usr/bin/python3"  # Debian's interpreter, where rospy lives
