@@ -134,7 +134,7 @@ class Cloud:
         return self.start_process("agent", argv, env)
 
     def stop(self) -> None:
-        """Stop what was started, the newest first: helpers, workers, then the daphnes; once."""
+        """Stop what was started: the helpers, then the workers, then the daphnes (a second call does nothing)."""
         for process in reversed(self.processes):
             stop_process(process, 15)
         for worker in reversed(self.workers):
@@ -144,10 +144,12 @@ class Cloud:
         self.processes, self.workers = [], []
 
     def log_tails(self) -> None:
+        """Log the end of every daphne's log, to show why a run failed."""
         for daphne in self.daphnes:
             log(f"daphne {daphne.pid} log tail:\n{daphne.log_tail()}")
 
     def log_errors(self) -> None:
+        """Log how many error lines each daphne wrote, if any."""
         for daphne in self.daphnes:
             errors = [line for line in daphne.log_tail(200_000).splitlines() if "Traceback" in line or "ERROR" in line]
             if errors:
@@ -168,7 +170,9 @@ def cloud(
     """Ready the benchmark's database and Redis, set Django up on them, and stop what it started at the end.
 
     ``args`` carries ``database_url`` and, unless the cloud runs without Redis, ``redis_url``.
-    ``migrate_here`` migrates in this process (one Django start less) instead of in a subprocess.
+    ``flush_redis`` empties the Redis database first; ``migrate_here`` migrates in this process (one
+    Django start less) instead of in a subprocess; ``stop_timeout`` is how long a daphne may take to
+    stop before it is killed; ``remove_data`` deletes the data directory at the end.
     """
     data_dir = Path(tempfile.mkdtemp(prefix=prefix))
     redis_url = getattr(args, "redis_url", "")
