@@ -12,6 +12,7 @@ from typing import Any
 
 
 async def open_client(url: str, headers: dict[str, str] | None = None, subprotocols: list[str] | None = None) -> Any:
+    """Open a WebSocket client to a door, without compression, pings or a size limit."""
     from websockets.asyncio.client import connect
 
     return await connect(
@@ -27,6 +28,7 @@ async def open_client(url: str, headers: dict[str, str] | None = None, subprotoc
 
 
 async def rosbridge_subscribe(url: str, headers: dict[str, str] | None, topic: str) -> Any:
+    """Open a rosbridge client subscribed to a topic of std_msgs/String."""
     websocket = await open_client(url, headers)
     await websocket.send(
         json.dumps({"op": "subscribe", "topic": topic, "type": "std_msgs/String", "queue_length": 1000})

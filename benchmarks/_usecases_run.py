@@ -114,6 +114,7 @@ class Process:
     lines: list[tuple[float, str]] = field(default_factory=list)
 
     def read(self) -> None:
+        """Collect the process's output lines with the time each arrived, until it closes."""
         assert self.popen.stdout is not None
         for raw in self.popen.stdout:
             self.lines.append((time.monotonic(), raw.decode(errors="replace").rstrip()))
@@ -164,6 +165,7 @@ class Measurement:
 
     @property
     def label(self) -> str:
+        """Name the combination by the components it moved to the cloud."""
         moved = [c for c, where in self.placement.items() if where == "cloud"]
         return "cloud: " + ", ".join(moved) if moved else "all on robot"
 
@@ -197,9 +199,11 @@ class RobotCgroup:
         ]
 
     def cpu_seconds(self) -> float:
+        """Return the CPU time the robot's components used so far."""
         return int((self.acct / "cpuacct.usage").read_text()) / 1e9
 
     def rss_mib(self) -> float:
+        """Return the resident memory of the robot's components now."""
         total = 0
         for pid in (self.cpu / "cgroup.procs").read_text().split():
             with contextlib.suppress(OSError, IndexError, ValueError):
@@ -207,6 +211,7 @@ class RobotCgroup:
         return total / 2**20
 
     def remove(self) -> None:
+        """Remove the cgroup once its last process has exited."""
         for path in (self.cpu, self.acct):
             for _ in range(50):
                 try:
@@ -265,6 +270,7 @@ class Run:
         self.started = 0.0
 
     def env(self, location: str, component: str) -> dict[str, str]:
+        """Return a node's environment at its location: its ROS master or DDS discovery, its namespace."""
         env = {
             "PATH": f"/usr/bin:/bin:/usr/sbin:/sbin:{Path(USECASE).parent}",
             "HOME": os.environ.get("HOME", "/root"),
@@ -292,6 +298,7 @@ class Run:
         return env
 
     def spawn(self, name: str, command: list[str], env: dict[str, str]) -> None:
+        """Start a node in a session of its own and read its output in a thread."""
         popen = subprocess.Popen(
             command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
         )
@@ -300,6 +307,7 @@ class Run:
         self.processes[name] = process
 
     def start(self) -> None:
+        """Start the master (or discovery server), the router if routed, then every component where it runs."""
         if self.ros == 2:
             self.start_discovery_server()
         else:
@@ -325,6 +333,7 @@ class Run:
             self.spawn(component, command, self.env(location, component))
 
     def start_master(self) -> None:
+        """Start the run's rosmaster on the robot and wait until it answers."""
         port = self.master_uri.rsplit(":", 1)[1]
         self.spawn("rosmaster", [ROS_PYTHON, "/usr/bin/rosmaster", "--core", "-p", port], self.env("robot", "master"))
         deadline = time.monotonic() + 20
@@ -334,6 +343,7 @@ class Run:
             time.sleep(0.05)
 
     def start_discovery_server(self) -> None:
+        """Start the Fast DDS discovery server on the robot and wait until it serves."""
         host, port = self.discovery.rsplit(":", 1)
         argv, extra = discovery_server_command(host, int(port))
         self.spawn("discovery", argv, {**self.env("robot", "discovery"), **extra})
@@ -345,14 +355,17 @@ class Run:
             time.sleep(0.05)
 
     def tail(self, name: str, lines: int = 15) -> str:
+        """Return a node's last output lines."""
         return "\n".join(line for _, line in self.processes[name].lines[-lines:])
 
     def check_alive(self) -> None:
+        """Raise if a node exited, with its last output."""
         for name, process in self.processes.items():
             if process.popen.poll() is not None:
                 raise RuntimeError(f"{name} exited with {process.popen.returncode}:\n{self.tail(name)}")
 
     def stop(self) -> None:
+        """Stop every node: TERM to each session, KILL after 10 s."""
         for process in reversed(list(self.processes.values())):
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(process.popen.pid, signal.SIGTERM)
@@ -372,6 +385,7 @@ class Run:
         return min(times) if times else None
 
     def _performance_events(self) -> list[tuple[float, float]]:
+        """Return the Skill's results so far as (time, value) pairs."""
         if self.skill == "people_detection":
             return [(t, v) for t, v, _ in self.processes["detector"].metrics("pointcloud_processing_ms")]
         if self.skill == "navigation":
@@ -379,6 +393,7 @@ class Run:
         return [(t, v) for t, v, _ in self.processes["mapping"].metrics("scans_mapped") if v > 0]
 
     def performance(self, begin: float, end: float) -> float | None:
+        """Return the Skill's performance figure over a window (None without results)."""
         events = self._performance_events()
         if self.skill == "people_detection":
             values = [v for t, v in events if begin <= t <= end]
@@ -406,6 +421,7 @@ class Run:
 
 
 def _answers(host: str, port: int) -> bool:
+    """Tell whether something accepts TCP connections on host:port."""
     import socket
 
     with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=0.5):

@@ -96,6 +96,7 @@ class Talkers:
         self.home = home
 
     def talker(self, kind: str, topic: str, rate: float) -> subprocess.Popen[bytes]:
+        """Start a talker of 100-byte strings or 1 MB point clouds on a topic at ``rate`` Hz (0: flat out)."""
         out = (self.home / f"talker{topic.replace('/', '_')}.out").open("wb")
         process = subprocess.Popen(
             [HOST_PYTHON, "-c", TALKER, kind, topic, str(rate)],
