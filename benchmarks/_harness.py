@@ -210,15 +210,17 @@ def cloud(
 
 
 def forget_fleet(prefix: str, *, metrics: bool = False, events: bool = False) -> None:
-    """Delete the robots of an earlier run; their metric and event rows first, by straight SQL."""
+    """Delete the robots of an earlier run; their ingested frame ids, metric and event rows first, by straight SQL."""
     from django.db import connection
 
-    from monitoring.models import Event, Metric
+    from monitoring.models import Event, IngestedFrame, Metric
     from robots.models import Robot
 
     with connection.cursor() as cursor:
-        # Straight SQL: a cascade through the ORM would walk every old metric row.
-        for wanted, model in ((metrics, Metric), (events, Event)):
+        # Straight SQL: a cascade through the ORM would walk every old metric row. The frame ids go
+        # always: a new robot of the same id sends the same ids again, and they would be taken for
+        # resends of frames already stored, acked and never stored.
+        for wanted, model in ((True, IngestedFrame), (metrics, Metric), (events, Event)):
             if wanted:
                 cursor.execute(f"DELETE FROM {model._meta.db_table} WHERE robot_id LIKE %s", [prefix + "%"])
     Robot.objects.filter(id__startswith=prefix).delete()
