@@ -108,11 +108,12 @@ class Daphne:
                 time.sleep(0.05)
         raise TimeoutError(f"daphne did not listen on {self.port} within {timeout} s:\n{self.log_tail()}")
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 15.0) -> None:
+        """Stop daphne: TERM, then KILL after ``timeout`` seconds (closing its last sockets politely can take 15 s)."""
         if self.process.poll() is None:
             self.process.terminate()
             try:
-                self.process.wait(timeout=15)
+                self.process.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()

@@ -18,24 +18,20 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import gc
-import json
 import logging
-import multiprocessing as mp
 import os
 import random
-import resource
-import subprocess
 import sys
-import tempfile
 import time
 from array import array
-from collections import Counter
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, percentile, setup_django
+from _api_load_profile import spawn_profiler, summarise_profile
+from _api_load_reads import FAMILIES, INFO_FAMILIES, load_main, pick_path
+from _common import ROOT, Daphne, log, percentile
+from _harness import Clients, arguments, cloud, create_fleet, report
 
 PREFIX = "api-bench-"
 OPERATOR = "api-bench-operator"
@@ -46,9 +42,6 @@ COMPONENTS = 5
 SMALL_FLEET = 10
 READ_GOAL_P99_MS = 50.0
 COMMAND_PERIOD_S = 0.5
-# Route families of the read mix and their share of requests.
-FAMILIES = ("list", "robot_info", "skill_info", "component_info")
-INFO_FAMILIES = FAMILIES[1:]
 
 
 # --------------------------------------------------------------------------- setup (in-process, Django ORM)
@@ -77,29 +70,6 @@ def skill_configs() -> list[dict]:
     return configs
 
 
-def make_fleet(owner, count: int, prefix: str, configs: list[dict]) -> list[tuple[str, str]]:
-    """Bulk-create robots with every config as a Skill; return (robot id, token) pairs."""
-    from robots.models import Robot, default_robot_config
-    from skills.models import Component, Skill
-
-    config = default_robot_config()
-    robots, tokens = [], []
-    for i in range(count):
-        robot = Robot(id=f"{prefix}{i:04d}", owner=owner, name=f"Bench robot {i}", config=config)
-        tokens.append((robot.id, robot.issue_token()))
-        robots.append(robot)
-    Robot.objects.bulk_create(robots)
-    skills = Skill.objects.bulk_create(
-        Skill(robot=robot, skill_id=c["skill_id"], name=c["skill"], config=c) for robot in robots for c in configs
-    )
-    Component.objects.bulk_create(
-        Component(skill=skill, component_id=cid, location=comp["location"], resources=comp["resources"])
-        for skill in skills
-        for cid, comp in skill.config["components"].items()
-    )
-    return tokens
-
-
 def prepare(args: argparse.Namespace) -> dict:
     """Replace earlier bench data with a user owning the fleet, and one owning a small fleet."""
     from django.contrib.auth import get_user_model
@@ -114,8 +84,8 @@ def prepare(args: argparse.Namespace) -> dict:
     owner = User.objects.create_user(OPERATOR, password=PASSWORD)
     small = User.objects.create_user(SMALL_OWNER, password=PASSWORD)
     configs = skill_configs()
-    tokens = make_fleet(owner, args.robots, PREFIX, configs)
-    make_fleet(small, SMALL_FLEET, PREFIX + "small-", configs)
+    tokens = create_fleet(owner, args.robots, PREFIX, named=True, skills=configs)
+    create_fleet(small, SMALL_FLEET, PREFIX + "small-", named=True, skills=configs)
     # Earlier runs left dead rows behind; measure a database as autovacuum would keep it.
     with connection.cursor() as cursor:
         for table in ("auth_user", "robots_robot", "robots_apitoken", "skills_skill", "skills_component"):
@@ -167,160 +137,6 @@ def count_queries(fleet: dict) -> dict:
     return result
 
 
-# --------------------------------------------------------------------------- the read load (a process of its own)
-
-
-def pick_path(rnd: random.Random, fleet: dict, list_share: float) -> tuple[int, str]:
-    if rnd.random() < list_share:
-        return 0, "/api/robot"
-    family = rnd.randrange(1, 4)
-    base = f"/api/robot/{rnd.choice(fleet['robots'])}"
-    if family == 1:
-        return 1, f"{base}/info"
-    base += f"/skill/{rnd.choice(fleet['skills'])}"
-    if family == 2:
-        return 2, f"{base}/info"
-    return 3, f"{base}/component/{rnd.choice(fleet['components'])}/info"
-
-
-class KeepAliveConnection:
-    """One keep-alive HTTP/1.1 connection that sends GETs and reads whole answers, and nothing more.
-
-    The load client must cost far less than the server it measures: httpx spent ~5 ms of CPU
-    per request here (its pool scans every connection per request, and httpcore retries a
-    failed `import sniffio` each time), more than daphne itself, so a starved client's own
-    lag was counted as server latency.
-    """
-
-    def __init__(self, host: str, port: int, headers: dict[str, str]) -> None:
-        self.host, self.port = host, port
-        self.head = "".join(f"{key}: {value}\r\n" for key, value in {"Host": f"{host}:{port}", **headers}.items())
-        self.reader: asyncio.StreamReader | None = None
-        self.writer: asyncio.StreamWriter | None = None
-
-    async def get(self, path: str) -> tuple[int, bytes, bool]:
-        """Send a GET and return its status, body (as sent, maybe gzipped) and whether it was gzipped."""
-        if self.writer is None:
-            self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
-        assert self.reader is not None
-        try:
-            self.writer.write(f"GET {path} HTTP/1.1\r\n{self.head}\r\n".encode())
-            head = await self.reader.readuntil(b"\r\n\r\n")
-            lines = head.decode("latin-1").split("\r\n")
-            status = int(lines[0].split(" ", 2)[1])
-            fields = {}
-            for line in lines[1:]:
-                key, _, value = line.partition(":")
-                fields[key.strip().lower()] = value.strip()
-            if "content-length" in fields:
-                body = await self.reader.readexactly(int(fields["content-length"]))
-            elif fields.get("transfer-encoding", "").lower() == "chunked":
-                body = await self._chunked()
-            else:
-                body = await self.reader.read()
-                fields["connection"] = "close"
-        except (OSError, asyncio.IncompleteReadError, ValueError, IndexError):
-            await self.close()
-            raise
-        if fields.get("connection", "").lower() == "close":
-            await self.close()
-        return status, body, fields.get("content-encoding") == "gzip"
-
-    async def _chunked(self) -> bytes:
-        assert self.reader is not None
-        parts = []
-        while True:
-            size = int((await self.reader.readuntil(b"\r\n")).split(b";")[0], 16)
-            parts.append(await self.reader.readexactly(size + 2))
-            if size == 0:
-                return b"".join(part[:-2] for part in parts)
-
-    async def close(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
-            self.reader = self.writer = None
-
-
-async def read_load(urls: list[str], token: str, fleet: dict, args: dict) -> dict:
-    """Each client reads at `client_rate` per second (open loop), or back to back when it is 0.
-
-    Clients are spread over the daphne processes in `urls` in turn (no stickiness).
-
-    Open-loop latency is measured from when a request was due, so a server that falls
-    behind is charged for the wait too (no coordinated omission).
-    """
-    import gzip
-    from urllib.parse import urlsplit
-
-    t0 = time.time() + args["warmup"]
-    t1 = t0 + args["duration"]
-    samples = [array("d") for _ in FAMILIES]  # latency in seconds, requests started in [t0, t1]
-    errors: Counter[str] = Counter()
-    bodies: dict[int, tuple[bytes, bool]] = {}
-    wheres = [urlsplit(url) for url in urls]
-    # Like a browser or httpx: accept gzip, so the server compresses the fleet as for real clients.
-    headers = {"Authorization": f"Token {token}", "Accept-Encoding": "gzip"}
-
-    rate = args["client_rate"]
-
-    async def client(index: int) -> None:
-        rnd = random.Random(index)
-        where = wheres[index % len(wheres)]
-        http = KeepAliveConnection(where.hostname or "127.0.0.1", where.port or 80, headers)
-        due = time.time() + (rnd.random() / rate if rate else 0.0)
-        try:
-            while True:
-                if rate:
-                    wait = due - time.time()
-                    if wait > 0:
-                        await asyncio.sleep(wait)
-                    start, due = due, due + 1.0 / rate
-                else:
-                    start = time.time()
-                if start >= t1:
-                    return
-                family, path = pick_path(rnd, fleet, args["list_share"])
-                try:
-                    status, body, gzipped = await asyncio.wait_for(http.get(path), 60)
-                except (OSError, asyncio.IncompleteReadError, ValueError, IndexError, TimeoutError) as exc:
-                    errors[type(exc).__name__] += 1
-                    continue
-                elapsed = time.time() - start
-                if status != 200:
-                    errors[f"HTTP {status}"] += 1
-                    continue
-                bodies[family] = (body, gzipped)
-                if start >= t0:
-                    samples[family].append(elapsed)
-        finally:
-            await http.close()
-
-    cpu0 = sum(resource.getrusage(resource.RUSAGE_SELF)[:2])
-    await asyncio.gather(*(client(i) for i in range(args["clients"])))
-    cpu = sum(resource.getrusage(resource.RUSAGE_SELF)[:2]) - cpu0
-    # Sizes as the application sees them: decompressed, once per route family, after the clock stopped.
-    sizes = {family: len(gzip.decompress(body) if gzipped else body) for family, (body, gzipped) in bodies.items()}
-    return {
-        "t0": t0,
-        "t1": t1,
-        "samples": [s.tobytes() for s in samples],
-        "errors": dict(errors),
-        "sizes": sizes,
-        "cpu_percent": 100 * cpu / (args["warmup"] + args["duration"]),
-    }
-
-
-def load_main(urls, token, fleet, args, start_event, results) -> None:
-    # The fork inherits the parent's Django and fleet objects: without this, a full collection
-    # in the load client pauses every request in flight and is counted as server latency.
-    gc.freeze()
-    start_event.wait()
-    try:
-        results.put(asyncio.run(read_load(urls, token, fleet, args)))
-    except BaseException as exc:
-        results.put({"crash": repr(exc)})
-
-
 # --------------------------------------------------------------------------- commands and the measurement
 
 
@@ -347,15 +163,7 @@ async def command_round_trips(
     return out
 
 
-def spawn_profiler(pid: int, seconds: float, out: str) -> subprocess.Popen:
-    py_spy = Path(sys.executable).parent / "py-spy"
-    cmd = [str(py_spy), "record", "-d", str(int(seconds)), "-r", "50", "-f", "raw", "-o", out, "--pid", str(pid)]
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-
-async def measure(
-    args, daphnes: list[Daphne], fleet: dict, token: str, loader: mp.Process, start_event, results
-) -> dict:
+async def measure(args, daphnes: list[Daphne], fleet: dict, token: str, loader: Clients) -> dict:
     # The robot is on the first process; commands enter through the last (another one when there are two).
     daphne = daphnes[0]
     import httpx
@@ -396,7 +204,7 @@ async def measure(
 
         log(f"read load: {args.clients} clients, {args.duration:g} s (+{args.warmup:g} s warm-up)")
         wall0 = time.time()
-        start_event.set()
+        loader.start_event.set()
         await asyncio.sleep(args.warmup)
         cpu0, window0 = [d.cpu_seconds() for d in daphnes], time.time()
         profiler = spawn_profiler(daphne.pid, min(args.duration, 10), args.profile) if args.profile else None
@@ -408,12 +216,11 @@ async def measure(
         cpu = [d.cpu_seconds() - before for d, before in zip(daphnes, cpu0, strict=True)]
         cpu_window = time.time() - window0
         loaded = [pair for batch in await asyncio.gather(*tasks) for pair in batch]
-        report = await loop.run_in_executor(None, results.get, True, 120)
-        loader.join(timeout=30)
+        (loaded_report,) = await loop.run_in_executor(None, loader.reports, 120)
         rss, peak = daphne.memory_mib()
     await link.close()
-    if "crash" in report:
-        raise RuntimeError(f"the load process crashed: {report['crash']}")
+    if "crash" in loaded_report:
+        raise RuntimeError(f"the load process crashed: {loaded_report['crash']}")
     if profiler is not None:
         _, err = profiler.communicate(timeout=60)
         if profiler.returncode != 0:
@@ -421,9 +228,9 @@ async def measure(
         else:
             summarise_profile(args.profile)
 
-    t0, t1 = report["t0"], report["t1"]
+    t0, t1 = loaded_report["t0"], loaded_report["t1"]
     per_family = {}
-    for family, raw in zip(FAMILIES, report["samples"], strict=True):
+    for family, raw in zip(FAMILIES, loaded_report["samples"], strict=True):
         values = array("d")
         values.frombytes(raw)
         per_family[family] = [v * 1000 for v in values]
@@ -450,8 +257,8 @@ async def measure(
         **{f"{family}_p99_ms": ms(per_family[family], 99) for family in INFO_FAMILIES},
         "reads_per_s": round(len(reads) / elapsed, 1),
         "reads": {family: len(values) for family, values in per_family.items()},
-        "read_errors": report["errors"],
-        "list_bytes": report["sizes"].get(0),
+        "read_errors": loaded_report["errors"],
+        "list_bytes": loaded_report["sizes"].get(0),
         "command_roundtrip_p50_ms": ms(idle_ms, 50),
         "command_roundtrip_p99_ms": ms(idle_ms, 99),
         "commands": len(idle_ms),
@@ -469,65 +276,8 @@ async def measure(
         "daphnes": len(daphnes),
         "daphne_rss_mib": round(rss, 1),
         "daphne_peak_rss_mib": round(peak, 1),
-        "client_cpu_percent": round(report["cpu_percent"], 1),
+        "client_cpu_percent": round(loaded_report["cpu_percent"], 1),
     }
-
-
-def frame_name(frame: str) -> str:
-    """Turn py-spy's `func (path/to/file.py:123)` into `to/file.py:func`."""
-    func, sep, where = frame.partition(" (")
-    if not sep:
-        return frame
-    path = where.rsplit(":", 1)[0]
-    for marker in ("site-packages/", str(ROOT) + "/"):
-        path = path.split(marker, 1)[-1]
-    return f"{path}:{func}"
-
-
-IDLE_FRAMES = ("EpollSelector.select", "Condition.wait", "thread.py:_worker", "Thread._wait_for_tstate_lock")
-WRAPPER_PREFIXES = (
-    "threading.py",
-    "concurrent/",
-    "asgiref/",
-    "asyncio/",
-    "selectors.py",
-    "django/core/handlers/",
-    "django/utils/deprecation.py",
-    "whitenoise/",
-    "django/views/",
-    "daphne/",
-    "twisted/",
-    "channels/",
-)
-
-
-def summarise_profile(path: str, top: int = 15) -> None:
-    """Log the hottest functions of a py-spy raw (collapsed) profile, as shares of busy samples."""
-    own: Counter[str] = Counter()
-    inclusive: Counter[str] = Counter()
-    total = idle = 0
-    for line in Path(path).read_text().splitlines():
-        stack, _, count = line.rpartition(" ")
-        if not stack or not count.isdigit():
-            continue
-        frames = [frame_name(f) for f in stack.split(";")]
-        if frames[-1].endswith(IDLE_FRAMES):
-            idle += int(count)
-            continue
-        total += int(count)
-        own[frames[-1]] += int(count)
-        for frame in set(frames):
-            inclusive[frame] += int(count)
-    if not total:
-        log("py-spy: no busy samples")
-        return
-    log(f"py-spy: {total} busy samples ({idle} idle left out) in {path}; self time:")
-    for frame, n in own.most_common(top):
-        log(f"  {100 * n / total:5.1f}%  {frame}")
-    log("py-spy: inclusive time (request wrappers left out):")
-    hot = [(f, n) for f, n in inclusive.most_common() if not f.startswith(WRAPPER_PREFIXES)]
-    for frame, n in hot[: 2 * top]:
-        log(f"  {100 * n / total:5.1f}%  {frame}")
 
 
 def fmt(value, unit: str = " ms") -> str:
@@ -540,7 +290,7 @@ def goal(value) -> str:
     return "met" if value <= READ_GOAL_P99_MS else "MISSED"
 
 
-def report(r: dict, q: dict) -> None:
+def summary(r: dict, q: dict) -> None:
     print(
         "\n".join(
             [
@@ -584,7 +334,9 @@ def report(r: dict, q: dict) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(
+        __doc__, "8 s of load, 50 commands: under a minute in all", database="bridgeos_bench_api", redis=11
+    )
     parser.add_argument("--robots", type=int, default=100)
     parser.add_argument("--clients", type=int, default=50)
     parser.add_argument(
@@ -598,11 +350,8 @@ def main() -> None:
     parser.add_argument("--list-share", type=float, default=0.1, help="share of reads that are GET /api/robot")
     parser.add_argument("--commands", type=int, default=200, help="sequential command round trips, idle")
     parser.add_argument("--alone", type=int, default=40, help="sequential reads per /info route, one client")
-    parser.add_argument("--quick", action="store_true", help="8 s of load, 50 commands: under a minute in all")
     parser.add_argument("--daphnes", type=int, default=1, help="daphne processes the read clients are spread over")
     parser.add_argument("--profile", metavar="OUT", help="record daphne with py-spy (raw) during the load")
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_api")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/11")
     args = parser.parse_args()
     if args.quick:
         args.duration, args.warmup = min(args.duration, 8.0), 1.0
@@ -613,55 +362,31 @@ def main() -> None:
         parser.error("daphnes must be at least 1")
 
     import httpx
-    import redis
 
-    data_dir = tempfile.mkdtemp(prefix="bridgeos-bench-api-")
-    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": data_dir}
-    ensure_postgres_database(args.database_url)
-    redis.Redis.from_url(args.redis_url).flushdb()
-    migrate(env)
-    setup_django(env)
-    logging.getLogger("httpx").setLevel(logging.WARNING)  # Django's config logs every request at INFO
-    fleet = prepare(args)
-    queries = count_queries(fleet)
-    log(
-        f"queries of GET /api/robot: {queries['list_small']} at {SMALL_FLEET} robots, {queries['list_full']} at "
-        f"{args.robots}"
-    )
-
-    daphnes = [Daphne(env, Path(data_dir) / f"daphne-{n}.log") for n in range(args.daphnes)]
-    loader = None
-    try:
+    with cloud(args, "bridgeos-bench-api-") as bench:
+        logging.getLogger("httpx").setLevel(logging.WARNING)  # Django's config logs every request at INFO
+        fleet = prepare(args)
+        queries = count_queries(fleet)
+        log(
+            f"queries of GET /api/robot: {queries['list_small']} at {SMALL_FLEET} robots, {queries['list_full']} at "
+            f"{args.robots}"
+        )
+        daphnes = [bench.start_daphne(f"daphne-{n}.log", wait=False) for n in range(args.daphnes)]
         for each in daphnes:
             each.wait()
             log(f"daphne pid {each.pid} on port {each.port}")
         urls = [f"http://127.0.0.1:{each.port}" for each in daphnes]
-        url = urls[0]
-        answer = httpx.get(url + "/api/auth", auth=(OPERATOR, PASSWORD), timeout=30)
+        answer = httpx.get(urls[0] + "/api/auth", auth=(OPERATOR, PASSWORD), timeout=30)
         answer.raise_for_status()
         token = answer.json()["token"]
-        ctx = mp.get_context("fork")
-        start_event, results = ctx.Event(), ctx.Queue()
         load_args = {k: getattr(args, k) for k in ("clients", "client_rate", "duration", "warmup", "list_share")}
-        loader = ctx.Process(target=load_main, args=(urls, token, fleet, load_args, start_event, results), daemon=True)
-        loader.start()
-        result = asyncio.run(measure(args, daphnes, fleet, token, loader, start_event, results))
-    except BaseException:
-        for each in daphnes:
-            log(f"daphne {each.pid} log tail:\n{each.log_tail()}")
-        raise
-    finally:
-        if loader is not None and loader.is_alive():
+        loader = Clients(load_main, [urls], token, fleet, load_args)
+        try:
+            result = asyncio.run(measure(args, daphnes, fleet, token, loader))
+        finally:
             loader.kill()
-            loader.join()
-        for each in daphnes:
-            each.stop()
-    for each in daphnes:
-        errors = [line for line in each.log_tail(200_000).splitlines() if "Traceback" in line or "ERROR" in line]
-        if errors:
-            log(f"daphne logged {len(errors)} error line(s); see {each.log_path}")
     result["fleet"] = fleet["robots"]
-    report(result, queries)
+    summary(result, queries)
     del result["fleet"]
     result.update(
         {
@@ -674,7 +399,7 @@ def main() -> None:
             "robots": args.robots,
         }
     )
-    print(json.dumps(result), flush=True)
+    report(result)
 
 
 if __name__ == "__main__":

@@ -21,22 +21,28 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
-import shutil
 import struct
 import subprocess
 import sys
-import tempfile
 import time
 import urllib.request
-import xmlrpc.client
 from pathlib import Path
 from typing import Any
 
-from _common import ROOT, Daphne, ensure_postgres_database, free_port, log, migrate, percentile, setup_django
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-HOST_PYTHON = "/usr/bin/python3"  # Debian's interpreter, where rospy lives
+from _bridges_clients import (
+    bridge_to_bridge,
+    cloud_lags,
+    count_messages,
+    foxglove_subscribe,
+    rosbridge_subscribe,
+    stamps,
+)
+from _common import free_port, log, percentile
+from _harness import HOST_PYTHON, arguments, cloud, report, ros_env, rosmaster, stop_process
+
 MIB = 1024 * 1024
 
 # A rospy talker: 100-byte strings flat out or at a rate ("seq stamp padding"), or 1 MB point clouds.
@@ -82,44 +88,15 @@ while not rospy.is_shutdown():
 # ---------------------------------------------------------------------------- ROS 1 parts
 
 
-def ros_env(master: str, home: Path) -> dict[str, str]:
-    """Return a clean environment for Debian's ROS python, free of the venv."""
-    return {
-        "PATH": "/usr/bin:/bin",
-        "HOME": str(home),
-        "LANG": "C.UTF-8",
-        "ROS_MASTER_URI": master,
-        "ROS_IP": "127.0.0.1",
-        "ROS_HOME": str(home),
-        "PYTHONUNBUFFERED": "1",
-        "PYTHONWARNINGS": "ignore",
-    }
+class Talkers:
+    """The rospy talkers the benchmark starts and stops per phase, on a private rosmaster."""
 
-
-class Ros:
-    """A private rosmaster and the talkers the benchmark starts and stops per phase."""
-
-    def __init__(self, home: Path) -> None:
+    def __init__(self, uri: str, home: Path) -> None:
+        self.uri = uri
         self.home = home
-        self.uri = f"http://127.0.0.1:{free_port()}"
-        self.master = subprocess.Popen(
-            [HOST_PYTHON, "/usr/bin/rosmaster", "--core", "-p", self.uri.rsplit(":", 1)[1]],
-            env=ros_env(self.uri, home),
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            start_new_session=True,
-        )
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                xmlrpc.client.ServerProxy(self.uri).getPid("/bench")
-                break
-            except OSError:
-                if self.master.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError("the private rosmaster did not start") from None
-                time.sleep(0.1)
 
     def talker(self, kind: str, topic: str, rate: float) -> subprocess.Popen[bytes]:
+        """Start a talker of 100-byte strings or 1 MB point clouds on a topic at ``rate`` Hz (0: flat out)."""
         out = (self.home / f"talker{topic.replace('/', '_')}.out").open("wb")
         process = subprocess.Popen(
             [HOST_PYTHON, "-c", TALKER, kind, topic, str(rate)],
@@ -130,178 +107,6 @@ class Ros:
         )
         out.close()
         return process
-
-    def stop(self) -> None:
-        stop(self.master)
-
-
-def stop(process: subprocess.Popen[Any]) -> None:
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(10)
-
-
-# ---------------------------------------------------------------------------- clients
-
-
-async def open_client(url: str, headers: dict[str, str] | None = None, subprotocols: list[str] | None = None) -> Any:
-    from websockets.asyncio.client import connect
-
-    return await connect(
-        url,
-        additional_headers=headers,
-        subprotocols=subprotocols,  # type: ignore[arg-type]
-        max_size=None,
-        open_timeout=15,
-        close_timeout=1,  # a viewer leaving a flood does not wait for the cloud to drain its queue
-        ping_interval=None,
-        compression=None,
-    )
-
-
-async def rosbridge_subscribe(url: str, headers: dict[str, str] | None, topic: str) -> Any:
-    websocket = await open_client(url, headers)
-    await websocket.send(
-        json.dumps({"op": "subscribe", "topic": topic, "type": "std_msgs/String", "queue_length": 1000})
-    )
-    return websocket
-
-
-async def foxglove_subscribe(url: str, headers: dict[str, str] | None, topic: str, timeout: float = 20) -> Any:
-    """Open a Foxglove client and subscribe to a topic's channel once the server advertises it."""
-    websocket = await open_client(url, headers, ["foxglove.websocket.v1"])
-    deadline = time.monotonic() + timeout
-    while True:
-        frame = await asyncio.wait_for(websocket.recv(), max(0.1, deadline - time.monotonic()))
-        if isinstance(frame, str):
-            message = json.loads(frame)
-            if message.get("op") == "advertise":
-                for channel in message["channels"]:
-                    if channel["topic"] == topic:
-                        subscribe = {"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channel["id"]}]}
-                        await websocket.send(json.dumps(subscribe))
-                        return websocket
-
-
-def string_seq_stamp(frame: str | bytes, kind: str) -> tuple[int, float]:
-    """Return a talker string's (seq, stamp) from a rosbridge JSON frame or a Foxglove binary one."""
-    if kind == "rosbridge":
-        data = json.loads(frame)["msg"]["data"]
-    else:
-        assert isinstance(frame, bytes)
-        # opcode, subscription id, timestamp, then ROS 1's String: a length and the bytes.
-        (length,) = struct.unpack_from("<I", frame, 13)
-        data = frame[17 : 17 + length].decode()
-    seq, stamp, _ = data.split(" ", 2)
-    return int(seq), float(stamp)
-
-
-async def count_messages(websocket: Any, kind: str, warmup: float, seconds: float) -> float:
-    """Return the messages/s a client receives over ``seconds`` after ``warmup``."""
-    counted = 0
-    started = time.monotonic()
-    begin = started + warmup
-    end = begin + seconds
-    while True:
-        now = time.monotonic()
-        if now >= end:
-            break
-        try:
-            frame = await asyncio.wait_for(websocket.recv(), end - now)
-        except TimeoutError:
-            break
-        is_message = (isinstance(frame, bytes) and frame[:1] == b"\x01") if kind == "foxglove" else '"publish"' in frame
-        if is_message and time.monotonic() >= begin:
-            counted += 1
-    return counted / seconds
-
-
-async def stamps(websocket: Any, kind: str, seconds: float, arrivals: dict[int, float]) -> None:
-    """Record each message's latency (arrival minus the talker's stamp) by its sequence number."""
-    end = time.monotonic() + seconds
-    while (left := end - time.monotonic()) > 0:
-        try:
-            frame = await asyncio.wait_for(websocket.recv(), left)
-        except TimeoutError:
-            break
-        if kind == "rosbridge" and '"publish"' not in frame:
-            continue
-        if kind == "foxglove" and not (isinstance(frame, bytes) and frame[:1] == b"\x01"):
-            continue
-        arrived = time.time()
-        seq, stamp = string_seq_stamp(frame, kind)
-        arrivals[seq] = (arrived - stamp) * 1000
-
-
-# A rosbridge client publishing 100-byte strings flat out for a while, in a process of its own so the
-# subscriber it is measured by does not share its event loop; it writes its frames a hundred to a
-# send, built ahead, so what is measured is the door and not the publisher's own Python. It prints
-# how many it sent while counted.
-PUBLISHER = r"""
-import json, sys, time
-from websockets.frames import Frame, Opcode
-from websockets.sync.client import connect
-url, warmup, seconds = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
-
-def frame(seq):
-    head = "%d %.6f " % (seq, time.time())
-    text = json.dumps({"op": "publish", "topic": "/b2b", "msg": {"data": head + "x" * (100 - len(head))}})
-    return Frame(Opcode.TEXT, text.encode()).serialize(mask=True, extensions=[])
-
-with connect(url, max_size=None, compression=None) as ws:
-    ws.send(json.dumps({"op": "advertise", "topic": "/b2b", "type": "std_msgs/String"}))
-    time.sleep(0.5)
-    start = time.monotonic()
-    counted = seq = 0
-    while (now := time.monotonic()) < start + warmup + seconds:
-        burst = b"".join(frame(seq + i) for i in range(1, 101))
-        seq += 100
-        ws.socket.sendall(burst)
-        counted += 100 * (now >= start + warmup)
-print(counted, flush=True)
-"""
-
-
-async def bridge_to_bridge(url: str, warmup: float, seconds: float) -> tuple[float, float]:
-    """Return the msgs/s one rosbridge client hears of another's flat-out publishing, and the share delivered."""
-    subscriber = await rosbridge_subscribe(url, None, "/b2b")
-    publisher = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", PUBLISHER, url, str(warmup + 0.5), str(seconds), stdout=subprocess.PIPE
-    )
-    try:
-        rate = await count_messages(subscriber, "rosbridge", warmup + 1.0, seconds)
-        out, _ = await asyncio.wait_for(publisher.communicate(), 30)
-    finally:
-        if publisher.returncode is None:
-            publisher.kill()
-            await publisher.wait()
-        await subscriber.close()
-    sent = int(out or 0)
-    return rate, min(1.0, rate * seconds / sent) if sent else 0.0
-
-
-async def cloud_lags(websocket: Any, seconds: float, warmup: float, lags: list[float]) -> int:
-    """Record each point cloud's lag (arrival minus its header stamp, ms); return how many arrived."""
-    start = time.monotonic()
-    received = 0
-    while (left := start + warmup + seconds - time.monotonic()) > 0:
-        try:
-            frame = await asyncio.wait_for(websocket.recv(), left)
-        except TimeoutError:
-            break
-        if not (isinstance(frame, bytes) and frame[:1] == b"\x01"):
-            continue
-        arrived = time.time()
-        if time.monotonic() < start + warmup:
-            continue
-        _, secs, nsecs = struct.unpack_from("<III", frame, 13)  # the header after the 13-byte Foxglove head
-        lags.append((arrived - (secs + nsecs / 1e9)) * 1000)
-        received += 1
-    return received
 
 
 # ---------------------------------------------------------------------------- engine-only figures
@@ -427,7 +232,7 @@ def wait_connected(timeout: float = 30) -> None:
         time.sleep(0.2)
 
 
-async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[str, str], api_token: str) -> dict:
+async def measure(args: argparse.Namespace, ros: Talkers, cloud: str, local: dict[str, str], api_token: str) -> dict:
     headers = {"Authorization": f"Token {api_token}"}
     rosbridge_cloud = f"{cloud}/ws/rosbridge/bench-bridges/"
     foxglove_cloud = f"{cloud}/ws/foxglove/bench-bridges/"
@@ -454,7 +259,7 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
             log(f"{label}: {rate:,.0f} msgs/s of 100-byte strings to one viewer")
             await asyncio.sleep(0.5)
     finally:
-        stop(talker)
+        stop_process(talker)
 
     # 2. Bridge to bridge: one client publishing flat out, another subscribed, on the robot's local door.
     rate, delivered = await bridge_to_bridge(local["rosbridge"], warmup, seconds)
@@ -479,7 +284,7 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
         await local_ws.close()
         await cloud_ws.close()
     finally:
-        stop(talker)
+        stop_process(talker)
     both = sorted(set(at_local) & set(at_cloud))
     added = [at_cloud[seq] - at_local[seq] for seq in both]
     figures["latency_messages"] = len(both)
@@ -505,7 +310,7 @@ async def measure(args: argparse.Namespace, ros: Ros, cloud: str, local: dict[st
         for viewer in viewers:
             await viewer.close()
     finally:
-        stop(talker)
+        stop_process(talker)
     # What crossed the robot's link for the viewers (each cloud once, as a blob) over what they got.
     delivered = after["bridgeos_bridge_bytes_total"] - before["bridgeos_bridge_bytes_total"]
     shared = after["bridgeos_bridge_blob_bytes_total"] - before["bridgeos_bridge_blob_bytes_total"]
@@ -560,10 +365,7 @@ def table(figures: dict[str, Any]) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="shorter windows (under a minute)")
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/12")
+    parser = arguments(__doc__, "shorter windows (under a minute)", database="bridgeos_bench", redis=12)
     parser.add_argument("--viewers", type=int, default=10)
     parser.add_argument("--latency-rate", type=float, default=200.0, help="Hz of the latency talker")
     args = parser.parse_args()
@@ -576,64 +378,31 @@ def main() -> None:
         f"640x480 image: JSON {figures['image_json_ms']} ms / {figures['image_json_mb']} MB, "
         f"CBOR {figures['image_cbor_ms']} ms / {figures['image_cbor_mb']} MB"
     )
-    data = Path(tempfile.mkdtemp(prefix="bridgeos-bench-bridges-"))
-    try:
+    # Room for 10 MB/s of point clouds per viewer: the default cap (8 MiB/s) is below the case.
+    env = {"BRIDGEOS_BRIDGE_CLIENT_BYTES_PER_S": str(64 * MIB)}
+    with cloud(args, "bridgeos-bench-bridges-", env=env, flush_redis=False, remove_data=True) as bench:
+        data = bench.data_dir
         figures["mcap_write_mb_per_s"] = round(mcap_write(data, 1.5 if args.quick else 5.0), 1)
-        env = {
-            "DATABASE_URL": args.database_url,
-            "REDIS_URL": args.redis_url,
-            "BRIDGEOS_DATA_DIR": str(data),
-            # Room for 10 MB/s of point clouds per viewer: the default cap (8 MiB/s) is below the case.
-            "BRIDGEOS_BRIDGE_CLIENT_BYTES_PER_S": str(64 * MIB),
-        }
-        ensure_postgres_database(args.database_url)
-        migrate(env)
-        setup_django(env)
         token, api_token = prepare()
-        ros = Ros(data)
-        daphne = Daphne(env, data / "daphne.log")
-        agent = None
-        try:
-            daphne.wait()
-            ports = {"rosbridge": free_port(), "foxglove": free_port()}
-            agent_log = (data / "agent.log").open("wb")
-            agent = subprocess.Popen(
-                [
-                    str(Path(sys.executable).parent / "bridgeos-agent"),
-                    "run",
-                    "--master",
-                    daphne.ws_url,
-                    "--robot",
-                    "bench-bridges",
-                    "--token",
-                    token,
-                    "--data-dir",
-                    str(data / "agent"),
-                    "--simulate",
+        with rosmaster(data) as master:
+            try:
+                daphne = bench.start_daphne()
+                ports = {"rosbridge": free_port(), "foxglove": free_port()}
+                doors = [
                     "--rosbridge",
                     f"127.0.0.1:{ports['rosbridge']}",
                     "--foxglove",
                     f"127.0.0.1:{ports['foxglove']}",
-                ],
-                cwd=ROOT,
-                env={**os.environ, "ROS_MASTER_URI": ros.uri, "ROS_IP": "127.0.0.1", "PYTHONUNBUFFERED": "1"},
-                stdout=agent_log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-            agent_log.close()
-            wait_connected()
-            local = {kind: f"ws://127.0.0.1:{port}" for kind, port in ports.items()}
-            figures.update(asyncio.run(measure(args, ros, daphne.ws_url, local, api_token)))
-        finally:
-            if agent is not None:
-                stop(agent)
-            daphne.stop()
-            ros.stop()
-    finally:
-        shutil.rmtree(data, ignore_errors=True)
+                ]
+                ros = {"ROS_MASTER_URI": master, "ROS_IP": "127.0.0.1"}
+                bench.start_agent(daphne, "bench-bridges", token, "--simulate", *doors, env=ros)
+                wait_connected()
+                local = {kind: f"ws://127.0.0.1:{port}" for kind, port in ports.items()}
+                figures.update(asyncio.run(measure(args, Talkers(master, data), daphne.ws_url, local, api_token)))
+            finally:
+                bench.stop()  # the agent and daphne before their rosmaster
     table(figures)
-    print(json.dumps(figures))
+    report(figures)
 
 
 if __name__ == "__main__":

@@ -22,21 +22,19 @@ benchmark's own and are all removed at the end.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import json
 import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 import uuid
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import CeleryWorker, Daphne, ensure_postgres_database, log, migrate, setup_django
+from _common import Daphne, log
+from _harness import arguments, cloud, report
 
 IMAGE = "bridgeos/base:bookworm"
 COMMAND = ["sleep", "3600"]
@@ -342,13 +340,16 @@ def summary(values: list[float]) -> tuple[float | None, float | None]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="1 start, 1 migration, 10 components: under a minute")
+    parser = arguments(
+        __doc__,
+        "1 start, 1 migration, 10 components: under a minute",
+        database="bridgeos_bench_cloud",
+        redis=9,
+        whole_doc=True,
+    )
     parser.add_argument("--starts", type=int, default=10, help="API starts and bare service creates to time")
     parser.add_argument("--migrations", type=int, default=3, help="robot→cloud→robot round trips")
     parser.add_argument("--components", type=int, default=THESIS_COMPONENTS, help="cloud components of one Skill")
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_cloud")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/9")
     args = parser.parse_args()
     if args.quick:
         args.starts, args.migrations, args.components = 1, 1, 10
@@ -357,61 +358,50 @@ def main() -> int:
     if subprocess.run(["docker", "image", "inspect", IMAGE], capture_output=True).returncode != 0:
         raise SystemExit(f"image {IMAGE} is not built: run docker/build-images.sh")
 
-    import redis
-
     cloud_id = f"bench-{uuid.uuid4().hex[:8]}"
     queue = f"{cloud_id}-q"
-    data = Path(tempfile.mkdtemp(prefix="bridgeos-bench-cloud-"))
     env = {
-        "DATABASE_URL": args.database_url,
-        "REDIS_URL": args.redis_url,
-        "BRIDGEOS_DATA_DIR": str(data),
         "BRIDGEOS_CLOUD_ID": cloud_id,
         "BRIDGEOS_CLOUD_RUNTIME": "swarm",
         "BRIDGEOS_CLOUD_ROS_MASTERS": "0",
         "CELERY_TASK_DEFAULT_QUEUE": queue,
         "BRIDGEOS_COMMAND_WAIT_S": "30",
     }
-    ensure_postgres_database(args.database_url)
-    redis.Redis.from_url(args.redis_url).flushdb()
-    migrate(env)
-    setup_django(env)
-    import logging
-
-    logging.getLogger("httpx").setLevel(logging.WARNING)
-    load = os.getloadavg()
-    log(f"load average before: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")
-    api_token, tokens = prepare(args)
-    daphne = Daphne(env, data / "daphne.log")
-    celery = CeleryWorker(env, queue, data / "worker.log")
     try:
-        daphne.wait()
-        celery.wait()
-        log("bare `docker service create` of the same service, timed to its task running")
-        network = f"bos-bench-bare-{cloud_id}"
-        subprocess.run(
-            [
-                "docker",
-                "network",
-                "create",
-                "-d",
-                "overlay",
-                "--attachable",
-                "--label",
-                "bridgeos-bench=cloud",
-                network,
-            ],
-            check=True,
-            capture_output=True,
-        )
-        # The first start on a network sets it up on the node: timed apart, like the API's first start.
-        bare_first = bare_service_start(f"bos-bench-bare-{cloud_id}-w", network)
-        bare = [bare_service_start(f"bos-bench-bare-{cloud_id}-{n}", network) for n in range(args.starts)]
-        log(f"bare: first {bare_first:.3f} s, then {statistics.mean(bare):.3f} s")
-        results = asyncio.run(run(args, env, daphne, api_token, tokens, data))
+        with cloud(args, "bridgeos-bench-cloud-", env=env) as bench:
+            import logging
+
+            logging.getLogger("httpx").setLevel(logging.WARNING)
+            load = os.getloadavg()
+            log(f"load average before: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")
+            api_token, tokens = prepare(args)
+            daphne = bench.start_daphne(wait=False)
+            celery = bench.start_celery(queue, wait=False)
+            daphne.wait()
+            celery.wait()
+            log("bare `docker service create` of the same service, timed to its task running")
+            network = f"bos-bench-bare-{cloud_id}"
+            subprocess.run(
+                [
+                    "docker",
+                    "network",
+                    "create",
+                    "-d",
+                    "overlay",
+                    "--attachable",
+                    "--label",
+                    "bridgeos-bench=cloud",
+                    network,
+                ],
+                check=True,
+                capture_output=True,
+            )
+            # The first start on a network sets it up on the node: timed apart, like the API's first start.
+            bare_first = bare_service_start(f"bos-bench-bare-{cloud_id}-w", network)
+            bare = [bare_service_start(f"bos-bench-bare-{cloud_id}-{n}", network) for n in range(args.starts)]
+            log(f"bare: first {bare_first:.3f} s, then {statistics.mean(bare):.3f} s")
+            results = asyncio.run(run(args, bench.env, daphne, api_token, tokens, bench.data_dir))
     finally:
-        celery.stop()
-        daphne.stop()
         log("removing the benchmark's services")
         remove_everything(cloud_id)
 
@@ -462,7 +452,7 @@ def main() -> int:
         "cloud_component_wall_s": per_component_wall,
         "load_average": round(load[0], 2),
     }
-    print(json.dumps(figures))
+    report(figures)
     return 0
 
 

@@ -12,13 +12,10 @@ many robots were dropped (refused, closed or never answered). Goal (issue 23): 1
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
-import multiprocessing as mp
 import os
 import sys
-import tempfile
 import time
 import uuid
 from pathlib import Path
@@ -26,7 +23,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, setup_django
+from _common import ROOT, log
+from _harness import Clients, arguments, cloud, create_fleet, forget_fleet, report, shares
 
 ROBOT_PREFIX = "storm-"
 OWNER = "storm-owner"
@@ -38,17 +36,9 @@ def prepare(robots: int) -> list[tuple[str, str]]:
     from django.contrib.auth import get_user_model
     from django.db import connection
 
-    from robots.models import Robot, default_robot_config
-
-    Robot.objects.filter(id__startswith=ROBOT_PREFIX).delete()
+    forget_fleet(ROBOT_PREFIX)
     owner, _ = get_user_model().objects.get_or_create(username=OWNER)
-    config = default_robot_config()
-    rows, tokens = [], []
-    for i in range(robots):
-        robot = Robot(id=f"{ROBOT_PREFIX}{i:05d}", owner=owner, config=config)
-        tokens.append((robot.id, robot.issue_token()))
-        rows.append(robot)
-    Robot.objects.bulk_create(rows, batch_size=1000)
+    tokens = create_fleet(owner, robots, ROBOT_PREFIX, digits=5, batch_size=1000)
     connection.close()
     return tokens
 
@@ -91,20 +81,26 @@ async def one_robot(url: str, robot_id: str, token: str, start_at: float, hold: 
 
 
 def client_worker(
-    url: str, tokens: list[tuple[str, str]], start_at: float, hold_s: float, queue: mp.Queue, release: Any = None
+    index: int,
+    tokens: list[tuple[str, str]],
+    start_event: Any,
+    release: Any,
+    queue: Any,
+    url: str,
+    start_at: float,
+    hold_s: float,
 ) -> None:
     """Run a share of the storm in a process of its own and report each robot's time (None: dropped).
 
-    The robots stay connected for ``hold_s`` seconds, or until ``release`` (an mp.Event) is set.
+    The robots connect at ``start_at`` and stay connected for ``hold_s`` seconds, or until ``release`` is set.
     """
 
     async def run() -> list[float | None]:
         hold = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.call_later(max(0.0, start_at - time.time()) + hold_s, hold.set)
-        if release is not None:
-            waiting = loop.run_in_executor(None, release.wait, max(0.0, start_at - time.time()) + hold_s)
-            waiting.add_done_callback(lambda _: hold.set())
+        waiting = loop.run_in_executor(None, release.wait, max(0.0, start_at - time.time()) + hold_s)
+        waiting.add_done_callback(lambda _: hold.set())
         return list(await asyncio.gather(*(one_robot(url, rid, tok, start_at, hold) for rid, tok in tokens)))
 
     queue.put(asyncio.run(run()))
@@ -130,14 +126,7 @@ def storm(
     Django must be set up on the storm's database (connected rows are counted there).
     """
     start_at = time.time() + 2.0
-    queue: mp.Queue = mp.Queue()
-    release = mp.Event()
-    shares = [tokens[i::procs] for i in range(procs)]
-    workers = [
-        mp.Process(target=client_worker, args=(url, share, start_at, hold_s, queue, release)) for share in shares
-    ]
-    for worker in workers:
-        worker.start()
+    clients = Clients(client_worker, shares(tokens, procs), url, start_at, hold_s)
     all_connected_s = None
     ends_at = start_at + hold_s
     while time.time() < ends_at:
@@ -146,10 +135,8 @@ def storm(
             if linger_s is not None:
                 ends_at = min(ends_at, time.time() + linger_s)
         time.sleep(0.05)
-    release.set()
-    times = [took for _ in workers for took in queue.get(timeout=120)]
-    for worker in workers:
-        worker.join(timeout=30)
+    clients.stop_event.set()
+    times = [took for share in clients.reports(120) for took in share]
     authenticated = sorted(took for took in times if took is not None)
     slowest = authenticated[-1] if authenticated else None
     return {
@@ -163,41 +150,26 @@ def storm(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(__doc__, "the same storm, shorter hold: under a minute", database="bridgeos_bench", redis=12)
     parser.add_argument("--robots", type=int, default=1000)
-    parser.add_argument("--quick", action="store_true", help="the same storm, shorter hold: under a minute")
     parser.add_argument("--procs", type=int, default=2, help="client processes opening the sockets")
     parser.add_argument("--hold", type=float, default=20.0, help="seconds the robots stay connected")
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/12")
     args = parser.parse_args()
     if args.quick:
         args.hold = min(args.hold, 20.0)
     if args.robots < 1 or args.procs < 1:
         parser.error("robots and procs must be positive")
 
-    data_dir = tempfile.mkdtemp(prefix="bridgeos-storm-")
-    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": data_dir}
-    ensure_postgres_database(args.database_url)
-    migrate(env)
-    setup_django(env)
-    tokens = prepare(args.robots)
-    log(f"created {args.robots} robots")
-
-    daphne = Daphne(env, Path(data_dir) / "daphne.log")
-    try:
-        daphne.wait()
+    with cloud(args, "bridgeos-storm-", flush_redis=False) as bench:
+        tokens = prepare(args.robots)
+        log(f"created {args.robots} robots")
+        daphne = bench.start_daphne()
         log(f"daphne pid {daphne.pid} on port {daphne.port}")
         cpu_before = daphne.cpu_seconds()
         result = storm(daphne.ws_url + "/ws/robot/", tokens, procs=args.procs, hold_s=args.hold)
         result["daphne_cpu_s"] = round(daphne.cpu_seconds() - cpu_before, 2)
-    except BaseException:
-        log(f"daphne log tail:\n{daphne.log_tail()}")
-        raise
-    finally:
-        daphne.stop()
     log(f"{args.robots} robots: all connected in {result['connected_s']} s, {result['dropped']} dropped")
-    print(json.dumps(result), flush=True)
+    report(result)
 
 
 if __name__ == "__main__":

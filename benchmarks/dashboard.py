@@ -16,19 +16,17 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import random
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, percentile, setup_django
+from _common import ROOT, Daphne, log, percentile
+from _harness import arguments, cloud, create_fleet, forget_fleet, report
 
 PREFIX = "dash-bench-"
 PROBE = f"{PREFIX}0000"
@@ -93,36 +91,15 @@ def prepare(robots: int) -> list[tuple[str, str]]:
     from django.db import connection
 
     from bridgeos_agent.skillconfig import load_sample_skill_config
-    from monitoring.models import Event, Metric
-    from robots.models import Robot, default_robot_config
-    from skills.models import Component, Skill
 
     started = time.monotonic()
-    with connection.cursor() as cursor:
-        # Straight SQL: a cascade through the ORM would walk every old metric row.
-        cursor.execute(f"DELETE FROM {Metric._meta.db_table} WHERE robot_id LIKE %s", [PREFIX + "%"])
-        cursor.execute(f"DELETE FROM {Event._meta.db_table} WHERE robot_id LIKE %s", [PREFIX + "%"])
-    Robot.objects.filter(id__startswith=PREFIX).delete()
+    forget_fleet(PREFIX, metrics=True, events=True)
     user = get_user_model().objects.filter(username=OPERATOR).first()
     if user is None:
         user = get_user_model().objects.create_user(OPERATOR, password=PASSWORD, is_staff=True)
-    config = default_robot_config()
     skill_config = load_sample_skill_config().model_dump(mode="json")
-    rows, tokens = [], []
-    for i in range(robots):
-        robot = Robot(id=f"{PREFIX}{i:04d}", owner=user, config=config, name=f"Bench robot {i}")
-        tokens.append((robot.id, robot.issue_token()))
-        rows.append(robot)
-    Robot.objects.bulk_create(rows, batch_size=1000)
-    # The Skill's rows written directly: add_skill validates each config, which is not measured here.
-    skills = Skill.objects.bulk_create(
-        Skill(robot=robot, skill_id=SKILL, name=skill_config["skill"], config=skill_config) for robot in rows
-    )
-    Component.objects.bulk_create(
-        Component(skill=skill, component_id=cid, location=c["location"], resources=c.get("resources", {}))
-        for skill in skills
-        for cid, c in skill_config["components"].items()
-    )
+    assert skill_config["skill_id"] == SKILL
+    tokens = create_fleet(user, robots, PREFIX, named=True, skills=[skill_config], batch_size=1000)
     connection.close()
     log(f"created {robots} robots with the {SKILL} Skill in {time.monotonic() - started:.1f} s")
     return tokens
@@ -232,7 +209,7 @@ async def measure(args: argparse.Namespace, daphne: Daphne, probe_token: str) ->
     }
 
 
-def report(r: dict, robots: int) -> None:
+def summary(r: dict, robots: int) -> None:
     ok = lambda value: "meets" if value <= GOAL_S else "MISSES"  # noqa: E731
     print(
         "\n".join(
@@ -256,14 +233,13 @@ def report(r: dict, robots: int) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(
+        __doc__, "15 samples, 3 loads: under a minute in all", database="bridgeos_bench_dashboard", redis=13
+    )
     parser.add_argument("--robots", type=int, default=200)
     parser.add_argument("--period", type=float, default=1.0, help="seconds between a robot's rounds of metrics")
     parser.add_argument("--samples", type=int, default=40, help="probe metrics timed to the page")
     parser.add_argument("--loads", type=int, default=5, help="fleet page loads timed")
-    parser.add_argument("--quick", action="store_true", help="15 samples, 3 loads: under a minute in all")
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_dashboard")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/13")
     parser.add_argument("--ready-timeout", type=float, default=120.0)
     args = parser.parse_args()
     if args.quick:
@@ -273,48 +249,21 @@ def main() -> None:
     if not Path(CHROMIUM).exists():
         raise SystemExit(f"{CHROMIUM} is missing: scripts/services.sh chromium")
 
-    import redis
-
-    data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-"))
-    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": str(data_dir)}
-    ensure_postgres_database(args.database_url)
-    redis.Redis.from_url(args.redis_url).flushdb()
-    migrate(env)
-    setup_django(env)
-    tokens = prepare(args.robots)
-    fleet_file = data_dir / "fleet.txt"
-    fleet_file.write_text("".join(f"{rid} {token}\n" for rid, token in tokens[1:]))
-
-    daphne = Daphne(env, data_dir / "daphne.log")
-    fleet = None
-    try:
-        daphne.wait()
+    with cloud(args, "bridgeos-bench-") as bench:
+        tokens = prepare(args.robots)
+        fleet_file = bench.data_dir / "fleet.txt"
+        fleet_file.write_text("".join(f"{rid} {token}\n" for rid, token in tokens[1:]))
+        daphne = bench.start_daphne()
         log(f"daphne pid {daphne.pid} on port {daphne.port}; starting {args.robots - 1} simulated robots")
         # Simulated robots run apart from the benchmark's loop, as real robots would.
-        fleet = subprocess.Popen(
-            [
-                *(sys.executable, "-m", "tests.browser.simrobot", "--master", daphne.ws_url),
-                *("--fleet", str(fleet_file), "--skill", SKILL, "--period", str(args.period)),
-            ],
-            cwd=ROOT,
-            env={**os.environ, **env, "PYTHONUNBUFFERED": "1"},
-            stdout=(data_dir / "fleet.log").open("wb"),
-            stderr=subprocess.STDOUT,
-        )
+        fleet = [sys.executable, "-m", "tests.browser.simrobot", "--master", daphne.ws_url, "--fleet", str(fleet_file)]
+        bench.start_process("fleet", [*fleet, "--skill", SKILL, "--period", str(args.period)])
         ready_s = wait_for_fleet(args.robots - 1, args.ready_timeout)
         log(f"{args.robots - 1} robots connected and running {SKILL} in {ready_s:.1f} s")
         result = asyncio.run(measure(args, daphne, tokens[0][1]))
-    except BaseException:
-        log(f"daphne log tail:\n{daphne.log_tail()}")
-        raise
-    finally:
-        if fleet is not None:
-            fleet.terminate()
-            fleet.wait(timeout=15)
-        daphne.stop()
     result = {**result, "robots": args.robots, "period_s": args.period, "fleet_ready_s": round(ready_s, 1)}
-    report(result, args.robots)
-    print(json.dumps(result), flush=True)
+    summary(result, args.robots)
+    report(result)
 
 
 if __name__ == "__main__":

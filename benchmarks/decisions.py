@@ -21,9 +21,7 @@ The last line is one JSON object with the figures.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import json
 import random
 import statistics
 import sys
@@ -34,6 +32,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import log
+from _harness import arguments, report
 
 from bridgeos_agent.decision import (
     Decider,
@@ -171,8 +170,7 @@ def manager_steps(seconds: int, data_dir: Path) -> tuple[float, float, int]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="fewer repetitions and simulated seconds (<1 min)")
+    parser = arguments(__doc__, "fewer repetitions and simulated seconds (<1 min)")
     args = parser.parse_args()
     repeat = 300 if args.quick else 3000
     seconds = 10 if args.quick else 60
@@ -244,23 +242,21 @@ def main() -> None:
         print(f"{name:40} {value:28} {goal}")
     print(f"moves: {moves} in {decisions} trained decisions, {warm_moves} in {warm_decisions} untrained")
     print(f"SkillManager.step moves over the run: {step_moves}")
-    print(
-        json.dumps(
-            {
-                "inference_ms": round(inference_ms, 4),
-                "batch_inference_ms_per_component": round(batch_ms, 5),
-                "train_step_ms": round(train_ms["adam"], 4),
-                "train_step_sgd_ms": round(train_ms["sgd"], 4),
-                "module_kb": round(module_kb, 2),
-                "cpu_share_2000_at_1hz": round(share, 4),
-                "cpu_share_2000_untrained_at_1hz": round(warm_share, 4),
-                "component_init_ms": round(component_init_ms, 4),
-                "torch_import_ms": round(import_s * 1000, 1),
-                "manager_step_ms_2000": round(step_trained * 1000, 2),
-                "manager_step_warmup_ms_2000": round(step_warm * 1000, 2),
-                "manager_cpu_share_2000_at_1hz": round(step_trained, 4),
-            }
-        )
+    report(
+        {
+            "inference_ms": round(inference_ms, 4),
+            "batch_inference_ms_per_component": round(batch_ms, 5),
+            "train_step_ms": round(train_ms["adam"], 4),
+            "train_step_sgd_ms": round(train_ms["sgd"], 4),
+            "module_kb": round(module_kb, 2),
+            "cpu_share_2000_at_1hz": round(share, 4),
+            "cpu_share_2000_untrained_at_1hz": round(warm_share, 4),
+            "component_init_ms": round(component_init_ms, 4),
+            "torch_import_ms": round(import_s * 1000, 1),
+            "manager_step_ms_2000": round(step_trained * 1000, 2),
+            "manager_step_warmup_ms_2000": round(step_warm * 1000, 2),
+            "manager_cpu_share_2000_at_1hz": round(step_trained, 4),
+        }
     )
 
 

@@ -28,10 +28,8 @@ The last line is one JSON object: ingest_overhead_pct, router_overhead_pct, scra
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import gc
-import json
 import os
 import statistics
 import sys
@@ -44,7 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from typing import TYPE_CHECKING
 
-from _common import Daphne, ensure_postgres_database, free_port, log, migrate, setup_django
+from _common import free_port, log
+from _harness import Cloud, arguments, cloud, report
 
 if TYPE_CHECKING:
     from monitoring.ingest import MetricWriter
@@ -197,7 +196,8 @@ async def measure_ingest(frames: list[tuple[str, str]], pairs: int) -> dict:
 
 async def measure_router(pairs: int, windows: int, window_s: float) -> dict:
     """Route flat-out pairs through one router; alternate windows with /metrics scraped or not."""
-    from router import PUB_NS, Pairs, rosmaster, skill_config
+    from _harness import rosmaster
+    from router import PUB_NS, Pairs, skill_config
     from router import settings as router_settings
 
     from bridgeos_agent import metrics
@@ -321,10 +321,10 @@ def fleet_of(count: int) -> list[str]:
     return ids
 
 
-def measure_scrape(env: dict[str, str], data_dir: Path, scrapes: int) -> dict:
-    daphne = Daphne(env, data_dir / "daphne.log")
+def measure_scrape(bench: Cloud, scrapes: int) -> dict:
+    """Time the cloud's /metrics over HTTP on a daphne of its own."""
+    daphne = bench.start_daphne()
     try:
-        daphne.wait()
         url = f"http://127.0.0.1:{daphne.port}/metrics"
         urllib.request.urlopen(url, timeout=10).read()  # warm up: imports, the database connection
         times, size = [], 0
@@ -344,30 +344,25 @@ def measure_scrape(env: dict[str, str], data_dir: Path, scrapes: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="fewer and shorter rounds: under a minute")
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_metrics")
+    parser = arguments(__doc__, "fewer and shorter rounds: under a minute", database="bridgeos_bench_metrics")
     parser.add_argument("--skip-router", action="store_true", help="no ROS here: measure ingest and scrape only")
     args = parser.parse_args()
     ingest_pairs, frames_per_round, router_windows, window_s, scrapes = (
         (12, 200, 14, 0.5, 20) if args.quick else (60, 400, 60, 0.5, 100)
     )
 
-    data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-metrics-"))
-    env = {"DATABASE_URL": args.database_url, "BRIDGEOS_DATA_DIR": str(data_dir), "REDIS_URL": ""}
-    ensure_postgres_database(args.database_url)
-    migrate(env)
-    setup_django(env)
-    robots = fleet_of(ROBOTS)
-    log(f"{len(robots)} robots; prometheus multiprocess dir {os.environ.get('PROMETHEUS_MULTIPROC_DIR')}")
+    # No Redis: the cloud's /metrics and the ingest path need none.
+    with cloud(args, "bridgeos-bench-metrics-") as bench:
+        robots = fleet_of(ROBOTS)
+        log(f"{len(robots)} robots; prometheus multiprocess dir {os.environ.get('PROMETHEUS_MULTIPROC_DIR')}")
 
-    result: dict = {}
-    result.update(asyncio.run(measure_ingest(ingest_frames(frames_per_round, robots[:100]), ingest_pairs)))
-    if args.skip_router:
-        result["router_overhead_pct"] = None
-    else:
-        result.update(asyncio.run(measure_router(10, router_windows, window_s)))
-    result.update(measure_scrape(env, data_dir, scrapes))
+        result: dict = {}
+        result.update(asyncio.run(measure_ingest(ingest_frames(frames_per_round, robots[:100]), ingest_pairs)))
+        if args.skip_router:
+            result["router_overhead_pct"] = None
+        else:
+            result.update(asyncio.run(measure_router(10, router_windows, window_s)))
+        result.update(measure_scrape(bench, scrapes))
 
     print("\nPrometheus instrumentation (issue 21)", file=sys.stderr)
     print(f"{'what':44} {'here':>12} {'goal':>10}", file=sys.stderr)
@@ -377,7 +372,7 @@ def main() -> None:
         file=sys.stderr,
     )
     print(f"{'cloud scrape with 1,000 robots, ms':44} {result['scrape_ms']:>12} {'<= 50':>10}", file=sys.stderr)
-    print(json.dumps(result))
+    report(result)
 
 
 if __name__ == "__main__":

@@ -7,9 +7,9 @@ Skill Manager run a Skill of four movable components on a simulated robot
 phases (idle or busy robot, good or poor link), with noise. The components burn the CPU they
 declare, so the runtime's measurements are real. The Skill's custom policy costs each component as a delay:
 on the robot its CPU over the robot's free CPU, in the cloud a round trip plus its data over the
-link's bandwidth (``POLICY`` below). The robot is sampled and the manager decides every quarter
-second (threshold 2 and hysteresis 3, in the policy's units, a few percent of a cost; cooldown 4 s),
-and moves decided together go together.
+link's bandwidth (``POLICY`` in _offloading_scenario.py). The robot is sampled and the manager
+decides every quarter second (threshold 2 and hysteresis 3, in the policy's units, a few percent of
+a cost; cooldown 4 s), and moves decided together go together.
 
 Every placement the run went through is costed afterwards with the same PolicyEstimator and cost
 functions, from the script's noiseless conditions and the components' declared usage, and
@@ -56,321 +56,52 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import itertools
-import json
-import math
 import os
-import shutil
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _cloudlinks
-from _common import ROOT, CeleryWorker, Daphne, ensure_postgres_database, log, setup_django
+from _common import ROOT, log
+from _harness import arguments, cloud, report
+from _offloading_scenario import (
+    CLOUD_RATE_HZ,
+    COMPONENTS,
+    CPU_CORES,
+    DECISION_INTERVAL,
+    ESTIMATE_ROBOT,
+    FULL_SCRIPT,
+    LAN_MBITS,
+    LEARNED_ROBOT,
+    MISDECLARED,
+    MISDECLARED_SHARE,
+    QUICK_SCRIPT,
+    ROBOT_CONFIG,
+    ROBOT_ID,
+    SAMPLE_INTERVAL,
+    SETTLE_S,
+    SKILL_ID,
+    STABLE,
+    TIMELINE_STEP,
+    Script,
+    ScriptedRobot,
+    size_clouds,
+    skill_config,
+)
+from _offloading_scoring import Costing, Run, adaptation, flaps, integrate, over_oracle, reward_noise, stable_moves
 
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.decisionmodel import _load_torch
-from bridgeos_agent.heuristics import Resources
-from bridgeos_agent.monitor import Sample, SimulatedRobot
-from bridgeos_agent.policies import Metrics, PolicyEstimator
-from bridgeos_agent.robotconfig import parse_robot_config
 from bridgeos_agent.ros2graph import rclpy_missing
 from bridgeos_agent.runtime.cgroups import Cgroups
-from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
-
-ROBOT_ID = "offload-bench"
-SKILL_ID = "offload"
-CPU_CORES = 2.0
-LAN_MBITS = 100.0  # the robot's own network, which components on the robot use to reach its sensors
-DECISION_INTERVAL = 0.25
-SAMPLE_INTERVAL = 0.25
-# Cost units (delays of 5-70): the rewards of real changes are 9 or more, the stable phase's reward
-# noise 2-4 (machine load), so a hysteresis of 3 keeps a move to a barely better place from being noise.
-THRESHOLD, HYSTERESIS = 2.0, 3.0
-COOLDOWN = 4.0
-TIMELINE_STEP = 0.1
-FLAP_WINDOW = 60.0
-ADAPTED_WITHIN = 1.05
-SETTLE_S = 10.0  # the adaptation goal: moves later than this into the stable phase are noise
-GOALS = {
-    "cost_over_oracle": 1.05,
-    "adapt_s": 10.0,
-    "flaps_per_10min": 1.0,
-    "stable_moves_per_10min": 1.0,
-    "cost_over_oracle_misdeclared": 1.10,
-}
-# The misdeclared scenario (issue 22): this component declares a tenth of the CPU it burns. Two more
-# robots run it beside the main one, same script and seed: one decides by the estimate alone (its
-# network is never trained enough to be trusted), the other learns from outcomes.
-MISDECLARED = "detector"
-MISDECLARED_SHARE = 0.1
-ESTIMATE_ROBOT, LEARNED_ROBOT = f"{ROBOT_ID}-estimate", f"{ROBOT_ID}-learned"
-# Learning from outcomes: every outcome trains, three steps (one Adam step per outcome needs a stay of
-# 30 decisions or more to learn a tenfold misdeclaration, three about 10), and the trust gate
-# (held-out outcomes), not a sample count, decides: the network is asked from its second outcome on, so
-# the one to four outcomes a first stay on the robot gives before the estimate sends it away are scored.
-LEARNING = {"trained_after": 1, "warmup_train_every": 1, "train_every": 1, "train_steps": 3}
-ESTIMATE_ONLY = {"trained_after": 1_000_000}
-
-# Declared usage: cores, Mbit/s exchanged with the robot's sensors (what crosses the link in the cloud).
-COMPONENTS = {
-    "detector": {"cpu": 0.2, "bandwidth": 2.0},
-    "sampler": {"cpu": 0.03, "bandwidth": 30.0},
-    "mapper": {"cpu": 0.08, "bandwidth": 6.0},
-    "planner": {"cpu": 0.1, "bandwidth": 0.5},
-}
-POLICY = {
-    "robot": "cpu_scale * cpu / max(cpu_free, 0.05)",
-    "cloud": "cloud_rtt + link_scale * bandwidth / max(bandwidth_available, 0.5)",
-}
-CONSTANTS = {"cpu_scale": 200.0, "cloud_rtt": 20.0, "link_scale": 100.0}
-# --cloud-mb: the sampler takes the camera's clouds at this rate (benchmarks/usecases.py's big-cloud
-# rate) and thins one MB of cloud in this many core-seconds (voxel sampling a 35 MB cloud: 0.56 s here).
-CLOUD_RATE_HZ = 0.2
-SAMPLING_S_PER_MB = 0.016
-
-
-def size_clouds(megabytes: float) -> None:
-    """Make the sampler declare what thesis-sized clouds cost it: their Mbit/s and sampling CPU."""
-    COMPONENTS["sampler"] = {
-        "cpu": SAMPLING_S_PER_MB * megabytes * CLOUD_RATE_HZ,
-        "bandwidth": megabytes * 8 * CLOUD_RATE_HZ,
-    }
-
-
-# Burn a share of one core in short slices: what the component declares is what the runtime measures.
-BURNER = """
-import sys, time
-share, period = float(sys.argv[1]), 0.05
-while True:
-    started, cpu = time.perf_counter(), time.process_time()
-    while time.process_time() - cpu < share * period:
-        pass
-    time.sleep(max(0.0, period - (time.perf_counter() - started)))
-"""
-# The same burner as a ROS 2 node: its timer burns the share, in the namespace the agent gives it.
-BURNER_ROS2 = """
-import os, sys, time
-import rclpy
-from rclpy.executors import ExternalShutdownException
-from std_msgs.msg import Float32
-share, period = float(sys.argv[1]), 0.05
-rclpy.init()
-node = rclpy.create_node("burner", namespace=os.environ.get("ROS_NAMESPACE") or "")
-load = node.create_publisher(Float32, "load", 10)
-def burn():
-    cpu = time.process_time()
-    while time.process_time() - cpu < share * period:
-        pass
-    load.publish(Float32(data=share))
-node.create_timer(period, burn)
-try:
-    rclpy.spin(node)
-except (KeyboardInterrupt, ExternalShutdownException):
-    pass
-except Exception:
-    if rclpy.ok():
-        raise  # a publish racing the shutdown a signal began is no failure
-"""
-
-
-@dataclass(frozen=True)
-class Phase:
-    """Conditions held for a while: background CPU load (cores) and the link's bandwidth (Mbit/s)."""
-
-    name: str
-    load: float
-    link: float
-    noise: float = 1.0  # multiplies the robot's load and link noise
-
-
-IDLE_GOOD = Phase("idle robot, good link", 0.2, 100.0)
-BUSY_GOOD = Phase("busy robot, good link", 1.5, 100.0)
-BUSY_POOR = Phase("busy robot, poor link", 1.5, 4.0)
-IDLE_POOR = Phase("idle robot, poor link", 0.2, 4.0)
-QUICK_SCRIPT = [IDLE_GOOD, BUSY_GOOD, BUSY_POOR, IDLE_POOR]
-FULL_SCRIPT = [IDLE_GOOD, BUSY_GOOD, BUSY_POOR, IDLE_POOR, IDLE_GOOD, BUSY_POOR, BUSY_GOOD, IDLE_POOR]
-# The planner's robot and cloud costs differ by about 1 here (a tenth of a core of load swings it by 3):
-# the stable phase where noise, not conditions, would move a component.
-STABLE = Phase("moderate load, noisier", 0.65, 100.0, noise=3.0)
-
-
-@dataclass
-class Script:
-    """Scripted phases from ``start`` (a time.time() value, set when the Skill runs).
-
-    The changing phases last ``phase_s`` each; the last phase, when ``stable_s`` is set, is the stable one.
-    """
-
-    phases: list[Phase]
-    phase_s: float
-    start: float | None = None
-    stable_s: float = 0.0
-
-    @property
-    def changing(self) -> int:
-        """Return how many phases are the changing ones (the stable phase, if any, comes after them)."""
-        return len(self.phases) - 1 if self.stable_s else len(self.phases)
-
-    def bounds(self, index: int) -> tuple[float, float]:
-        """Return a phase's start and end, in seconds since the script's start."""
-        start = index * self.phase_s
-        return start, start + (self.stable_s if index >= self.changing else self.phase_s)
-
-    def index(self, elapsed: float) -> int:
-        """Return the phase in force ``elapsed`` seconds after the start."""
-        return max(0, min(len(self.phases) - 1, int(elapsed // self.phase_s)))
-
-    def at(self, now: float) -> Phase:
-        """Return the phase in force at ``now`` (the first until the script starts)."""
-        return self.phases[0] if self.start is None else self.phases[self.index(now - self.start)]
-
-    @property
-    def duration(self) -> float:
-        """Return the script's length in seconds."""
-        return self.bounds(len(self.phases) - 1)[1]
-
-
-@dataclass(slots=True)
-class ScriptedRobot(SimulatedRobot):
-    """A SimulatedRobot whose background CPU load and link bandwidth follow a script, with noise."""
-
-    script: Script = field(default_factory=lambda: Script([IDLE_GOOD], 1.0))
-    load_noise: float = 0.03  # cores, standard deviation
-    link_noise: float = 0.03  # share of the link, standard deviation
-    # Cores the components on the robot burn beyond what they declare (the misdeclared scenario): the
-    # simulated load follows declarations, a real robot's reading what is burnt, as the costing charges it.
-    undeclared: Callable[[], float] | None = None
-
-    def bandwidth_now(self, now: float) -> float:
-        """Return the link's bandwidth at ``now`` (Mbit/s)."""
-        phase = self.script.at(now)
-        return max(0.1, phase.link * (1 + self._random.gauss(0, self.link_noise * phase.noise)))
-
-    def sample(self, now: float, used, cloud_bytes: tuple[float, float]) -> Sample:
-        """Read the robot with the scripted background load on top of what its components use."""
-        phase = self.script.at(now)
-        load = max(0.0, phase.load + self._random.gauss(0, self.load_noise * phase.noise))
-        if self.undeclared is not None:
-            load += self.undeclared()
-        sample = SimulatedRobot.sample(self, now, {**used, "cpu": used.get("cpu", 0.0) + load}, cloud_bytes)
-        # bandwidth_available is the link to the cloud; components on the robot reach its sensors over the LAN.
-        sample.free["bandwidth"] = max(0.0, self.bandwidth - used.get("bandwidth", 0.0))
-        return sample
-
-
-def skill_config(
-    noise_margin: float | None = None,
-    ros: int = 0,
-    ros_domain: int = 0,
-    *,
-    misdeclared: bool = False,
-    learn: bool = True,
-) -> SkillConfig:
-    """Return the benchmark's Skill: four movable burners (ROS 2 nodes with ros=2; MISDECLARED's CPU understated)."""
-    components = {}
-    # ROS 2 burners' graph: the benchmark's own domain, discovery kept on loopback.
-    graph = {"ROS_DOMAIN_ID": str(ros_domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"} if ros == 2 else {}
-    for name, usage in COMPONENTS.items():
-        command = [sys.executable, "-c", BURNER_ROS2 if ros == 2 else BURNER, str(usage["cpu"])]
-        declared = usage["cpu"] * (MISDECLARED_SHARE if misdeclared and name == MISDECLARED else 1.0)
-        components[name] = {
-            "name": name.title(),
-            "location": "either",
-            "ros": 2 if ros == 2 else False,
-            "resources": {"cpu": declared, "ram": 32, "bandwidth": usage["bandwidth"]},
-            "robot": {"command": command, "env": graph},
-            "cloud": {"command": command, "env": graph},
-        }
-    return parse_skill_config(
-        {
-            "skill": "Offloading quality",
-            "skill_id": SKILL_ID,
-            "manager": {
-                "policy": "custom",
-                "threshold": THRESHOLD,
-                "hysteresis": HYSTERESIS,
-                "cooldown": COOLDOWN,
-                **({} if noise_margin is None else {"noise_margin": noise_margin}),
-                "decision_interval": DECISION_INTERVAL,
-                "neural_network": LEARNING if learn else ESTIMATE_ONLY,
-                "constants": CONSTANTS,
-                "cost_functions": POLICY,
-            },
-            "components": components,
-        }
-    )
-
-
-ROBOT_CONFIG = {
-    "offloading": "auto",
-    "resources": {"cpu": CPU_CORES, "ram": 4096, "bandwidth": LAN_MBITS, "io": 100},
-}
-
-
-# --------------------------------------------------------------------------- costing placements
-
-
-class Costing:
-    """Cost a placement under given conditions with the Skill's own policy (noiseless, declared usage)."""
-
-    def __init__(self, config: SkillConfig) -> None:
-        robot = parse_robot_config(ROBOT_CONFIG)
-        self.estimator = PolicyEstimator.of(robot, config.manager, Resources.of(robot.resources))
-        self.usage = {name: Resources.of(c.resources) for name, c in config.components.items()}
-        self.names = list(config.components)
-        self.baseline = 0.05 * CPU_CORES  # SimulatedRobot's own idle load
-        self._cache: dict[tuple[tuple[str, ...], Phase], float] = {}
-
-    def rate(self, placement: tuple[str, ...], phase: Phase) -> float:
-        """Return the summed cost per second of the components placed so, under a phase's conditions."""
-        key = (placement, phase)
-        if key not in self._cache:
-            on_robot = sum(
-                self.usage[n].cpu for n, where in zip(self.names, placement, strict=True) if where == "robot"
-            )
-            free = max(0.0, CPU_CORES - self.baseline - phase.load - on_robot)
-            state = Metrics(cpu_free=free, ram_free=4096.0, bandwidth_available=phase.link)
-            self._cache[key] = sum(
-                self.estimator.cost("custom", where, self.usage[name], state)
-                for name, where in zip(self.names, placement, strict=True)
-            )
-        return self._cache[key]
-
-    def placements(self) -> list[tuple[str, ...]]:
-        """Return every static placement of the Skill's components."""
-        return list(itertools.product(("robot", "cloud"), repeat=len(self.names)))
-
+from bridgeos_agent.skillconfig import SkillConfig
 
 # --------------------------------------------------------------------------- the run
-
-
-@dataclass
-class Run:
-    """What the run recorded: placements over time (seconds since the script started) and every move."""
-
-    timeline: list[tuple[float, tuple[str, ...]]] = field(default_factory=list)
-    moves: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, component, from, to
-    rewards: dict[str, dict[float, tuple[float, float]]] = field(default_factory=dict)  # name -> at -> (t, reward)
-    decisions: int = 0
-    trusted: int = 0
-    trained: int = 0
-    decided_by: dict[tuple[str, float], str] = field(default_factory=dict)  # (name, at) -> rule/estimate/network
-    # name -> the network's and the estimate's mean held-out error on the robot at the end
-    robot_errors: dict[str, tuple[float | None, float | None]] = field(default_factory=dict)
-
-    @property
-    def learned_share(self) -> float:
-        """Return the share of the adaptive decisions (not settled by a rule) the network took."""
-        adaptive = [by for by in self.decided_by.values() if by != "rule"]
-        return sum(by == "network" for by in adaptive) / len(adaptive) if adaptive else 0.0
 
 
 async def run_scenario(
@@ -460,70 +191,6 @@ async def run_scenario(
 # --------------------------------------------------------------------------- figures
 
 
-def integrate(run: Run, script: Script, costing: Costing) -> tuple[float, list[float]]:
-    """Return the adaptive run's total cost and its cost per phase."""
-    per_phase = [0.0] * len(script.phases)
-    for (t, placement), (t_next, _) in itertools.pairwise([*run.timeline, (script.duration, ())]):
-        index = script.index(t)
-        per_phase[index] += costing.rate(placement, script.phases[index]) * (min(t_next, script.duration) - t)
-    return sum(per_phase), per_phase
-
-
-def adaptation(run: Run, script: Script, costing: Costing, best: list[tuple[str, ...]]) -> list[dict]:
-    """Return, for each change (the start included), how long the run took to be within 5 % of the best."""
-    results = []
-    for index, phase in enumerate(script.phases):
-        start, end = script.bounds(index)
-        target = costing.rate(best[index], phase) * ADAPTED_WITHIN
-        adapted = exact = None
-        for t, placement in run.timeline:
-            if start <= t < end:
-                if adapted is None and costing.rate(placement, phase) <= target:
-                    adapted = t - start
-                if exact is None and placement == best[index]:
-                    exact = t - start
-        results.append({"phase": index + 1, "adapt_s": adapted, "exact_s": exact})
-    return results
-
-
-def flaps(run: Run, script: Script) -> list[tuple[float, str]]:
-    """Return the moves undone within FLAP_WINDOW seconds with no change of conditions in between."""
-    found = []
-    last: dict[str, tuple[float, str, str]] = {}
-    for t, name, before, after in run.moves:
-        previous = last.get(name)
-        if (
-            previous is not None
-            and previous[1] == after
-            and previous[2] == before
-            and t - previous[0] <= FLAP_WINDOW
-            and script.index(previous[0]) == script.index(t)
-        ):
-            found.append((t, name))
-        last[name] = (t, before, after)
-    return found
-
-
-def stable_moves(run: Run, script: Script) -> list[tuple[float, str]]:
-    """Return the moves made in the stable phase after its first SETTLE_S seconds (none with no stable phase)."""
-    if not script.stable_s:
-        return []
-    start, end = script.bounds(len(script.phases) - 1)
-    return [(t, name) for t, name, _, _ in run.moves if start + SETTLE_S <= t < end]
-
-
-def reward_noise(run: Run, script: Script) -> dict[str, float]:
-    """Return each component's estimated-reward standard deviation in the stable phase after SETTLE_S."""
-    start, end = script.bounds(len(script.phases) - 1)
-    noise = {}
-    for name, decided in run.rewards.items():
-        values = [reward for t, reward in decided.values() if start + SETTLE_S <= t < end]
-        if len(values) > 1:
-            mean = sum(values) / len(values)
-            noise[name] = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
-    return noise
-
-
 async def run_all(
     ws_url: str,
     tokens: dict[str, str],
@@ -565,15 +232,6 @@ async def run_all(
     return dict(zip(scenarios, runs, strict=True))
 
 
-def over_oracle(run: Run, script: Script, costing: Costing) -> float:
-    """Return a run's cost over the hindsight oracle's in the changing phases."""
-    _, per_phase = integrate(run, script, costing)
-    changes = range(script.changing)
-    best = [min(costing.placements(), key=lambda p, ph=phase: costing.rate(p, ph)) for phase in script.phases]
-    oracle = sum(costing.rate(best[i], script.phases[i]) * script.phase_s for i in changes)
-    return sum(per_phase[i] for i in changes) / oracle
-
-
 def make_robots(args: argparse.Namespace) -> tuple[SkillConfig, dict[str, SkillConfig], dict[str, str]]:
     """Create each scenario's robot with its Skill; return the main Skill, every robot's, and their tokens."""
     from django.contrib.auth import get_user_model
@@ -599,20 +257,10 @@ def make_robots(args: argparse.Namespace) -> tuple[SkillConfig, dict[str, SkillC
     return config, scenarios, tokens
 
 
-def stop_quickly(daphne: Daphne) -> None:
-    """Stop daphne, killing it after a few seconds: it can take 15 s to close its last sockets politely."""
-    if daphne.process.poll() is None:
-        daphne.process.terminate()
-        try:
-            daphne.process.wait(timeout=3)
-        except subprocess.TimeoutExpired:
-            daphne.process.kill()
-            daphne.process.wait()
-
-
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="4 phases of 8 s, 14 s stable: under a minute")
+    parser = arguments(
+        __doc__, "4 phases of 8 s, 14 s stable: under a minute", database="bridgeos_bench_offloading", redis=10
+    )
     parser.add_argument("--phase-s", type=float, help="seconds per phase (default 60, --quick 8)")
     parser.add_argument(
         "--stable-s", type=float, help="seconds of the stable phase after the changes (default 300, --quick 14, 0 none)"
@@ -639,8 +287,6 @@ def main() -> None:
     parser.add_argument(
         "--ros-domain", type=int, default=int(os.environ.get("ROS_DOMAIN_ID") or 0), help="ROS_DOMAIN_ID (--ros 2)"
     )
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench_offloading")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/10")
     parser.add_argument("--no-cloud-links", action="store_true", help="skip the robot-link bytes run (_cloudlinks.py)")
     args = parser.parse_args()
     if args.cloud_mb is not None:
@@ -678,51 +324,49 @@ def main() -> None:
     torch_loaded = threading.Thread(target=_load_torch, name="torch")
     torch_loaded.start()
 
-    data_dir = Path(tempfile.mkdtemp(prefix="bridgeos-bench-offloading-"))
-    cloud = f"bench-offload-{os.getpid()}"
+    cloud_id = f"bench-offload-{os.getpid()}"
     env = {
-        "DATABASE_URL": args.database_url,
-        "REDIS_URL": args.redis_url,
-        "BRIDGEOS_DATA_DIR": str(data_dir),
         # The cloud side is real: a Celery worker starts each cloud copy with the process runtime.
-        "BRIDGEOS_CLOUD_ID": cloud,
+        "BRIDGEOS_CLOUD_ID": cloud_id,
         "BRIDGEOS_CLOUD_RUNTIME": "process",
         "BRIDGEOS_CLOUD_ROS_MASTERS": "0",
-        "CELERY_TASK_DEFAULT_QUEUE": f"{cloud}-q",
+        "CELERY_TASK_DEFAULT_QUEUE": f"{cloud_id}-q",
     }
-    ensure_postgres_database(args.database_url)
-    setup_django(env)
-    from django.core.management import call_command
+    # Migrated in this process (one Django start less); daphne is killed after 3 s, not 15: closing its
+    # last sockets politely can take that long.
+    with cloud(
+        args,
+        "bridgeos-bench-offloading-",
+        env=env,
+        flush_redis=False,
+        migrate_here=True,
+        stop_timeout=3.0,
+        remove_data=True,
+    ) as bench:
+        from django.core.management import call_command
 
-    call_command("migrate", interactive=False, verbosity=0)  # in this process: one Django start less
-    daphne = Daphne(env, data_dir / "daphne.log")
-    # One pool process a core, as scripts/run.sh runs the worker here: a cloud start is CPU work, and the pool of
-    # six this had (two a robot, for their simultaneous starts at a phase change) shared the two cores among a
-    # burst, so that every start of it waited for all of them (a phase-2 move 0.3 s later).
-    celery = CeleryWorker(
-        env, env["CELERY_TASK_DEFAULT_QUEUE"], data_dir / "worker.log", concurrency=os.cpu_count() or 2
-    )
+        from monitoring.models import Event
 
-    from monitoring.models import Event
-
-    try:
-        config, scenarios, tokens = make_robots(args)  # while daphne and the worker start
-        daphne.wait()
-        celery.wait()
-        torch_loaded.join()
-        log(f"daphne pid {daphne.pid} on port {daphne.port}, Celery worker pid {celery.process.pid}")
-        runs = asyncio.run(run_all(daphne.ws_url, tokens, script, data_dir, scenarios, beside))
-        run = runs[ROBOT_ID]
-    except BaseException:
-        log(f"daphne log tail:\n{daphne.log_tail()}")
-        raise
-    finally:
-        celery.stop()
-        stop_quickly(daphne)
-        call_command("cloud_down", stdout=open(os.devnull, "w"))  # no cloud copy outlives the run
-    log("costing every placement")
-    logged = list(Event.objects.filter(robot_id=ROBOT_ID, kind="offloading_decision").values_list("data", flat=True))
-    shutil.rmtree(data_dir, ignore_errors=True)
+        try:
+            daphne = bench.start_daphne(wait=False)
+            # One pool process a core, as scripts/run.sh runs the worker here: a cloud start is CPU work, and the
+            # pool of six this had (two a robot, for their simultaneous starts at a phase change) shared the two
+            # cores among a burst, so that every start of it waited for all of them (a phase-2 move 0.3 s later).
+            celery = bench.start_celery(env["CELERY_TASK_DEFAULT_QUEUE"], concurrency=os.cpu_count() or 2, wait=False)
+            config, scenarios, tokens = make_robots(args)  # while daphne and the worker start
+            daphne.wait()
+            celery.wait()
+            torch_loaded.join()
+            log(f"daphne pid {daphne.pid} on port {daphne.port}, Celery worker pid {celery.process.pid}")
+            runs = asyncio.run(run_all(daphne.ws_url, tokens, script, bench.data_dir, scenarios, beside))
+            run = runs[ROBOT_ID]
+        finally:
+            bench.stop()
+            call_command("cloud_down", stdout=open(os.devnull, "w"))  # no cloud copy outlives the run
+        log("costing every placement")
+        logged = list(
+            Event.objects.filter(robot_id=ROBOT_ID, kind="offloading_decision").values_list("data", flat=True)
+        )
 
     costing = Costing(config)
     adaptive, adaptive_phases = integrate(run, script, costing)
@@ -815,36 +459,33 @@ def main() -> None:
         link_ratio = links[0]()
     else:
         link_ratio = None if args.no_cloud_links else _cloudlinks.figure(args.quick)
-    print(
-        json.dumps(
-            {
-                "cost_over_oracle": round(adaptive / oracle, 4),
-                "cost_over_oracle_misdeclared": _round(misdeclared["learned"]),
-                "estimate_only_over_oracle_misdeclared": _round(misdeclared["estimate"]),
-                "learned_decisions_share": round(learned_share, 4),
-                "adapt_s": round(max(adapt_values), 2),
-                # Issue 22: flapping over the long stable phase (every move there), else over the changes.
-                "flaps_per_10min": round(stable_per_10min if stable_per_10min is not None else flaps_per_10min, 3),
-                "flaps_changing_per_10min": round(flaps_per_10min, 3),
-                "migrations": len(run.moves),
-                "adapt_mean_s": round(mean_adapt, 2),
-                "best_static_over_oracle": round(statics[best_static] / oracle, 4),
-                "all_robot_over_oracle": round(statics[("robot",) * 4] / oracle, 4),
-                "all_cloud_over_oracle": round(statics[("cloud",) * 4] / oracle, 4),
-                "moves_logged": moved,
-                "moves_failed": failed,
-                "stable_moves_per_10min": None if stable_per_10min is None else round(stable_per_10min, 3),
-                "stable_moves": len(noise_moves),
-                "stable_over_oracle": None if stable_ratio is None else round(stable_ratio, 4),
-                "stable_s": stable_s,
-                "phases": len(script.phases),
-                "phase_s": phase_s,
-                "load_1min": round(load_after[0], 2),
-                "robot_link_bytes_all_cloud_over_before": link_ratio,
-                "ros": args.ros,
-            }
-        ),
-        flush=True,
+    report(
+        {
+            "cost_over_oracle": round(adaptive / oracle, 4),
+            "cost_over_oracle_misdeclared": _round(misdeclared["learned"]),
+            "estimate_only_over_oracle_misdeclared": _round(misdeclared["estimate"]),
+            "learned_decisions_share": round(learned_share, 4),
+            "adapt_s": round(max(adapt_values), 2),
+            # Issue 22: flapping over the long stable phase (every move there), else over the changes.
+            "flaps_per_10min": round(stable_per_10min if stable_per_10min is not None else flaps_per_10min, 3),
+            "flaps_changing_per_10min": round(flaps_per_10min, 3),
+            "migrations": len(run.moves),
+            "adapt_mean_s": round(mean_adapt, 2),
+            "best_static_over_oracle": round(statics[best_static] / oracle, 4),
+            "all_robot_over_oracle": round(statics[("robot",) * 4] / oracle, 4),
+            "all_cloud_over_oracle": round(statics[("cloud",) * 4] / oracle, 4),
+            "moves_logged": moved,
+            "moves_failed": failed,
+            "stable_moves_per_10min": None if stable_per_10min is None else round(stable_per_10min, 3),
+            "stable_moves": len(noise_moves),
+            "stable_over_oracle": None if stable_ratio is None else round(stable_ratio, 4),
+            "stable_s": stable_s,
+            "phases": len(script.phases),
+            "phase_s": phase_s,
+            "load_1min": round(load_after[0], 2),
+            "robot_link_bytes_all_cloud_over_before": link_ratio,
+            "ros": args.ros,
+        }
     )
 
 

@@ -27,72 +27,25 @@ import asyncio
 import contextlib
 import gc
 import json
-import os
 import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 import tracemalloc
-import xmlrpc.client
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, free_port, log, percentile
+from _common import ROOT, log, percentile
+from _harness import HOST_PYTHON, arguments, machine_load, report, ros_env, rosmaster
 
 from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.skillconfig import parse_skill_config
 
-HOST_PYTHON = "/usr/bin/python3"
 NODES = str(ROOT / "tests" / "agent" / "rosnodes.py")
 SKILL = "bench"
 PUB_NS = f"/bridgeos/{SKILL}/pub/robot"
-
-
-def ros_env(master: str, home: str, namespace: str | None = None) -> dict[str, str]:
-    env = {
-        "PATH": "/usr/bin:/bin",
-        "HOME": home,
-        "LANG": "C.UTF-8",
-        "ROS_MASTER_URI": master,
-        "ROS_IP": "127.0.0.1",
-        "ROS_HOME": home,
-        "PYTHONUNBUFFERED": "1",
-        "PYTHONWARNINGS": "ignore",
-    }
-    if namespace:
-        env["ROS_NAMESPACE"] = namespace
-    return env
-
-
-@contextlib.contextmanager
-def rosmaster(home: str):
-    """Run a private ROS master for the benchmark."""
-    port = free_port()
-    uri = f"http://127.0.0.1:{port}"
-    process = subprocess.Popen(
-        [HOST_PYTHON, "/usr/bin/rosmaster", "--core", "-p", str(port)],
-        env=ros_env(uri, home),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                xmlrpc.client.ServerProxy(uri).getPid("/bench")
-                break
-            except OSError:
-                if process.poll() is not None or time.monotonic() > deadline:
-                    raise SystemExit("the private rosmaster did not start") from None
-                time.sleep(0.1)
-        yield uri
-    finally:
-        process.kill()
-        process.wait(10)
 
 
 def skill_config(topics: int, *, subscriber: bool = True, prefix: str = "bench"):
@@ -287,14 +240,9 @@ async def throughput(master: str, home: str, matrix: list[tuple[int, float]], se
 # ---------------------------------------------------------------------- main
 
 
-def load() -> str:
-    one, five, _ = os.getloadavg()
-    return f"load average {one:.2f} (1 min) {five:.2f} (5 min) on {os.cpu_count()} cores"
-
-
 async def main(args: argparse.Namespace) -> dict:
     home = tempfile.mkdtemp(prefix="bench-router-")
-    log(f"machine: {load()}")
+    log(f"machine: {machine_load()}")
     with rosmaster(home) as master:
         counts = [1, 10, 100, 1000, 2000] if args.quick else [1, 10, 100, 1000, 5000, 10000, 20000]
         mapped = await mapping(master, counts)
@@ -307,7 +255,7 @@ async def main(args: argparse.Namespace) -> dict:
             matrix = [(p, r) for p in (1, 10, 100) for r in (1, 100, 500, 1000)] + [(1, 0), (10, 0)]
             seconds = 10.0
         rows = await throughput(master, home, matrix, seconds)
-    log(f"machine after: {load()}")
+    log(f"machine after: {machine_load()}")
 
     largest = max((row for row in mapped if row["ok"]), key=lambda row: row["topics"])
     nominal = [row for row in rows if row["direct"]["rate"] > 0]
@@ -362,7 +310,5 @@ async def main(args: argparse.Namespace) -> dict:
 if __name__ == "__main__":
     # A terminated run still stops its rosmaster and rospy nodes (they run in sessions of their own).
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="fewer topics, pairs and seconds (<1 min)")
-    result = asyncio.run(main(parser.parse_args()))
-    print(json.dumps(result))
+    parser = arguments(__doc__, "fewer topics, pairs and seconds (<1 min)")
+    report(asyncio.run(main(parser.parse_args())))

@@ -40,6 +40,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import ROOT, log, percentile
+from _harness import arguments, report
 
 os.environ.setdefault("ROS_DOMAIN_ID", "44")
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -362,7 +363,6 @@ async def main(args: argparse.Namespace) -> dict:
 
 if __name__ == "__main__":
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="fewer pairs, rates and seconds (<1 min)")
+    parser = arguments(__doc__, "fewer pairs, rates and seconds (<1 min)")
     parser.add_argument("--ros1", action="store_true", help="also run benchmarks/router.py --quick for ROS 1's column")
-    print(json.dumps(asyncio.run(main(parser.parse_args()))))
+    report(asyncio.run(main(parser.parse_args())))

@@ -20,7 +20,6 @@ Controller process, so it has no figure for any of these.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import logging
@@ -29,7 +28,6 @@ import os
 import random
 import resource
 import sys
-import tempfile
 import time
 from array import array
 from pathlib import Path
@@ -37,7 +35,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import connect_storm
-from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, percentile, setup_django
+from _common import ROOT, Daphne, log, percentile
+from _harness import Clients, arguments, cloud, create_fleet, forget_fleet, report, shares
 from _points import query_10m_points_s
 
 INGEST_PREFIX = "scale-"
@@ -56,23 +55,12 @@ def prepare_ingest_robots(count: int) -> tuple[list[tuple[str, str]], str]:
     from django.contrib.auth import get_user_model
     from django.db import connection
 
-    from monitoring.models import Metric
-    from robots.models import Robot, default_robot_config
     from robots.services import issue_api_token
 
-    with connection.cursor() as cursor:
-        # Straight SQL: a cascade through the ORM would walk every old metric row.
-        cursor.execute(f"DELETE FROM {Metric._meta.db_table} WHERE robot_id LIKE %s", [INGEST_PREFIX + "%"])
-    Robot.objects.filter(id__startswith=INGEST_PREFIX).delete()
+    forget_fleet(INGEST_PREFIX, metrics=True)
     operator, _ = get_user_model().objects.get_or_create(username=OPERATOR, defaults={"is_staff": True})
     api_token, _ = issue_api_token(operator)
-    config = default_robot_config()
-    rows, tokens = [], []
-    for i in range(count):
-        robot = Robot(id=f"{INGEST_PREFIX}{i:04d}", owner=operator, config=config)
-        tokens.append((robot.id, robot.issue_token()))
-        rows.append(robot)
-    Robot.objects.bulk_create(rows)
+    tokens = create_fleet(operator, count, INGEST_PREFIX)
     connection.close()
     return tokens, api_token
 
@@ -112,7 +100,7 @@ async def authenticate(url: str, robot_id: str, token: str):
             raise RuntimeError(f"{robot_id} refused: {frame.get('data')}")
 
 
-def ingest_worker(robots, rate, counts, stop_event, results, points_per_frame: int) -> None:
+def ingest_worker(index, robots, start_event, stop_event, results, rate, counts, points_per_frame: int) -> None:
     """Run a share of the ingest robots: each sends frames at ``rate`` frames/s until told to stop."""
 
     async def run() -> dict:
@@ -194,23 +182,13 @@ def ingest_capacity(daphnes: list[Daphne], tokens, *, steps: list[float], step_s
     """Step the offered frame rate up over robots spread across the daphnes; return the capacity at the p95 bound."""
     ctx = mp.get_context("fork")
     rate, counts = ctx.Value("d", 0.0), ctx.Array("q", 3)
-    stop_event, results = ctx.Event(), ctx.Queue()
     # Robot i goes to process i mod n: what a load balancer without stickiness does on average.
     assignments = [(daphnes[i % len(daphnes)].ws_url + "/ws/robot/", rid, tok) for i, (rid, tok) in enumerate(tokens)]
-    workers = [
-        ctx.Process(
-            target=ingest_worker,
-            args=(assignments[p :: args.client_procs], rate, counts, stop_event, results, args.points_per_frame),
-            daemon=True,
-        )
-        for p in range(args.client_procs)
-    ]
-    for worker in workers:
-        worker.start()
+    clients = Clients(ingest_worker, shares(assignments, args.client_procs), rate, counts, args.points_per_frame)
     try:
         deadline = time.monotonic() + 60
         while counts[CONNECTED] < len(tokens):
-            if time.monotonic() > deadline or not all(w.is_alive() for w in workers):
+            if time.monotonic() > deadline or not all(w.is_alive() for w in clients.processes):
                 raise RuntimeError(f"only {counts[CONNECTED]} of {len(tokens)} ingest robots connected")
             time.sleep(0.05)
         # Warm up each robot's first frames (and the processes' connections) before any step counts.
@@ -235,17 +213,14 @@ def ingest_capacity(daphnes: list[Daphne], tokens, *, steps: list[float], step_s
             if frames_per_s == rates[-1] and frames_per_s * 1.5 <= args.max_frames_per_s:
                 rates.append(frames_per_s * 1.5)  # kept up with the last step: go on until it does not
         rate.value = 0.0
-        stop_event.set()
-        reports = [results.get(timeout=90) for _ in workers]
+        clients.stop_event.set()
+        reports = clients.reports(90)
     finally:
-        stop_event.set()
-        for worker in workers:
-            worker.join(timeout=30)
-            if worker.is_alive():
-                worker.kill()
+        clients.stop_event.set()
+        clients.kill()
     pairs = array("d")
-    for report in reports:
-        pairs.frombytes(report["lags"])
+    for each in reports:
+        pairs.frombytes(each["lags"])
     outcome_steps, capacity, capacity_step, searching = [], 0.0, None, True
     for frames_per_s, t0, t1, cpu in windows:
         lags = [pairs[i + 1] * 1000 for i in range(0, len(pairs), 2) if t0 <= pairs[i] < t1]
@@ -319,8 +294,7 @@ async def command_round_trips(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="shorter steps and holds: under a minute")
+    parser = arguments(__doc__, "shorter steps and holds: under a minute", database="bridgeos_bench", redis=12)
     parser.add_argument("--robots", type=int, default=1000, help="robots in the connect storm")
     parser.add_argument("--ingest-robots", type=int, default=100)
     parser.add_argument("--points-per-frame", type=int, default=10)
@@ -331,8 +305,6 @@ def main() -> None:
     parser.add_argument("--settle", type=float, default=1.0)
     parser.add_argument("--commands", type=int, default=200)
     parser.add_argument("--client-procs", type=int, default=2)
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/12")
     args = parser.parse_args()
     hold_s = 20.0
     steps = [500.0, 750.0, 1000.0, 1250.0, 1500.0, 1750.0, 2000.0, 2500.0, 3000.0, 4000.0]
@@ -348,19 +320,14 @@ def main() -> None:
 
     started = time.monotonic()
     logging.getLogger("httpx").setLevel(logging.WARNING)
-    data_dir = tempfile.mkdtemp(prefix="bridgeos-scale-")
-    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": data_dir}
-    ensure_postgres_database(args.database_url)
-    migrate(env)
-    setup_django(env)
-    storm_tokens = connect_storm.prepare(args.robots)
-    ingest_tokens, api_token = prepare_ingest_robots(args.ingest_robots + 1)
-    command_robot, ingest_tokens = ingest_tokens[-1], ingest_tokens[:-1]
-    log(f"created {args.robots} storm robots and {args.ingest_robots + 1} ingest robots")
+    with cloud(args, "bridgeos-scale-", flush_redis=False) as bench:
+        storm_tokens = connect_storm.prepare(args.robots)
+        ingest_tokens, api_token = prepare_ingest_robots(args.ingest_robots + 1)
+        command_robot, ingest_tokens = ingest_tokens[-1], ingest_tokens[:-1]
+        log(f"created {args.robots} storm robots and {args.ingest_robots + 1} ingest robots")
 
-    process_a = Daphne(env, Path(data_dir) / "daphne-a.log")
-    process_b = Daphne(env, Path(data_dir) / "daphne-b.log")
-    try:
+        process_a = bench.start_daphne("daphne-a.log", wait=False)
+        process_b = bench.start_daphne("daphne-b.log", wait=False)
         process_a.wait()
         process_b.wait()
         log(f"daphne A pid {process_a.pid} on {process_a.port}, B pid {process_b.pid} on {process_b.port}")
@@ -395,12 +362,6 @@ def main() -> None:
             round(100 * (process_a.cpu_seconds() - cpu_a) / elapsed),
             round(100 * (process_b.cpu_seconds() - cpu_b) / elapsed),
         ]
-    except BaseException:
-        log(f"daphne A log tail:\n{process_a.log_tail()}\ndaphne B log tail:\n{process_b.log_tail()}")
-        raise
-    finally:
-        process_a.stop()
-        process_b.stop()
 
     log("queries over 10 million points")
     query_s = query_10m_points_s(args.database_url, args.quick)
@@ -446,7 +407,7 @@ def main() -> None:
         f"queries over 10M points: {result['query_10m_points_s']} s",
         flush=True,
     )
-    print(json.dumps(result), flush=True)
+    report(result)
 
 
 if __name__ == "__main__":

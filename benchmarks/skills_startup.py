@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import resource
 import shutil
 import statistics
@@ -34,6 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import log
+from _harness import arguments, report
 
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.monitor import SimulatedRobot
@@ -175,8 +175,7 @@ def docker_available() -> str | None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small counts, under a minute")
+    parser = arguments(__doc__, "small counts, under a minute", whole_doc=True)
     parser.add_argument("--seq", type=int, default=10, help="skills started one after another")
     parser.add_argument("--parallel", type=int, default=20, help="skills started at once")
     parser.add_argument("--max-process", type=int, default=GOALS["process"], help="skills to run with processes")
@@ -240,7 +239,7 @@ def main() -> int:
         "mb_per_extra_skill": round(proc["mb_per_skill"], 3) if proc.get("mb_per_skill") is not None else None,
         "mb_per_extra_skill_docker": round(dock["mb_per_skill"], 3) if dock.get("mb_per_skill") is not None else None,
     }
-    print(json.dumps(figures))
+    report(figures)
     return 0
 
 

@@ -13,8 +13,6 @@ Needs root, iproute2, openvpn and ping (scripts/services.sh vpn). Run: .venv/bin
 
 from __future__ import annotations
 
-import argparse
-import json
 import re
 import socket
 import statistics
@@ -29,6 +27,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks._common import log
+from benchmarks._harness import arguments, report
 from network import openvpn, pki
 from tests.net.netns import Network, _in_namespace, available
 
@@ -139,8 +138,7 @@ def throughput_mbps(cloud: str, robot: str, target: str, seconds: float) -> floa
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer trials (under a minute)")
+    parser = arguments(__doc__, "fewer trials (under a minute)")
     args = parser.parse_args()
     why_not = available()
     if why_not:
@@ -202,7 +200,7 @@ def main() -> None:
         f"{result['direct_throughput_mbps']:.0f} Mbit/s bare ({vpn_mbps / max(direct_mbps, 1e-9):.0%}; "
         "thesis §5.2: the testbed's 220 Mbit/s LAN)"
     )
-    print(json.dumps(result))
+    report(result)
 
 
 if __name__ == "__main__":

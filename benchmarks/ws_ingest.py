@@ -22,14 +22,14 @@ import os
 import random
 import resource
 import sys
-import tempfile
 import time
 from array import array
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, Daphne, ensure_postgres_database, log, migrate, percentile, setup_django
+from _common import ROOT, Daphne, log, percentile
+from _harness import Clients, arguments, cloud, create_fleet, forget_fleet, report, shares
 
 ROBOT_PREFIX = "bench-"
 OPERATOR = "bench-operator"
@@ -219,14 +219,14 @@ class Fleet:
         return result
 
 
-def fleet_main(url, robots, counters, base, start_event, stop_event, result_queue, args) -> None:
+def fleet_main(index, robots, start_event, stop_event, result_queue, url, counters, args) -> None:
     """Entry point of a worker process: run its robots until told to stop, then report."""
     # The fork inherits the parent's objects; without this, the worker's own full collections
     # would pause its robots and be counted as lag.
     gc.freeze()
     start_event.wait()
     try:
-        result = asyncio.run(Fleet(url, robots, counters, base, stop_event, args).run())
+        result = asyncio.run(Fleet(url, robots, counters, index * N_COUNTERS, stop_event, args).run())
     except BaseException as exc:
         result = {"crash": repr(exc)}
     result_queue.put(result)
@@ -241,15 +241,10 @@ def prepare(args: argparse.Namespace) -> tuple[list[tuple[str, str]], str]:
     from django.db import connection
 
     from monitoring.models import Metric
-    from robots.models import Robot as RobotModel
-    from robots.models import default_robot_config
     from robots.services import issue_api_token
 
     started = time.monotonic()
-    with connection.cursor() as cursor:
-        # Straight SQL: a cascade through the ORM would walk every old metric row.
-        cursor.execute(f"DELETE FROM {Metric._meta.db_table} WHERE robot_id LIKE %s", [ROBOT_PREFIX + "%"])
-    RobotModel.objects.filter(id__startswith=ROBOT_PREFIX).delete()
+    forget_fleet(ROBOT_PREFIX, metrics=True)
     with connection.cursor() as cursor:
         # Reclaim the deleted rows now: an autovacuum during the measurement would slow every COPY.
         cursor.execute(f"VACUUM ANALYZE {Metric._meta.db_table}")
@@ -258,13 +253,7 @@ def prepare(args: argparse.Namespace) -> tuple[list[tuple[str, str]], str]:
         user.is_staff = True
         user.save(update_fields=["is_staff"])
     api_token, _ = issue_api_token(user)
-    config = default_robot_config()
-    rows, tokens = [], []
-    for i in range(args.robots):
-        robot = RobotModel(id=f"{ROBOT_PREFIX}{i:05d}", owner=user, config=config)
-        tokens.append((robot.id, robot.issue_token()))
-        rows.append(robot)
-    RobotModel.objects.bulk_create(rows, batch_size=1000)
+    tokens = create_fleet(user, args.robots, ROBOT_PREFIX, digits=5, batch_size=1000)
     connection.close()
     log(f"created {args.robots} robots in {time.monotonic() - started:.1f} s")
     return tokens, api_token
@@ -342,49 +331,22 @@ def fmt(value: float | None, digits: int = 0) -> str:
     return "n/a" if value is None else f"{value:,.{digits}f}"
 
 
-class Workers:
-    """The robot client processes, forked before any event loop runs; they start on a signal."""
+class Workers(Clients):
+    """The robot client processes, counting in shared memory; they start on a signal."""
 
     def __init__(self, args: argparse.Namespace, url: str, tokens: list[tuple[str, str]]) -> None:
         self.count = args.procs or max(1, math.ceil(args.robots / 500))
-        ctx = mp.get_context("fork")
-        self.counters = ctx.Array("q", N_COUNTERS * self.count, lock=False)
-        self.start_event = ctx.Event()
-        self.stop_event = ctx.Event()
-        self.results = ctx.Queue()
+        self.counters = mp.get_context("fork").Array("q", N_COUNTERS * self.count, lock=False)
         worker_args = {
             "rate": args.rate,
             "points_per_frame": args.points_per_frame,
             "grace": args.grace,
             "connect_concurrency": max(1, args.connect_concurrency // self.count),
         }
-        self.processes = []
-        for p in range(self.count):
-            process = ctx.Process(
-                target=fleet_main,
-                args=(
-                    url,
-                    tokens[p :: self.count],
-                    self.counters,
-                    p * N_COUNTERS,
-                    self.start_event,
-                    self.stop_event,
-                    self.results,
-                    worker_args,
-                ),
-                daemon=True,
-            )
-            process.start()
-            self.processes.append(process)
+        super().__init__(fleet_main, shares(tokens, self.count), url, self.counters, worker_args)
 
     def total(self, index: int) -> int:
         return sum(self.counters[p * N_COUNTERS + index] for p in range(self.count))
-
-    def kill(self) -> None:
-        for process in self.processes:
-            if process.is_alive():
-                process.kill()
-                process.join()
 
 
 async def measure(args, daphne: Daphne, workers: Workers, api_token, database_url: str) -> dict:
@@ -430,10 +392,7 @@ async def measure(args, daphne: Daphne, workers: Workers, api_token, database_ur
     late_frames = total(LATE)
 
     workers.stop_event.set()
-    loop = asyncio.get_running_loop()
-    reports = [await loop.run_in_executor(None, workers.results.get, True, args.grace + 60) for _ in range(procs)]
-    for process in workers.processes:
-        process.join(timeout=30)
+    reports = await asyncio.get_running_loop().run_in_executor(None, workers.reports, args.grace + 60)
     await dashboard.close()
     # Every frame has been acked (or counted lost) by now, so the points sent inside the window
     # that reached the database give the sustained rate without the window-edge noise of
@@ -450,8 +409,8 @@ async def measure(args, daphne: Daphne, workers: Workers, api_token, database_ur
         raise RuntimeError(f"a robot worker crashed: {crashed}")
 
     db_pairs = array("d")
-    for report in reports:
-        db_pairs.frombytes(report["db_lags"])
+    for each in reports:
+        db_pairs.frombytes(each["db_lags"])
     db_lags = window_lags(db_pairs, t0, t1)
     client_lags = window_lags(dashboard.lags, t0, t1)
     lost = sorted(robot for report in reports for robot in report["lost"])
@@ -492,7 +451,7 @@ async def measure(args, daphne: Daphne, workers: Workers, api_token, database_ur
     }
 
 
-def report(result: dict) -> None:
+def summary(result: dict) -> None:
     r = result
     lines = [
         f"robots: {r['robots']} ({r['robots_connected']} connected, {r['robot_processes']} client process(es), "
@@ -517,14 +476,11 @@ def report(result: dict) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(__doc__, "200 robots for 15 s: under a minute in all", database="bridgeos_bench", redis=12)
     parser.add_argument("--robots", type=int, default=500)
     parser.add_argument("--duration", type=float, default=60.0, help="measured seconds after ramp-up")
     parser.add_argument("--rate", type=float, default=10.0, help="points per robot per second")
     parser.add_argument("--points-per-frame", type=int, default=10)
-    parser.add_argument("--quick", action="store_true", help="200 robots for 15 s: under a minute in all")
-    parser.add_argument("--database-url", default="postgres://postgres@127.0.0.1:5432/bridgeos_bench")
-    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/12")
     parser.add_argument("--procs", type=int, default=0, help="robot client processes (0: one per 500 robots)")
     parser.add_argument("--connect-concurrency", type=int, default=50)
     parser.add_argument("--warmup", type=float, default=3.0)
@@ -536,35 +492,17 @@ def main() -> None:
     if args.robots < 1 or args.rate <= 0 or args.points_per_frame < 1 or args.duration <= 0:
         parser.error("robots, rate, points per frame and duration must be positive")
 
-    import redis
-
-    data_dir = tempfile.mkdtemp(prefix="bridgeos-bench-")
-    env = {"DATABASE_URL": args.database_url, "REDIS_URL": args.redis_url, "BRIDGEOS_DATA_DIR": data_dir}
-    ensure_postgres_database(args.database_url)
-    redis.Redis.from_url(args.redis_url).flushdb()
-    migrate(env)
-    setup_django(env)
-    tokens, api_token = prepare(args)
-
-    daphne = Daphne(env, Path(data_dir) / "daphne.log")
-    workers = None
-    try:
-        daphne.wait()
+    with cloud(args, "bridgeos-bench-") as bench:
+        tokens, api_token = prepare(args)
+        daphne = bench.start_daphne()
         log(f"daphne pid {daphne.pid} on port {daphne.port}")
         workers = Workers(args, daphne.ws_url, tokens)
-        result = asyncio.run(measure(args, daphne, workers, api_token, args.database_url))
-    except BaseException:
-        log(f"daphne log tail:\n{daphne.log_tail()}")
-        raise
-    finally:
-        if workers is not None:
+        try:
+            result = asyncio.run(measure(args, daphne, workers, api_token, args.database_url))
+        finally:
             workers.kill()
-        daphne.stop()
-    errors = [line for line in daphne.log_tail(200_000).splitlines() if "Traceback" in line or "ERROR" in line]
-    if errors:
-        log(f"daphne logged {len(errors)} error line(s); see {daphne.log_path}")
+    summary(result)
     report(result)
-    print(json.dumps(result), flush=True)
 
 
 if __name__ == "__main__":
