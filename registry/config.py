@@ -37,6 +37,8 @@ class RegistrySetup:
     http_secret: str
     tls_cert: Path | None = None
     tls_key: Path | None = None
+    notify_url: str | None = None  # where pushes are told (the cloud's /api/registry/events)
+    notify_token: str = ""  # what the registry presents there
 
 
 def parse_listen(listen: str) -> tuple[str, int]:
@@ -84,7 +86,7 @@ def render_config(setup: RegistrySetup) -> dict[str, Any]:
     }
     if setup.tls_cert is not None and setup.tls_key is not None:
         http["tls"] = {"certificate": str(setup.tls_cert), "key": str(setup.tls_key)}
-    return {
+    config: dict[str, Any] = {
         "version": "0.1",
         "log": {"level": "info", "formatter": "text", "fields": {"service": "registry"}},
         "storage": {
@@ -101,6 +103,22 @@ def render_config(setup: RegistrySetup) -> dict[str, Any]:
             }
         },
     }
+    if setup.notify_url:
+        check_realm(setup.notify_url)
+        config["notifications"] = {
+            "endpoints": [
+                {
+                    "name": "bridgeos-cloud",
+                    "url": setup.notify_url,
+                    "headers": {"Authorization": [f"Bearer {setup.notify_token}"]},
+                    "timeout": "5s",
+                    "backoff": "2s",
+                    # Layers are told too; only manifests (tags) are kept.
+                    "ignoredmediatypes": ["application/octet-stream"],
+                }
+            ]
+        }
+    return config
 
 
 def render_yaml(value: Any, indent: int = 0) -> str:
@@ -110,6 +128,12 @@ def render_yaml(value: Any, indent: int = 0) -> str:
     for key, item in value.items():
         if isinstance(item, dict):
             lines.append(f"{pad}{key}:\n{render_yaml(item, indent + 1)}")
+        elif isinstance(item, list) and item and all(isinstance(one, dict) for one in item):
+            lines.append(f"{pad}{key}:")
+            for one in item:
+                block = render_yaml(one, indent + 2).split("\n")
+                lines.append(f"{pad}  - {block[0].lstrip()}")
+                lines.extend(block[1:])
         elif isinstance(item, list):
             lines.append(f"{pad}{key}: [{', '.join(json.dumps(str(one)) for one in item)}]")
         else:

@@ -1,20 +1,24 @@
-"""The token server's actions: the signing key, who a credential is, and the token it earns."""
+"""The registry's actions: the signing key, who a credential is, the token it earns, and the tags pushed."""
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import hmac
 from datetime import UTC, datetime
 from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric import ec
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
+from django.db import transaction
 
 from bridgeos_cloud.env import ConfigError, kept_secret
 from network import pki
 from robots.models import Robot
 
-from . import tokens
+from . import notifications, tokens
+from .models import RegistryTag
 
 # More scopes than any client sends (docker asks for one or two): a bound on the work one request causes.
 MAX_SCOPES = 50
@@ -73,3 +77,51 @@ def issue_token(
     token = tokens.sign(claims, signing_key())
     issued_at = datetime.fromtimestamp(claims["iat"], UTC).isoformat().replace("+00:00", "Z")
     return {"token": token, "access_token": token, "expires_in": claims["exp"] - claims["iat"], "issued_at": issued_at}
+
+
+def notify_token() -> str:
+    """Return what the registry presents when it tells the cloud of a push (derived from SECRET_KEY)."""
+    return hmac.new(settings.SECRET_KEY.encode(), b"bridgeos registry notifications", hashlib.sha256).hexdigest()
+
+
+def record_pushes(pushes: list[notifications.TagPush]) -> int:
+    """Point each pushed tag at its new manifest; return how many tags were written."""
+    with transaction.atomic():
+        for push in pushes:
+            RegistryTag.objects.update_or_create(
+                repository=push.repository,
+                tag=push.tag,
+                defaults={
+                    "namespace": push.repository.partition("/")[0],
+                    "digest": push.digest,
+                    "media_type": push.media_type,
+                    "size": push.size,
+                    "pushed_by": push.actor,
+                    "pushed_at": push.at,
+                },
+            )
+    return len(pushes)
+
+
+def repositories(user: AbstractBaseUser, namespace: str | None = None) -> list[dict[str, Any]]:
+    """List the repositories a user may pull, with their tags and digests (staff: every namespace)."""
+    tags = RegistryTag.objects.all()
+    if not user.is_staff:
+        tags = tags.filter(namespace=user.get_username())
+    if namespace:
+        tags = tags.filter(namespace=namespace)
+    listed: dict[str, dict[str, Any]] = {}
+    for tag in tags.order_by("repository", "tag"):
+        entry = listed.setdefault(
+            tag.repository, {"repository": tag.repository, "namespace": tag.namespace, "tags": []}
+        )
+        entry["tags"].append(
+            {
+                "tag": tag.tag,
+                "digest": tag.digest,
+                "size": tag.size,
+                "pushed_by": tag.pushed_by,
+                "pushed_at": tag.pushed_at.isoformat(),
+            }
+        )
+    return list(listed.values())

@@ -8,4 +8,6 @@ from . import views
 
 urlpatterns = [
     path("registry/token", views.TokenView.as_view(), name="registry-token"),
+    path("registry/events", views.RegistryEventsView.as_view(), name="registry-events"),
+    path("registry/repositories", views.RepositoriesView.as_view(), name="registry-repositories"),
 ]

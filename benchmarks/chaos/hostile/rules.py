@@ -49,6 +49,8 @@ NO_ROBOT = {
     "api/auth": "exchanges a password for a token",
     "api/auth/renew": "renews the caller's own token",
     "api/registry/token": "grants repositories of the caller's own namespace only (tests/registry prove it)",
+    "api/registry/events": "the registry's push notifications, refused without its notify token",
+    "api/registry/repositories": "lists the caller's own namespace only (staff: all); tests/registry prove it",
     "api/templates": "catalog, shared by design; writes are staff only",
     "api/templates/<int:template_id>": "catalog, shared by design; writes are staff only",
     "api/schema/": "the OpenAPI schema",

@@ -7,6 +7,7 @@ import secrets
 import tempfile
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from django.conf import settings
 from django.core.management.base import BaseCommand, CommandError, CommandParser
@@ -34,6 +35,10 @@ class Command(BaseCommand):
         parser.add_argument("--issuer", default=settings.BRIDGEOS["REGISTRY_ISSUER"], help="The tokens' issuer")
         parser.add_argument("--tls-cert", help="PEM certificate to serve HTTPS with (required off loopback)")
         parser.add_argument("--tls-key", help="PEM key of --tls-cert")
+        parser.add_argument(
+            "--notify",
+            help="Where the registry tells the cloud of pushes (default: the realm's /api/registry/events; off: not)",
+        )
 
     def handle(self, *args: Any, **options: Any) -> None:
         out = Path(options["out"]).resolve()
@@ -55,6 +60,8 @@ class Command(BaseCommand):
             http_secret=secrets.token_urlsafe(32),
             tls_cert=tls[0],
             tls_key=tls[1],
+            notify_url=_notify_url(options["realm"], options["notify"]),
+            notify_token=services.notify_token(),
         )
         try:
             config = render_yaml(render_config(setup)) + "\n"
@@ -74,6 +81,16 @@ class Command(BaseCommand):
             f"Wrote {out / 'config.yml'} and {out / 'token.crt'} (key id {tokens.key_id(key.public_key())});"
             f" run: docker-registry serve {out / 'config.yml'}"
         )
+
+
+def _notify_url(realm: str, notify: str | None) -> str | None:
+    """Return the notifications URL: the one given, none for 'off', else the realm's sibling /api/registry/events."""
+    if notify == "off":
+        return None
+    if notify:
+        return notify
+    parts = urlsplit(realm)
+    return f"{parts.scheme}://{parts.netloc}/api/registry/events"
 
 
 def _write(path: Path, text: str, mode: int) -> None:
