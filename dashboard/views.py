@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from django.conf import settings
 from django.contrib.auth.decorators import login_required
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import render
@@ -11,6 +12,7 @@ from django.views.decorators.http import require_POST
 
 from bridgeos_agent.errors import NON_FIELD
 from monitoring.choices import Level
+from registry import services as registry_services
 
 from . import services
 
@@ -51,6 +53,21 @@ def skills(request: HttpRequest) -> HttpResponse:
         request,
         "dashboard/skills.html",
         {"page": "skills", "templates": services.catalog(), "robots": services.robot_choices(request.user)},
+    )
+
+
+@login_required
+def images(request: HttpRequest) -> HttpResponse:
+    """Show the images of the cloud's registry the user may pull, each tag with its digest, and how to push."""
+    return render(
+        request,
+        "dashboard/images.html",
+        {
+            "page": "images",
+            "repositories": registry_services.repositories(request.user),
+            "registry": settings.BRIDGEOS["REGISTRY_HOST"],
+            "namespace": request.user.get_username(),
+        },
     )
 
 

@@ -97,3 +97,32 @@ def test_notifications_without_the_registrys_token_change_nothing(daphne_server)
         answer = httpx.post(f"{daphne_server.url}/api/registry/events", json=envelope, headers=headers, timeout=10)
         assert answer.status_code in (401, 403), answer.text
     assert not RegistryTag.objects.exists()
+
+
+def test_the_images_page_shows_a_users_own_tags_with_their_digests_and_how_to_push(settings, client):
+    from datetime import UTC, datetime
+
+    from django.contrib.auth import get_user_model
+
+    settings.BRIDGEOS = {**settings.BRIDGEOS, "REGISTRY_HOST": "127.0.0.1:5000"}
+    users = get_user_model().objects
+    alice, bob = users.create_user("alice"), users.create_user("bob")
+    digest = "sha256:" + "b" * 64
+    for repository, owner in (("alice/detector", "alice"), ("bob/secret", "bob")):
+        RegistryTag.objects.create(
+            repository=repository,
+            namespace=owner,
+            tag="1.2",
+            digest=digest,
+            size=2048,
+            pushed_by=owner,
+            pushed_at=datetime(2026, 12, 2, 10, tzinfo=UTC),
+        )
+    client.force_login(alice)
+    page = client.get("/images/").content.decode()
+    assert 'data-image="alice/detector:1.2"' in page and "bob/secret" not in page
+    assert f'title="{digest}"' in page and "docker push 127.0.0.1:5000/alice/my-component:1" in page
+    client.force_login(bob)
+    assert "alice/detector" not in client.get("/images/").content.decode()
+    client.logout()
+    assert client.get("/images/").status_code == 302  # to the login page

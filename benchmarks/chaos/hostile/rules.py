@@ -40,6 +40,7 @@ NO_ROBOT = {
     "": "the fleet page: lists only the user's robots (checked below)",
     "skills/": "the catalog of Skill templates, shared by design",
     "events/": "the event log page: filled by /api/events (checked below)",
+    "images/": "the registry's images of the user's own namespace only (registry.services.repositories)",
     "validate/skill-config": "validates a posted config, touches no robot",
     "validate/robot-config": "validates a posted config, touches no robot",
     "accounts/login/": "login form",
