@@ -19,7 +19,7 @@ from monitoring.live import publish_on_commit
 from monitoring.services import record_event, storable
 from registry.pinning import pin_images
 from robots.models import Robot
-from robots.services import client_frame
+from robots.services import client_frame, push_to_robot
 
 from .choices import COMPONENT_STATUS_CHOICES
 from .cloud import orchestration
@@ -48,6 +48,10 @@ def add_skill(robot: Robot, config: dict[str, Any]) -> Skill:
             for component_id, component in normalised["components"].items()
         )
         record_event(f"Skill {skill_id} added", robot_id=robot.id, skill=skill_id, kind="skill_added")
+        # The robot, when connected, fetches the Skill's images now rather than at its first start.
+        transaction.on_commit(
+            lambda: push_to_robot(robot.id, Event.SKILL_CONFIG, {"skill": skill_id, "config": normalised}), robust=True
+        )
     return skill
 
 

@@ -177,7 +177,7 @@ async def test_a_pull_the_disk_cannot_hold_is_refused_as_disk_full_and_a_local_i
         run("docker", "rmi", "-f", image)
 
 
-async def test_an_agent_pulls_a_skills_image_tells_the_cloud_how_far_it_is_and_runs_it(
+async def test_an_agent_pulls_a_skills_image_as_it_is_added_tells_the_cloud_how_far_it_is_and_runs_it(
     daphne_server, published, fleet, tmp_path
 ):
     from asgiref.sync import sync_to_async
@@ -197,7 +197,6 @@ async def test_an_agent_pulls_a_skills_image_tells_the_cloud_how_far_it_is_and_r
         "skill_id": "pull",
         "components": {"hello": {"name": "Hello", "location": "robot", "robot": launch}},
     }
-    await sync_to_async(lambda: add_skill(Robot.objects.get(id=robot), skill))()
     viewer = Link(daphne_server.ws_url + "/ws/client/")
     await viewer.connect(Event.AUTHENTICATION_CLIENT, {"token": fleet.alice_token.secret})
     settings = AgentSettings(
@@ -213,6 +212,15 @@ async def test_an_agent_pulls_a_skills_image_tells_the_cloud_how_far_it_is_and_r
     task = asyncio.create_task(controller.run())
     try:
         await asyncio.wait_for(controller.config_from_cloud.wait(), 20)
+        await sync_to_async(lambda: add_skill(Robot.objects.get(id=robot), skill))()
+        # Added, not started: the robot pulls the image ahead, so the start will not wait for bytes.
+        for _ in range(150):
+            if run("docker", "image", "inspect", image).returncode == 0:
+                break
+            await asyncio.sleep(0.2)
+        else:
+            raise AssertionError("the robot did not pull the image of the Skill it was told of")
+        assert controller.metrics.image_bytes[("pull", "hello")] > 0
         headers = {"Authorization": f"Token {fleet.alice_token.secret}"}
         async with httpx.AsyncClient(base_url=daphne_server.url, headers=headers, timeout=60) as api:
             answer = await api.post(f"/api/robot/{robot}/skill/pull/start", params={"wait": 30})

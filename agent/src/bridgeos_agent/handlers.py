@@ -130,12 +130,22 @@ async def on_skill_status_get(controller: RobotController, envelope: Envelope, p
 async def on_skill_config(controller: RobotController, envelope: Envelope, p: Any) -> None:
     if controller.session.resolve(envelope):
         return  # the answer to a request (a restart asking for its latest config)
+    try:
+        config = parse_skill_config(dict(p.config))
+    except ValueError as exc:
+        raise ProtocolError(_first_error(exc), field="data.config", code="invalid_config") from None
     record = controller.skills.get(p.skill)
     if record is not None:
-        try:
-            record.config = parse_skill_config(dict(p.config))
-        except ValueError as exc:
-            raise ProtocolError(_first_error(exc), field="data.config", code="invalid_config") from None
+        record.config = config
+        return
+    # A Skill just added in the cloud: its images come now, so its first start does not wait for bytes.
+    images = getattr(controller.runtime, "images", None)
+    if images is not None:
+        wanted: dict[str, list[str]] = {}
+        for name, component in config.components.items():
+            if component.location != "cloud" and component.robot is not None and component.robot.image:
+                wanted.setdefault(component.robot.image, []).append(name)
+        controller.spawn(images.prefetch(p.skill, wanted, getattr(controller.runtime, "on_pull", None)))
 
 
 @handles(Event.COMPONENT_START)

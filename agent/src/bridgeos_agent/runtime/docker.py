@@ -141,7 +141,7 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         self._reconciling: set[asyncio.Task[None]] = set()
         self._socket_path: str | None = None  # Docker's unix socket, when that is how we reach it
         self._stats_slots = asyncio.Semaphore(STATS_CONCURRENCY)
-        self.images = ImagePuller(registry, self._call, disk_reserve=int(disk_reserve_mb * MIB))
+        self.images = ImagePuller(registry, self._call, disk_reserve=int(disk_reserve_mb * MIB), connect=self._connect)
         self.on_pull: Callable[[str, str, str], Progress] | None = None  # (skill, component, image) -> progress
 
     # --- names ---------------------------------------------------------------------

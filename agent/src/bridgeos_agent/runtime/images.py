@@ -21,7 +21,7 @@ import logging
 import re
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlsplit
@@ -96,9 +96,11 @@ class ImagePuller:
         call: Callable[..., Any],
         *,
         disk_reserve: int = 256 * MIB,
+        connect: Callable[[], Awaitable[APIClient]] | None = None,
     ) -> None:
         self.login = login
         self._call = call  # runs a blocking Docker SDK call in the runtime's thread pool
+        self._connect = connect  # the runtime's engine client, for pulls ahead of any start
         self.disk_reserve = disk_reserve
         self._pulls: dict[str, asyncio.Future[None]] = {}
         self.bytes_pulled = 0
@@ -118,6 +120,18 @@ class ImagePuller:
             pending.add_done_callback(lambda _: self._pulls.pop(image, None))
         await asyncio.shield(pending)
         return True
+
+    async def prefetch(self, skill: str, wanted: Mapping[str, list[str]], on_pull: Any = None) -> None:
+        """Pull a Skill's images ahead of its start (image -> its components); a failure is the start's to say."""
+        if self._connect is None or not wanted:
+            return
+        api = await self._connect()
+        for image, components in wanted.items():
+            report = on_pull(skill, components[0], image) if on_pull is not None else None
+            try:
+                await self.ensure(api, image, f"skill {skill} ({', '.join(components)})", report)
+            except RuntimeFailure as exc:
+                logger.warning("pulling ahead for %s", exc)
 
     async def _pull(self, api: APIClient, image: str, who: str, progress: Progress | None) -> None:
         registry, repository, reference = split_reference(image)
