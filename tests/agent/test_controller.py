@@ -8,7 +8,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import httpx
@@ -25,7 +25,7 @@ from robots.services import create_robot, issue_api_token, update_robot_config
 from skills.models import CloudInstance, Component
 from skills.services import add_skill
 from tests.agent.conftest import Cloud
-from tests.conftest import BIN
+from tests.conftest import BIN, eventually
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(240)]
 
@@ -90,20 +90,6 @@ async def running(controller: RobotController) -> AsyncIterator[RobotController]
     finally:
         controller.stop()
         await asyncio.wait_for(task, 30)
-
-
-async def eventually(check: Callable[[], object], timeout: float = 30.0, what: str = "condition") -> object:
-    """Poll an (async or sync) check until it returns something truthy."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = check()
-        if asyncio.iscoroutine(value):
-            value = await value
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.1)
 
 
 @sync_to_async

@@ -17,6 +17,7 @@ from monitoring.models import Event as LogEvent
 from monitoring.models import Metric
 from robots.models import Robot
 from skills.models import Component, Skill
+from tests.conftest import eventually
 
 from .wsutil import make_owner, make_robot, robot_link
 
@@ -38,14 +39,6 @@ def count(model, **filters) -> int:
     return model.objects.filter(**filters).count()
 
 
-async def eventually(check, timeout: float = 5.0):
-    """Poll an async check until it returns truthy."""
-    async with asyncio.timeout(timeout):
-        while not (result := await check()):
-            await asyncio.sleep(0.05)
-    return result
-
-
 async def test_robot_authenticates_and_receives_its_config(daphne_server):
     owner, _ = await make_owner("owner")
     token = await make_robot("r1", owner)
@@ -59,7 +52,7 @@ async def test_robot_authenticates_and_receives_its_config(daphne_server):
     assert robot.connected and robot.last_seen is not None and robot.channel
     assert await count(LogEvent, robot_id="r1", kind="connection_established") == 1
     await link.close()
-    robot = await eventually(lambda: _disconnected("r1"))
+    robot = await eventually(lambda: _disconnected("r1"), timeout=5)
     assert await count(LogEvent, robot_id="r1", kind="connection_lost") == 1
 
 
@@ -214,7 +207,7 @@ async def test_duplicate_is_recognised_after_reconnecting(daphne_server):
     first = await link.send(Event.SKILL_STATUS, {"skill": "people-detection", "status": "starting"})
     await link.wait_acked(first)
     await link.close()
-    await eventually(lambda: _disconnected("r1"))
+    await eventually(lambda: _disconnected("r1"), timeout=5)
 
     # A new connection (a new consumer) still knows the id was applied.
     again = await robot_link(daphne_server, "r1", token)
