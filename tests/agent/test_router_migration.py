@@ -6,7 +6,6 @@ starts publishing, so the test decides when the cloud instance can become ready.
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,8 +14,9 @@ import pytest
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.protocol import ProtocolError
 from bridgeos_agent.skillconfig import parse_skill_config
+from tests.agent.conftest import agent_settings, configured, make_robot
 from tests.agent.roshelpers import HOST_PYTHON, NODES, Nodes, private_rosmaster
-from tests.agent.test_controller import agent_settings, eventually, make_robot, running
+from tests.conftest import eventually
 
 pytestmark = [pytest.mark.ros, pytest.mark.django_db(transaction=True), pytest.mark.timeout(180)]
 
@@ -63,8 +63,7 @@ async def test_a_migration_switches_only_once_the_new_instance_is_ready(cloud, r
     controller = RobotController(agent_settings(cloud, "route-1", token, tmp_path / "agent", detect_ros_master=False))
     controller.local_ros_master = controller.ros_master = rosmaster
     try:
-        async with running(controller):
-            await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        async with configured(controller):
             record = await controller.start_skill(parse_skill_config(chat_skill(tmp_path)))
             router = record.supervisor.context["router"]
             assert router.active("talker") == "robot"

@@ -30,9 +30,10 @@ from bridgeos_agent.router.cloudrelay import CloudLink
 from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
 from skills.models import CloudRelay, Component
+from tests.agent.conftest import agent_settings, configured, make_robot
 from tests.agent.roshelpers import Nodes, private_rosmaster
-from tests.agent.test_controller import agent_settings, eventually, make_robot, running
 from tests.agent.test_router_cloudrelay import CONFIG, SKILL, ns, subscribers_of
+from tests.conftest import eventually
 
 from .conftest import make_stack
 
@@ -227,8 +228,7 @@ async def test_an_agent_links_its_skill_router_to_the_relay_the_cloud_named(stac
     settings = agent_settings(stack.server, "rl-agent", token, tmp_path / "agent", detect_ros_master=False)
     controller = RobotController(settings)
     controller.local_ros_master = controller.ros_master = rosmaster
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         relay = controller.cloud_relays[SKILL]
         await eventually(lambda: _is(relay_status("rl-agent"), "running"), timeout=45, what="the relay running")
         record = await controller.start_skill(parse_skill_config(CONFIG), starting=[])

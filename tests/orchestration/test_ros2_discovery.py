@@ -32,7 +32,8 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot
 from skills.cloud.runtime import KIND_ROS2_DISCOVERY
 from skills.models import CloudInstance, RobotCloud
-from tests.agent.test_controller import eventually, make_robot
+from tests.agent.conftest import make_robot
+from tests.conftest import eventually
 
 from .conftest import make_stack, observe_async
 

@@ -23,7 +23,8 @@ from bridgeos_agent.protocol import Event
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.runtime import object_name
-from tests.agent.test_controller import eventually, make_robot
+from tests.agent.conftest import make_robot
+from tests.conftest import eventually
 
 from .conftest import make_stack
 from .test_ros2_discovery import (
