@@ -7,7 +7,7 @@ import contextlib
 import copy
 import json
 import subprocess
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Iterator, Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -22,6 +22,7 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.supervisor import SkillPlugin
 from robots.services import create_robot, issue_api_token, update_robot_config
 from skills.services import add_skill
+from tests.agent.roshelpers import Nodes, private_rosmaster
 from tests.conftest import BIN, ROOT, free_port, service_env, wait_for_port
 from tests.logguard import watch
 
@@ -180,3 +181,20 @@ async def robot_agent(
     controller = RobotController(agent_settings(cloud, robot_id, token, data_dir, **settings), plugins=plugins)
     async with configured(controller):
         yield controller
+
+
+@pytest.fixture(scope="module")
+def rosmaster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """Start a ROS master of the test module's own."""
+    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
+        yield uri
+
+
+@pytest.fixture
+def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
+    """Give a test rospy nodes on its module's ROS master, all killed when it ends."""
+    runner = Nodes(rosmaster, tmp_path)
+    try:
+        yield runner
+    finally:
+        runner.kill_all()

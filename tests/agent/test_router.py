@@ -7,7 +7,7 @@ import json
 import logging
 import subprocess
 import xmlrpc.client
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import aiohttp
@@ -18,28 +18,12 @@ from bridgeos_agent.rosnode import read_header
 from bridgeos_agent.router import RouterSettings, SkillRouter, router_settings_from_env
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.tcpros import TOPIC_STATISTICS_MD5, TopicStatistics, encode_header
-from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
+from tests.agent.roshelpers import HOST_PYTHON
 from tests.conftest import eventually, free_port
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 
 SKILL = "relay"
-
-
-@pytest.fixture(scope="module")
-def rosmaster(tmp_path_factory) -> Iterator[str]:
-    """Start a ROS master of this module's own."""
-    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
-        yield uri
-
-
-@pytest.fixture
-def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
-    runner = Nodes(rosmaster, tmp_path)
-    try:
-        yield runner
-    finally:
-        runner.kill_all()
 
 
 def ns(component: str, location: str) -> str:

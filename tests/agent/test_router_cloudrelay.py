@@ -24,7 +24,6 @@ import bridgeos_agent
 from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.router.cloudrelay import CloudLink, FrameLog, fingerprint, link_from_env
 from bridgeos_agent.skillconfig import parse_skill_config
-from tests.agent.roshelpers import Nodes, private_rosmaster
 from tests.conftest import eventually
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
@@ -50,21 +49,6 @@ CONFIG = {
 
 def ns(component: str, location: str) -> str:
     return f"/bridgeos/{SKILL}/{component}/{location}"
-
-
-@pytest.fixture(scope="module")
-def rosmaster(tmp_path_factory) -> Iterator[str]:
-    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
-        yield uri
-
-
-@pytest.fixture
-def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
-    runner = Nodes(rosmaster, tmp_path)
-    try:
-        yield runner
-    finally:
-        runner.kill_all()
 
 
 @pytest.fixture

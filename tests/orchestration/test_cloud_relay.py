@@ -14,7 +14,6 @@ import os
 import signal
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import psutil
@@ -31,7 +30,6 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
 from skills.models import CloudRelay, Component
 from tests.agent.conftest import agent_settings, configured, make_robot
-from tests.agent.roshelpers import Nodes, private_rosmaster
 from tests.agent.test_router_cloudrelay import CONFIG, SKILL, ns, subscribers_of
 from tests.conftest import eventually
 
@@ -46,23 +44,8 @@ pytestmark = [
 
 
 @pytest.fixture(scope="module")
-def rosmaster(tmp_path_factory) -> Iterator[str]:
-    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
-        yield uri
-
-
-@pytest.fixture(scope="module")
 def stack(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator:
     yield from make_stack("process", tmp_path_factory.mktemp("relay"))
-
-
-@pytest.fixture
-def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
-    runner = Nodes(rosmaster, tmp_path)
-    try:
-        yield runner
-    finally:
-        runner.kill_all()
 
 
 async def login(stack, robot_id: str, token: str, master: str) -> tuple[Link, dict]:
