@@ -42,3 +42,9 @@ async def client_link(server, token: str) -> Link:
     link = Link(server.ws_url + "/ws/client/")
     await link.connect(Event.AUTHENTICATION_CLIENT, {"token": token})
     return link
+
+
+async def new_robot_link(server, robot_id: str, owner: str = "owner", *, with_skill: bool = True) -> tuple[Link, str]:
+    """Create a user and a robot of theirs, and connect the robot; return its link and the user's API token."""
+    user, api_token = await make_owner(owner)
+    return await robot_link(server, robot_id, await make_robot(robot_id, user, with_skill=with_skill)), api_token
