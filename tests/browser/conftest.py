@@ -91,6 +91,11 @@ class Browser:
         page.wait_for_url(f"{self.base_url}/")
         self.wait_live()
 
+    def visit(self, path: str) -> Any:
+        """Open a dashboard page by its path and return the page."""
+        self.page.goto(self.base_url + path)
+        return self.page
+
     def wait_live(self) -> None:
         """Wait until the page's /ws/client/ socket is authenticated."""
         self.page.wait_for_selector('#live-status[data-state="live"]', timeout=10_000)
