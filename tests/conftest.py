@@ -1,4 +1,4 @@
-"""Fixtures that start the real parts: daphne on a socket, a Celery worker on Redis."""
+"""Fixtures that start the real parts (daphne on a socket, a Celery worker on Redis) and helpers every test shares."""
 
 from __future__ import annotations
 
@@ -9,8 +9,10 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,6 +72,36 @@ async def eventually(
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
         await asyncio.sleep(interval)
+
+
+class LoopThread:
+    """An asyncio loop in a thread of its own, for code under test while blocking clients hold the test's thread."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="test-loop", daemon=True)
+        self.thread.start()
+
+    def start(self, coroutine: Any) -> Future[Any]:
+        """Schedule a coroutine on the loop and return its future."""
+        return asyncio.run_coroutine_threadsafe(coroutine, self.loop)
+
+    def run(self, coroutine: Any, timeout: float = 30) -> Any:
+        """Run a coroutine on the loop and return its result."""
+        return self.start(coroutine).result(timeout)
+
+    def call(self, function: Callable[[], Any]) -> Any:
+        """Call a function on the loop's thread (to build what must belong to the loop) and return its result."""
+
+        async def run() -> Any:
+            return function()
+
+        return self.run(run(), timeout=10)
+
+    def stop(self) -> None:
+        """Stop the loop and wait for its thread."""
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
 
 
 def stop_process(process: subprocess.Popen, timeout: float = 10) -> None:

@@ -25,8 +25,7 @@ from tests.agent.bridgeclients import FoxgloveSide, RosbridgeSide, text
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.agent.test_rosbridge import LoopThread
-from tests.conftest import wait_until
+from tests.conftest import LoopThread, wait_until
 
 pytestmark = [pytest.mark.timeout(180)]
 

@@ -24,8 +24,7 @@ from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.agent.test_rosbridge import LoopThread
-from tests.conftest import free_port, wait_until
+from tests.conftest import LoopThread, free_port, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 

@@ -24,9 +24,9 @@ from bridgeos_agent.ros2graph import Ros2Graph, rclpy_missing
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import Nodes, private_rosmaster
-from tests.agent.test_rosbridge import LoopThread, ros1_available
+from tests.agent.test_rosbridge import ros1_available
 from tests.agent.test_rosbridge_actions import run_action_server
-from tests.conftest import wait_until
+from tests.conftest import LoopThread, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 

@@ -7,11 +7,9 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 import xmlrpc.client
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +25,7 @@ from bridgeos_agent.cli import EXIT_USAGE, main
 from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import free_port, wait_until
+from tests.conftest import LoopThread, free_port, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 
@@ -37,23 +35,6 @@ LINGER_S = 0.5  # how long the test server keeps a topic after its last client l
 
 def ros1_available() -> bool:
     return Path(HOST_PYTHON).exists() and Path("/usr/bin/rosmaster").exists()
-
-
-class LoopThread:
-    """An asyncio loop in a thread of its own: roslibpy blocks the test's thread while the bridge serves."""
-
-    def __init__(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name="rosbridge-test", daemon=True)
-        self.thread.start()
-
-    def run(self, coroutine: Any, timeout: float = 30) -> Any:
-        future: Future[Any] = asyncio.run_coroutine_threadsafe(coroutine, self.loop)
-        return future.result(timeout)
-
-    def stop(self) -> None:
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(5)
 
 
 @dataclass

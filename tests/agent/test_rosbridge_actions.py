@@ -22,8 +22,8 @@ from bridgeos_agent.bridges.server import RosbridgeServer
 from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import private_rosmaster
-from tests.agent.test_rosbridge import LoopThread, ask, ros1_available
-from tests.conftest import wait_until
+from tests.agent.test_rosbridge import ask, ros1_available
+from tests.conftest import LoopThread, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 

@@ -7,7 +7,6 @@ clients a robot's owner would use, authenticated with an API token or a single-u
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import json
 import os
@@ -16,11 +15,9 @@ import shutil
 import socket
 import struct
 import subprocess
-import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -38,7 +35,7 @@ from robots.models import BridgeTicket, Robot
 from robots.services import create_robot, issue_api_token
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import ROOT, Server, another_daphne, wait_until
+from tests.conftest import ROOT, LoopThread, Server, another_daphne, wait_until
 
 pytestmark = [pytest.mark.ros, pytest.mark.django_db(transaction=True), pytest.mark.timeout(120)]
 
@@ -46,28 +43,6 @@ BYTES_PER_S = 40_000  # each client's cap in this cloud
 MAX_FRAME = 64 * 1024  # the largest client frame this cloud passes on
 FRAMES_PER_S = 100  # how often a client may send, with bursts of 200
 JS_DIR = ROOT / "tests" / "js" / "roslib"
-
-
-class LoopThread:
-    """The agent's asyncio loop in a thread of its own: the clients here block the test's thread."""
-
-    def __init__(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name="bridge-agent", daemon=True)
-        self.thread.start()
-
-    def start(self, coroutine: Any) -> Future[Any]:
-        return asyncio.run_coroutine_threadsafe(coroutine, self.loop)
-
-    def call(self, function: Callable[[], Any]) -> Any:
-        async def run() -> Any:
-            return function()
-
-        return self.start(run()).result(10)
-
-    def stop(self) -> None:
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(5)
 
 
 @pytest.fixture(scope="module")

@@ -18,8 +18,8 @@ from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.ros2graph import rclpy_missing
 from robots.models import Robot
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
-from tests.cloud.test_bridge_relay import Bot, LoopThread, cloud, make_robot, token_client
-from tests.conftest import Server, wait_until
+from tests.cloud.test_bridge_relay import Bot, cloud, make_robot, token_client
+from tests.conftest import LoopThread, Server, wait_until
 
 pytestmark = [
     pytest.mark.ros,

@@ -29,8 +29,8 @@ from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
 from tests.agent.test_bridge_to_bridge import COUNT, STRING_SCHEMA, node_texts, publish_to_everyone, seqs
-from tests.cloud.test_bridge_relay import LoopThread, make_robot, ticket
-from tests.conftest import Server, another_daphne, wait_until
+from tests.cloud.test_bridge_relay import make_robot, ticket
+from tests.conftest import LoopThread, Server, another_daphne, wait_until
 
 pytestmark = [pytest.mark.ros, pytest.mark.django_db(transaction=True), pytest.mark.timeout(180)]
 
