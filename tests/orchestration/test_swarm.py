@@ -270,7 +270,7 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
             instance = await instance_of("swarm-3", "ticker")
             return instance if instance.status == "running" and instance.container.get("id") != old_id else None
 
-        again = await eventually(restarted, timeout=90, what="the copy restarted")
+        again = await eventually(restarted, timeout=90, what="the copy restarted", interval=0.1)
         crashes = await events_of("swarm-3", "cloud_component_crashed")
         assert len(crashes) == 1 and crashes[0].level == "error"
         assert "started" in crashes[0].data["logs"] and crashes[0].data["exit_code"] == 137
@@ -288,7 +288,7 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
             await asyncio.to_thread(stack.reconcile)
             return await sync_to_async(list)(Metric.objects.filter(robot_id="swarm-3", component="ticker", name="ram"))
 
-        ram = await eventually(measured, timeout=60, what="the copy's memory stored")
+        ram = await eventually(measured, timeout=60, what="the copy's memory stored", interval=0.1)
         assert all(point.labels == {"location": "cloud"} and point.value > 0 for point in ram)
         await controller.stop_skill(SKILL)
 
@@ -312,7 +312,7 @@ async def test_a_worker_killed_mid_start_leaves_exactly_one_copy(stack, tmp_path
                 return await running_instance("swarm-4", "ticker")
 
             try:
-                instance = await eventually(settled, timeout=90, what="the copy adopted")
+                instance = await eventually(settled, timeout=90, what="the copy adopted", interval=0.1)
             except AssertionError:
                 row = await instance_of("swarm-4", "ticker")
                 seen = [(o.component, o.status) for o in await observe_async("swarm") if o.robot == "swarm-4"]
