@@ -1,16 +1,21 @@
-"""Fixtures that start the real parts: daphne on a socket, a Celery worker on Redis."""
+"""Fixtures that start the real parts (daphne on a socket, a Celery worker on Redis) and helpers every test shares."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import inspect
 import os
 import socket
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -39,6 +44,64 @@ def wait_for_port(port: int, process: subprocess.Popen, timeout: float = 30.0) -
         except OSError:
             time.sleep(0.05)
     raise TimeoutError(f"nothing listened on port {port} within {timeout} s")
+
+
+def wait_until(check: Callable[[], Any], timeout: float = 15.0, what: str = "condition", interval: float = 0.05) -> Any:
+    """Poll a check until it returns something truthy; return that, or fail saying what never happened."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = check()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(interval)
+
+
+async def eventually(
+    check: Callable[[], Any], timeout: float = 30.0, what: str = "condition", interval: float = 0.05
+) -> Any:
+    """Poll a check (sync or async) until it returns something truthy; return that, or fail saying what never happened."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = check()
+        if inspect.isawaitable(value):
+            value = await value
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        await asyncio.sleep(interval)
+
+
+class LoopThread:
+    """An asyncio loop in a thread of its own, for code under test while blocking clients hold the test's thread."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="test-loop", daemon=True)
+        self.thread.start()
+
+    def start(self, coroutine: Any) -> Future[Any]:
+        """Schedule a coroutine on the loop and return its future."""
+        return asyncio.run_coroutine_threadsafe(coroutine, self.loop)
+
+    def run(self, coroutine: Any, timeout: float = 30) -> Any:
+        """Run a coroutine on the loop and return its result."""
+        return self.start(coroutine).result(timeout)
+
+    def call(self, function: Callable[[], Any]) -> Any:
+        """Call a function on the loop's thread (to build what must belong to the loop) and return its result."""
+
+        async def run() -> Any:
+            return function()
+
+        return self.run(run(), timeout=10)
+
+    def stop(self) -> None:
+        """Stop the loop and wait for its thread."""
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
 
 
 def stop_process(process: subprocess.Popen, timeout: float = 10) -> None:

@@ -19,17 +19,7 @@ import roslibpy
 
 from tests.agent.foxgloveclient import FoxgloveClient
 
-__all__ = ["FoxgloveSide", "RosbridgeSide", "text", "wait_for"]
-
-
-def wait_for(check: Callable[[], Any], timeout: float = 20, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        result = check()
-        if result:
-            return result
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+__all__ = ["FoxgloveSide", "RosbridgeSide", "text"]
 
 
 def text(tag: str, seq: int) -> str:

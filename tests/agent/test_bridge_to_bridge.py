@@ -21,11 +21,11 @@ import roslibpy
 
 from bridgeos_agent.bridges.server import FoxgloveServer, RosbridgeServer
 from bridgeos_agent.ros2graph import rclpy_missing
-from tests.agent.bridgeclients import FoxgloveSide, RosbridgeSide, text, wait_for
+from tests.agent.bridgeclients import FoxgloveSide, RosbridgeSide, text
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.agent.test_rosbridge import LoopThread
+from tests.conftest import LoopThread, wait_until
 
 pytestmark = [pytest.mark.timeout(180)]
 
@@ -90,7 +90,7 @@ def _ros1_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
 
         rosbridge, foxglove = loop.run(start())
         try:
-            wait_for(lambda: all("ready" in nodes.lines(t) for t in LISTENED), what="the ROS listeners")
+            wait_until(lambda: all("ready" in nodes.lines(t) for t in LISTENED), timeout=20, what="the ROS listeners")
             yield Robot("ros1", rosbridge, foxglove, nodes, loop)
         finally:
             loop.run(rosbridge.close())
@@ -116,7 +116,7 @@ def _ros2_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
 
     rosbridge, foxglove = loop.run(start())
     try:
-        wait_for(lambda: all("ready" in nodes.lines(t) for t in LISTENED), what="the ROS listeners")
+        wait_until(lambda: all("ready" in nodes.lines(t) for t in LISTENED), timeout=20, what="the ROS listeners")
         yield Robot("ros2", rosbridge, foxglove, nodes, loop)
     finally:
         loop.run(rosbridge.close())
@@ -168,7 +168,7 @@ def publish_to_everyone(publisher, topic: str, hearers: dict[str, Callable[[], l
         return all(seqs(hear(), "warm") for hear in hearers.values())
 
     try:
-        wait_for(all_warm, timeout=45, what=f"every subscriber of {topic} to hear the warm-up")
+        wait_until(all_warm, timeout=45, what=f"every subscriber of {topic} to hear the warm-up")
     except AssertionError:
         cold = [who for who, hear in hearers.items() if not seqs(hear(), "warm")]
         raise AssertionError(f"{', '.join(cold)} never heard {topic} ({sent} messages sent)") from None
@@ -179,7 +179,7 @@ def publish_to_everyone(publisher, topic: str, hearers: dict[str, Callable[[], l
         return all(len(set(seqs(hear(), "probe"))) >= COUNT for hear in hearers.values())
 
     try:
-        wait_for(everyone_has_all, timeout=20, what="every subscriber to hear every message")
+        wait_until(everyone_has_all, timeout=20, what="every subscriber to hear every message")
     finally:
         time.sleep(0.5)  # a duplicate would arrive by now
         heard = {who: seqs(hear(), "probe") for who, hear in hearers.items()}
@@ -236,7 +236,7 @@ def test_a_ros_nodes_message_reaches_every_bridge_client_once(robot: Robot, clie
     second.subscribe(topic)
     viewer.subscribe(topic)
     hearers = {"first": first, "second": second, "viewer": viewer}
-    wait_for(lambda: all(len(seqs(c.heard(topic), "probe")) >= 100 for c in hearers.values()), timeout=30)
+    wait_until(lambda: all(len(seqs(c.heard(topic), "probe")) >= 100 for c in hearers.values()), timeout=30)
     for who, client in hearers.items():
         got = seqs(client.heard(topic), "probe")
         # Each joined at some point of the talker's run; from then on, every message once, in order.

@@ -3,107 +3,36 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Callable
-from pathlib import Path
 
 import httpx
 import psutil
 import pytest
 from asgiref.sync import sync_to_async
 
-from bridgeos_agent.controller import AgentSettings, RobotController
+from bridgeos_agent.controller import RobotController
 from bridgeos_agent.monitor import SimulatedRobot
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot
-from robots.services import create_robot, issue_api_token, update_robot_config
+from robots.services import create_robot
 from skills.models import CloudInstance, Component
-from skills.services import add_skill
-from tests.agent.conftest import Cloud
-from tests.conftest import BIN
+from tests.agent.conftest import (
+    SKILL,
+    agent_settings,
+    configured,
+    make_robot,
+    robot_agent,
+    running,
+    running_workers,
+    skill_config,
+)
+from tests.conftest import BIN, eventually
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(240)]
-
-SKILL = "workers"
-
-
-def skill_config(*, location: str = "robot", count: int = 2, cpu: float = 0.1) -> dict:
-    """Return a Skill of `count` components that each sleep, runnable by the process runtime."""
-    spec = {"command": ["sleep", "600"]}
-    components = {
-        f"worker-{n}": {
-            "name": f"Worker {n}",
-            "location": location,
-            "ros": False,
-            "resources": {"cpu": cpu, "ram": 16},
-            "robot": spec,
-            **({"cloud": spec} if location != "robot" else {}),
-        }
-        for n in range(count)
-    }
-    return parse_skill_config({"skill": "Workers", "skill_id": SKILL, "components": components}).model_dump(mode="json")
-
-
-@sync_to_async
-def make_robot(robot_id: str, *, config: dict | None = None, skill: dict | None = None) -> tuple[str, str]:
-    """Create a robot (owner, optional config changes and Skill); return (robot token, API token)."""
-    from django.contrib.auth import get_user_model
-
-    owner = get_user_model().objects.create_user(f"owner-{robot_id}")
-    robot, token = create_robot(robot_id, owner)
-    if config:
-        update_robot_config(robot.id, config)
-    if skill:
-        add_skill(robot, skill)
-    return token, issue_api_token(owner)[0]
-
-
-def agent_settings(cloud: Cloud, robot: str, token: str, data_dir: Path, **kw) -> AgentSettings:
-    """Return settings for a simulated robot that samples fast, reports every sample and cleans up."""
-    kw.setdefault("stop_components_on_exit", True)
-    return AgentSettings(
-        master=cloud.ws_url,
-        robot=robot,
-        token=token,
-        data_dir=data_dir,
-        simulate=True,
-        simulated=SimulatedRobot(cpu=4, ram=4096, seed=1),
-        sample_interval=kw.pop("sample_interval", 0.2),
-        report_max_interval=0.0,
-        reconnect_initial=0.2,
-        reconnect_max=1.0,
-        **kw,
-    )
-
-
-@contextlib.asynccontextmanager
-async def running(controller: RobotController) -> AsyncIterator[RobotController]:
-    """Run a controller for the body of a with block, then stop it."""
-    task = asyncio.create_task(controller.run())
-    try:
-        yield controller
-    finally:
-        controller.stop()
-        await asyncio.wait_for(task, 30)
-
-
-async def eventually(check: Callable[[], object], timeout: float = 30.0, what: str = "condition") -> object:
-    """Poll an (async or sync) check until it returns something truthy."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = check()
-        if asyncio.iscoroutine(value):
-            value = await value
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.1)
 
 
 @sync_to_async
@@ -132,22 +61,8 @@ def component_rows(robot_id: str) -> dict[str, tuple[str, str | None]]:
     }
 
 
-def running_workers(controller: RobotController) -> dict[str, int]:
-    """Return {component: pid} of the skill's components the runtime runs now."""
-    state = controller.runtime.get_state()
-    found = {}
-    for entry in state.get("components", []):
-        pid = entry.get("pid")
-        if entry.get("skill") == SKILL and pid and psutil.pid_exists(pid):
-            found[entry["component"]] = pid
-    return found
-
-
 async def test_connects_receives_its_config_and_reports_metrics(cloud, tmp_path):
-    token, _ = await make_robot("ctl-1", config={"offloading": "manual"})
-    controller = RobotController(agent_settings(cloud, "ctl-1", token, tmp_path / "agent"))
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "ctl-1", tmp_path / "agent", config={"offloading": "manual"}) as controller:
         assert controller.config.offloading == "manual"
         robot = await sync_to_async(Robot.objects.get)(id="ctl-1")
         assert robot.connected
@@ -159,8 +74,7 @@ async def test_connects_receives_its_config_and_reports_metrics(cloud, tmp_path)
 async def test_a_skill_started_through_the_api_runs_on_the_robot(cloud, tmp_path):
     token, api_token = await make_robot("ctl-2", skill=skill_config())
     controller = RobotController(agent_settings(cloud, "ctl-2", token, tmp_path / "agent"))
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         async with httpx.AsyncClient(base_url=cloud.url, headers={"Authorization": f"Token {api_token}"}) as api:
             response = await api.post(f"/api/robot/ctl-2/skill/{SKILL}/start", params={"wait": 10})
         assert response.status_code == 200, response.text
@@ -245,8 +159,7 @@ async def test_takeover_runs_cloud_components_on_the_robot_and_reverts(cloud, tm
     config = {"offloading": "cloud", "heartbeat_interval": 0.5, "connection_lost_after": 2.0}
     token, api_token = await make_robot("ctl-5", config=config, skill=skill_config(location="either", count=3))
     controller = RobotController(agent_settings(cloud, "ctl-5", token, tmp_path / "agent"))
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         async with httpx.AsyncClient(base_url=cloud.url, headers={"Authorization": f"Token {api_token}"}) as api:
             response = await api.post(f"/api/robot/ctl-5/skill/{SKILL}/start", params={"wait": 10})
         assert response.status_code == 200, response.text
@@ -293,8 +206,7 @@ async def test_a_component_that_does_not_fit_moves_a_movable_one_to_the_cloud(cl
     settings = agent_settings(cloud, "ctl-6", token, tmp_path / "agent")
     settings.simulated = SimulatedRobot(cpu=1.0, ram=4096, seed=2)
     controller = RobotController(settings)
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         record = await controller.start_skill(parse_skill_config(either), starting=["worker-0"])
         assert record.locations["worker-0"] == "robot"
         where = await controller.place_component(record, "worker-1")
@@ -429,8 +341,7 @@ async def test_a_migration_moves_the_component_and_back(cloud, tmp_path):
     token, api_token = await make_robot("mig-1", skill=skill_config(location="either", count=1))
     controller = RobotController(agent_settings(cloud, "mig-1", token, tmp_path / "agent"))
     headers = {"Authorization": f"Token {api_token}"}
-    async with running(controller), httpx.AsyncClient(base_url=cloud.url, headers=headers) as api:
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller), httpx.AsyncClient(base_url=cloud.url, headers=headers) as api:
         assert (await api.post(f"/api/robot/mig-1/skill/{SKILL}/start", params={"wait": 10})).status_code == 200
         await eventually(lambda: running_workers(controller), what="worker on the robot")
         # The API moves a component "to the other side" of where the cloud knows it runs.

@@ -24,8 +24,7 @@ from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.agent.test_rosbridge import LoopThread, wait_for
-from tests.conftest import free_port
+from tests.conftest import LoopThread, free_port, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 
@@ -99,7 +98,7 @@ def _ros1_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
 
         server = loop.run(start())
         try:
-            wait_for(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
+            wait_until(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
             yield Robot("ros1", server, loop, nodes.lines, run_talker)
         finally:
             loop.run(server.close())
@@ -126,7 +125,7 @@ def _ros2_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
 
     server = loop.run(start())
     try:
-        wait_for(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
+        wait_until(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
         yield Robot("ros2", server, loop, nodes.lines, run_talker)
     finally:
         loop.run(server.close())
@@ -234,7 +233,7 @@ def test_a_client_receives_the_robots_talker_as_raw_bytes_that_decode(robot: Rob
     assert seqs == sorted(seqs)
     assert "/chatter" in robot.server.bridge.fanouts.topics()
     client.command("unsubscribe", subscriptionId=subscription)
-    wait_for(lambda: "/chatter" not in robot.server.bridge.fanouts.topics(), what="the graph unsubscription")
+    wait_until(lambda: "/chatter" not in robot.server.bridge.fanouts.topics(), what="the graph unsubscription")
 
 
 def test_a_topic_that_appears_is_advertised_and_one_that_goes_is_withdrawn(
@@ -257,7 +256,7 @@ def test_a_client_publishes_to_a_real_listener(robot: Robot, client: FoxgloveCli
         client.command("publish", channelId=channel_id, data=base64.b64encode(data).decode())
         return any(line.startswith("viewer ") for line in robot.lines("listener"))
 
-    wait_for(heard, what="the robot's listener to hear the Foxglove client")
+    wait_until(heard, what="the robot's listener to hear the Foxglove client")
     client.command("unadvertise", channelId=channel_id)
 
 
@@ -270,7 +269,7 @@ def test_a_client_publishes_json_too(robot: Robot, client: FoxgloveClient) -> No
         client.command("publish", channelId=channel_id, data=base64.b64encode(data).decode())
         return any(line.startswith("jsonviewer ") for line in robot.lines("listener"))
 
-    wait_for(heard, what="the robot's listener to hear JSON from the client")
+    wait_until(heard, what="the robot's listener to hear JSON from the client")
 
 
 def test_a_stalled_client_loses_its_own_oldest_messages_only(robot: Robot, client: FoxgloveClient) -> None:
@@ -292,7 +291,9 @@ def test_a_stalled_client_loses_its_own_oldest_messages_only(robot: Robot, clien
     try:
         client.command("subscribe", topic="/chatter")
         subscription = client.wait("subscribed")["subscriptionId"]
-        wait_for(lambda: session.stats()["/chatter"]["dropped"] >= 5, timeout=30, what="the stalled queue to overflow")
+        wait_until(
+            lambda: session.stats()["/chatter"]["dropped"] >= 5, timeout=30, what="the stalled queue to overflow"
+        )
         for _ in range(10):  # the healthy client keeps getting messages meanwhile
             client.wait("message", lambda e: e["subscriptionId"] == subscription)
         stats = session.stats()["/chatter"]
@@ -461,7 +462,7 @@ def test_the_agent_serves_foxglove_when_asked(tmp_path: Path) -> None:
         nodes = Nodes(master, tmp_path)
         nodes.run("talker", "talker", "--topic", "/chatter", "--rate", "5", "--tag", "door")
         try:
-            wait_for(
+            wait_until(
                 lambda: "Foxglove WebSocket for the robot's ROS1 graph" in (tmp_path / "agent.err").read_text(), 30
             )
             client = FoxgloveClient(port)

@@ -24,8 +24,9 @@ from bridgeos_agent.ros2graph import Ros2Graph, rclpy_missing
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import Nodes, private_rosmaster
-from tests.agent.test_rosbridge import LoopThread, ros1_available, wait_for
+from tests.agent.test_rosbridge import ros1_available
 from tests.agent.test_rosbridge_actions import run_action_server
+from tests.conftest import LoopThread, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 
@@ -127,9 +128,9 @@ def _ros2_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
 
     server = loop.run(start())
     try:
-        wait_for(lambda: "ready" in nodes.lines("params"), what="the parameter node")
+        wait_until(lambda: "ready" in nodes.lines("params"), what="the parameter node")
         robot = Robot("ros2", server, loop, f"/{node}:")
-        wait_for(lambda: robot.values("gain"), timeout=20, what="the node's parameter services")
+        wait_until(lambda: robot.values("gain"), timeout=20, what="the node's parameter services")
         yield robot
     finally:
         loop.run(server.close())
@@ -243,7 +244,7 @@ def test_a_subscribed_parameter_is_sent_when_it_changes_and_not_after_unsubscrib
     time.sleep(4 * PARAM_POLL_S)
     assert watch.polls == polls  # nobody subscribed: the graph is not polled
     client.command("subscribeParameterUpdates", names=[robot.name("gain"), robot.name("count")])
-    wait_for(lambda: watch.subscribers, what="the subscription")
+    wait_until(lambda: watch.subscribers, what="the subscription")
     robot.set("gain", 7.5)
     update = client.wait("parameterValues", lambda e: e.get("id") is None)
     assert update["parameters"] == [{"name": robot.name("gain"), "value": 7.5, "type": "float64"}]
@@ -252,7 +253,7 @@ def test_a_subscribed_parameter_is_sent_when_it_changes_and_not_after_unsubscrib
     assert update["parameters"] == [{"name": robot.name("count"), "value": 9}]
 
     client.command("unsubscribeParameterUpdates", names=[])
-    wait_for(lambda: not watch.subscribers, what="the unsubscription")
+    wait_until(lambda: not watch.subscribers, what="the unsubscription")
     robot.set("gain", 1.5)
     with pytest.raises(AssertionError, match="no parameterValues"):
         client.wait("parameterValues", lambda e: e.get("id") is None, timeout=5 * PARAM_POLL_S)
@@ -266,13 +267,13 @@ def test_a_clients_own_change_reaches_the_other_subscribers(robot: Robot, client
     try:
         other.wait("serverInfo")
         other.command("subscribeParameterUpdates", names=[robot.name("label")])
-        wait_for(lambda: robot.server.bridge.parameters.subscribers, what="the subscription")
+        wait_until(lambda: robot.server.bridge.parameters.subscribers, what="the subscription")
         client.command("setParameters", parameters=[{"name": robot.name("label"), "value": "gripper"}])
         update = other.wait("parameterValues")
         assert update["parameters"] == [{"name": robot.name("label"), "value": "gripper"}]
     finally:
         other.close()
-    wait_for(lambda: not robot.server.bridge.parameters.subscribers, what="the leaving client's subscription to end")
+    wait_until(lambda: not robot.server.bridge.parameters.subscribers, what="the leaving client's subscription to end")
 
 
 # ---------------------------------------------------------------------- bad input
@@ -445,7 +446,7 @@ def _ros2_sim_robot(home: Path, loop: LoopThread) -> Iterator[SimRobot]:
 
     server = loop.run(start())
     try:
-        wait_for(lambda: loop.run(server.graph.simulated_clock()), timeout=20, what="/clock in the graph")
+        wait_until(lambda: loop.run(server.graph.simulated_clock()), timeout=20, what="/clock in the graph")
         yield SimRobot(server, loop)
     finally:
         loop.run(server.close())

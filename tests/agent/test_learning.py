@@ -7,12 +7,12 @@ import sys
 
 import pytest
 
-from bridgeos_agent.controller import RobotController
 from bridgeos_agent.manager import SkillManager
 from bridgeos_agent.runtime.cgroups import Cgroups
 from bridgeos_agent.skillconfig import parse_skill_config
+from tests.conftest import eventually
 
-from .test_controller import SKILL, agent_settings, eventually, make_robot, running, skill_config
+from .conftest import SKILL, robot_agent, skill_config
 from .test_manager import moves_logged
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(120)]
@@ -55,14 +55,11 @@ def misdeclared_skill() -> dict:
 async def test_a_misdeclared_component_is_placed_by_what_it_was_measured_to_cost(cloud, tmp_path):
     torch.manual_seed(1)
     config = misdeclared_skill()
-    token, _ = await make_robot("learn-1", skill=config)
     # No cgroup limits: held to what it declares, the component would be throttled rather than burn 0.2 cores.
-    settings = agent_settings(
-        cloud, "learn-1", token, tmp_path / "agent", runtime_options={"cgroups": Cgroups("learn-1", hierarchy=None)}
-    )
-    controller = RobotController(settings, plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    options = {"cgroups": Cgroups("learn-1", hierarchy=None)}
+    async with robot_agent(
+        cloud, "learn-1", tmp_path / "agent", skill=config, plugins={}, runtime_options=options
+    ) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         assert record.locations["worker-0"] == "robot"
         manager = SkillManager(controller, SKILL)

@@ -18,16 +18,9 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.traffic import ComponentTraffic
 from monitoring.models import Event as LogEvent
 from monitoring.models import Metric
+from tests.conftest import eventually
 
-from .test_controller import (
-    SKILL,
-    agent_settings,
-    eventually,
-    make_robot,
-    running,
-    running_workers,
-    skill_config,
-)
+from .conftest import SKILL, agent_settings, configured, make_robot, robot_agent, running_workers, skill_config
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(120)]
 
@@ -57,10 +50,9 @@ def moves_logged(robot_id: str) -> list[LogEvent]:
 async def test_a_recommendation_moves_the_component_and_every_decision_reaches_the_cloud(cloud, tmp_path):
     # A threshold no saving reaches: only the recommendation moves anything.
     config = movable_skill(threshold=1e6)
-    token, _ = await make_robot("man-1", config={"offloading": "auto"}, skill=config)
-    controller = RobotController(agent_settings(cloud, "man-1", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(
+        cloud, "man-1", tmp_path / "agent", config={"offloading": "auto"}, skill=config, plugins={}
+    ) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         assert set(record.locations.values()) == {"robot"}
         manager = SkillManager(controller, SKILL)
@@ -89,10 +81,7 @@ async def test_a_recommendation_moves_the_component_and_every_decision_reaches_t
 async def test_a_move_that_fails_is_logged_as_failed_and_the_component_stays(cloud, tmp_path):
     config = movable_skill(threshold=1e6)
     config["components"]["worker-1"]["robot"] = {"command": ["/nonexistent/bridgeos-test-command"]}
-    token, _ = await make_robot("man-7", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-7", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-7", tmp_path / "agent", skill=config, plugins={}) as controller:
         record = await controller.start_skill(parse_skill_config(config), starting=["worker-0"])
         await controller.place_component(record, "worker-1", location="cloud")
         manager = SkillManager(controller, SKILL)
@@ -148,10 +137,7 @@ def ros_skill(policy: str) -> dict:
 
 async def test_the_router_s_loss_rate_drives_the_performance_of_ros_components(cloud, tmp_path):
     config = ros_skill("performance")
-    token, _ = await make_robot("man-8", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-8", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-8", tmp_path / "agent", skill=config, plugins={}) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         assert set(record.locations.values()) == {"robot"}
         router = record.supervisor.context["router"] = Router()
@@ -184,10 +170,7 @@ async def test_the_router_s_bytes_and_the_declared_bandwidth_of_a_measured_compo
     cloud, tmp_path
 ):
     config = ros_skill("network")
-    token, _ = await make_robot("man-9", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-9", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-9", tmp_path / "agent", skill=config, plugins={}) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         assert set(record.locations.values()) == {"robot"}
         router = record.supervisor.context["router"] = Router()
@@ -213,10 +196,7 @@ async def test_cost_functions_read_the_robot_state_a_component_would_find_there(
     config = movable_skill(threshold=1e6)
     config["manager"].update(policy="custom", cost_functions={"robot": "cpu_free", "cloud": "ram_free"})
     config = parse_skill_config(config).model_dump(mode="json")
-    token, _ = await make_robot("man-11", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-11", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-11", tmp_path / "agent", skill=config, plugins={}) as controller:
         record = await controller.start_skill(parse_skill_config(config), starting=["worker-0"])
         await controller.place_component(record, "worker-1", location="cloud")
         await eventually(lambda: controller.monitor.latest is not None, what="a sample of the robot")
@@ -233,10 +213,7 @@ async def test_a_cost_function_that_fails_skips_its_component_and_is_logged_once
     config = movable_skill()
     config["manager"].update(policy="custom", cost_functions={"robot": "cpu / (battery - battery)", "cloud": "0"})
     config = parse_skill_config(config).model_dump(mode="json")
-    token, _ = await make_robot("man-10", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-10", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-10", tmp_path / "agent", skill=config, plugins={}) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         manager = SkillManager(controller, SKILL)
         with caplog.at_level(logging.WARNING, logger="bridgeos_agent.manager"):
@@ -250,10 +227,7 @@ async def test_a_cost_function_that_fails_skips_its_component_and_is_logged_once
 
 async def test_the_energy_policy_sends_movable_components_to_the_cloud(cloud, tmp_path):
     config = movable_skill()
-    token, _ = await make_robot("man-4", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-4", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-4", tmp_path / "agent", skill=config, plugins={}) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         decisions = await SkillManager(controller, SKILL).step()
         # Energy spent on the robot (eq. 4.1) exceeds the cloud's radio-only share (eq. 4.2).
@@ -264,10 +238,9 @@ async def test_the_energy_policy_sends_movable_components_to_the_cloud(cloud, tm
 
 async def test_nothing_moves_while_the_cloud_is_lost_or_the_mode_keeps_it(cloud, tmp_path):
     config = movable_skill()
-    token, _ = await make_robot("man-2", config={"offloading": "robot"}, skill=config)
-    controller = RobotController(agent_settings(cloud, "man-2", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(
+        cloud, "man-2", tmp_path / "agent", config={"offloading": "robot"}, skill=config, plugins={}
+    ) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         manager = SkillManager(controller, SKILL)
         # Offloading "robot": movable components are kept on the robot, decision after decision.
@@ -281,10 +254,7 @@ async def test_nothing_moves_while_the_cloud_is_lost_or_the_mode_keeps_it(cloud,
 
 async def test_the_manager_runs_by_itself_and_keeps_its_models_for_the_next_launch(cloud, tmp_path):
     config = movable_skill(interval=0.2)
-    token, _ = await make_robot("man-3", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-3", token, tmp_path / "agent"))
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-3", tmp_path / "agent", skill=config) as controller:
         await controller.start_skill(parse_skill_config(config))
         manager = await eventually(lambda: controller.skills[SKILL].supervisor.context.get("manager"))
         await eventually(lambda: len(manager.last) == 2, what="decisions for both components")
@@ -318,10 +288,7 @@ async def test_components_reach_their_manager_and_a_recommendation_moves_one(clo
     for component in config["components"].values():
         component["robot"] = {"command": [sys.executable, "-c", COMPONENT_SCRIPT]}
         component["cloud"] = {"command": ["sleep", "600"]}
-    token, _ = await make_robot("man-5", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-5", token, tmp_path / "agent"))
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-5", tmp_path / "agent", skill=config) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         manager = record.supervisor.context["manager"]
         assert manager.api is not None and manager.api.base_url.startswith("http://127.0.0.1:")
@@ -346,10 +313,7 @@ async def test_a_cloud_copy_reaches_its_skills_manager_through_the_cloud(cloud, 
     from skills.models import CloudInstance
 
     config = movable_skill(interval=0.3, threshold=1e6)
-    token, _ = await make_robot("man-9", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-9", token, tmp_path / "agent"))
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-9", tmp_path / "agent", skill=config) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         record.supervisor.context["manager"].recommend("worker-1", "cloud")
         await eventually(lambda: record.locations["worker-1"] == "cloud", what="worker-1 moved")
@@ -391,10 +355,7 @@ def _published(robot_id: str) -> list[Metric]:
 
 async def test_a_new_launch_starts_components_where_the_last_one_left_them(cloud, tmp_path):
     config = movable_skill(threshold=1e6)
-    token, _ = await make_robot("man-6", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-6", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-6", tmp_path / "agent", skill=config, plugins={}) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         manager = SkillManager(controller, SKILL)
         manager.recommend("worker-1", "cloud")
@@ -420,10 +381,9 @@ def test_a_damaged_placement_file_means_no_previous_placement(tmp_path):
 
 async def test_a_move_in_flight_holds_up_no_other_decision_and_its_component_is_not_decided_for_again(cloud, tmp_path):
     config = movable_skill(threshold=1e6)
-    token, _ = await make_robot("man-21", config={"offloading": "auto"}, skill=config)
-    controller = RobotController(agent_settings(cloud, "man-21", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(
+        cloud, "man-21", tmp_path / "agent", config={"offloading": "auto"}, skill=config, plugins={}
+    ) as controller:
         record = await controller.start_skill(parse_skill_config(config))
         manager = SkillManager(controller, SKILL)
         manager.recommend("worker-1", "cloud")
@@ -441,10 +401,7 @@ async def test_a_move_in_flight_holds_up_no_other_decision_and_its_component_is_
 
 async def test_a_component_s_cpu_is_the_mean_of_its_latest_measurements_on_the_robot(cloud, tmp_path):
     config = movable_skill(threshold=1e6)
-    token, _ = await make_robot("man-22", skill=config)
-    controller = RobotController(agent_settings(cloud, "man-22", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with robot_agent(cloud, "man-22", tmp_path / "agent", skill=config, plugins={}) as controller:
         await controller.start_skill(parse_skill_config(config))
         manager = SkillManager(controller, SKILL)
         key = (SKILL, "worker-0")
@@ -491,8 +448,7 @@ async def test_the_manager_decides_on_each_fresh_reading_when_it_samples_as_ofte
         return sample(*args, **kwargs)
 
     controller.monitor.sample = counted
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         await controller.start_skill(parse_skill_config(config))
         manager = await eventually(lambda: controller.skills[SKILL].supervisor.context.get("manager"))
         decided: set[float] = set()  # Decision.at: the manager's clock, time.monotonic

@@ -11,7 +11,7 @@ import os
 import shutil
 import subprocess
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,7 @@ from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.conftest import Cloud
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import ROOT, close_other_sessions
+from tests.conftest import ROOT, close_other_sessions, eventually
 
 MCAP_JS = ROOT / "tests" / "js" / "mcap"  # Foxglove's MCAP reader, installed by scripts/services.sh node
 
@@ -90,19 +90,6 @@ async def agent(cloud: Cloud, robot: str, token: str, data_dir: Path, **kw: Any)
     finally:
         controller.stop()
         await asyncio.wait_for(task, 30)
-
-
-async def eventually(check: Callable[[], Any], timeout: float = 30.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = check()
-        if asyncio.iscoroutine(value):
-            value = await value
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.1)
 
 
 def foxglove_reads(data: bytes, directory: Path) -> dict[str, Any]:

@@ -7,11 +7,9 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 import xmlrpc.client
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +25,7 @@ from bridgeos_agent.cli import EXIT_USAGE, main
 from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import free_port
+from tests.conftest import LoopThread, free_port, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 
@@ -37,23 +35,6 @@ LINGER_S = 0.5  # how long the test server keeps a topic after its last client l
 
 def ros1_available() -> bool:
     return Path(HOST_PYTHON).exists() and Path("/usr/bin/rosmaster").exists()
-
-
-class LoopThread:
-    """An asyncio loop in a thread of its own: roslibpy blocks the test's thread while the bridge serves."""
-
-    def __init__(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name="rosbridge-test", daemon=True)
-        self.thread.start()
-
-    def run(self, coroutine: Any, timeout: float = 30) -> Any:
-        future: Future[Any] = asyncio.run_coroutine_threadsafe(coroutine, self.loop)
-        return future.result(timeout)
-
-    def stop(self) -> None:
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(5)
 
 
 @dataclass
@@ -70,16 +51,6 @@ class Robot:
     @property
     def port(self) -> int:
         return self.server.port
-
-
-def wait_for(check: Callable[[], Any], timeout: float = 15, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        result = check()
-        if result:
-            return result
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture(scope="module", params=["ros1", "ros2"])
@@ -123,7 +94,7 @@ def _ros1_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
 
         server = loop.run(start())
         try:
-            wait_for(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
+            wait_until(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
             yield Robot("ros1", server, loop, nodes.lines, call_client_service, "/robot/gain")
         finally:
             loop.run(server.close())
@@ -142,7 +113,7 @@ def _ros2_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
     def call_client_service(name: str) -> str:
         nodes.run("caller", "caller", "--topic", name)
         try:
-            return wait_for(lambda: "\n".join(nodes.lines("caller")), timeout=30, what="the ROS 2 caller")
+            return wait_until(lambda: "\n".join(nodes.lines("caller")), timeout=30, what="the ROS 2 caller")
         finally:
             nodes.stop("caller")
 
@@ -155,7 +126,7 @@ def _ros2_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
 
     server = loop.run(start())
     try:
-        wait_for(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
+        wait_until(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
         yield Robot("ros2", server, loop, nodes.lines, call_client_service, "/server_robot:use_sim_time")
     finally:
         loop.run(server.close())
@@ -202,7 +173,7 @@ def test_a_client_receives_a_topic_the_robot_publishes(robot: Robot, client: ros
     heard: list[dict[str, Any]] = []
     topic = roslibpy.Topic(client, "/chatter", "std_msgs/String")
     topic.subscribe(heard.append)
-    wait_for(lambda: len(heard) >= 5, what="messages from the robot's talker")
+    wait_until(lambda: len(heard) >= 5, what="messages from the robot's talker")
     topic.unsubscribe()
     assert all(message["data"].startswith("robot ") for message in heard)
     seqs = [int(message["data"].split()[1]) for message in heard]
@@ -213,10 +184,10 @@ def test_the_robot_is_subscribed_only_while_someone_listens(robot: Robot, client
     topic = roslibpy.Topic(client, "/chatter", "std_msgs/String")
     heard: list[dict[str, Any]] = []
     topic.subscribe(heard.append)
-    wait_for(lambda: heard, what="a message")
+    wait_until(lambda: heard, what="a message")
     assert "/chatter" in robot.server.bridge.subscribed_topics()
     topic.unsubscribe()
-    wait_for(lambda: "/chatter" not in robot.server.bridge.subscribed_topics(), what="the graph unsubscription")
+    wait_until(lambda: "/chatter" not in robot.server.bridge.subscribed_topics(), what="the graph unsubscription")
 
 
 def test_a_robot_node_hears_what_a_client_publishes(robot: Robot, client: roslibpy.Ros) -> None:
@@ -227,7 +198,7 @@ def test_a_robot_node_hears_what_a_client_publishes(robot: Robot, client: roslib
         topic.publish(roslibpy.Message({"data": f"client {len(robot.lines('listener'))} {time.time():.6f}"}))
         return any(line.startswith("client ") for line in robot.lines("listener"))
 
-    wait_for(heard, what="the robot's listener to hear the client")
+    wait_until(heard, what="the robot's listener to hear the client")
     topic.unadvertise()
 
 
@@ -236,7 +207,7 @@ def test_throttle_rate_and_queue_length_limit_what_a_client_gets(robot: Robot, c
     full: list[dict[str, Any]] = []
     slow = roslibpy.Topic(client, "/chatter", "std_msgs/String", throttle_rate=500, queue_length=1)
     slow.subscribe(throttled.append)
-    wait_for(lambda: throttled, what="a first throttled message")
+    wait_until(lambda: throttled, what="a first throttled message")
     other = roslibpy.Ros("127.0.0.1", robot.port)
     other.run(timeout=10)
     try:
@@ -270,7 +241,7 @@ def test_a_stalled_client_loses_its_own_oldest_messages_only(robot: Robot, clien
     try:
         topic = roslibpy.Topic(client, "/chatter", "std_msgs/String")
         topic.subscribe(heard.append)
-        wait_for(lambda: session.stats()["/chatter"]["dropped"] >= 10, what="the stalled client's queue to overflow")
+        wait_until(lambda: session.stats()["/chatter"]["dropped"] >= 10, what="the stalled client's queue to overflow")
         assert len(heard) >= 10  # the healthy client keeps getting everything meanwhile
         stats = session.stats()["/chatter"]
         assert stats["queued"] == 5 and stats["sent"] <= 1
@@ -309,7 +280,7 @@ def test_a_robot_node_calls_a_service_the_client_advertises(robot: Robot, client
 
     service = roslibpy.Service(client, "/client_switch", "std_srvs/SetBool")
     service.advertise(answer)
-    wait_for(lambda: "/client_switch" in robot.server.bridge.client_services(), what="the advertisement")
+    wait_until(lambda: "/client_switch" in robot.server.bridge.client_services(), what="the advertisement")
     output = robot.call_client_service("/client_switch")
     service.unadvertise()
     assert asked == [{"data": True}]
@@ -472,7 +443,7 @@ def test_the_agent_serves_rosbridge_when_asked(tmp_path: Path, well_known: bool)
             stderr=(tmp_path / "agent.err").open("wb"),
         )
         try:
-            wait_for(lambda: "rosbridge v2 for the robot's ROS1 graph" in (tmp_path / "agent.err").read_text(), 30)
+            wait_until(lambda: "rosbridge v2 for the robot's ROS1 graph" in (tmp_path / "agent.err").read_text(), 30)
             ros = roslibpy.Ros("127.0.0.1", port)
             ros.run(timeout=10)
             try:

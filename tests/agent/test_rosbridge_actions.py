@@ -22,7 +22,8 @@ from bridgeos_agent.bridges.server import RosbridgeServer
 from bridgeos_agent.ros2graph import rclpy_missing
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import private_rosmaster
-from tests.agent.test_rosbridge import LoopThread, ask, ros1_available, wait_for
+from tests.agent.test_rosbridge import ask, ros1_available
+from tests.conftest import LoopThread, wait_until
 
 pytestmark = [pytest.mark.timeout(120)]
 
@@ -74,9 +75,9 @@ def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Robot]:
 
     server = loop.run(start())
     try:
-        wait_for(lambda: "ready" in nodes.lines("fibonacci"), what="the action server")
+        wait_until(lambda: "ready" in nodes.lines("fibonacci"), what="the action server")
         robot = Robot(server, loop, nodes)
-        wait_for(lambda: ACTION in robot.known_actions(), timeout=20, what="the action server in the graph")
+        wait_until(lambda: ACTION in robot.known_actions(), timeout=20, what="the action server in the graph")
         yield robot
     finally:
         loop.run(server.close())
@@ -149,7 +150,7 @@ def test_a_goal_reports_its_feedback_and_succeeds_with_the_result(robot: Robot, 
 def test_a_cancelled_goal_ends_with_status_canceled(robot: Robot, client: roslibpy.Ros) -> None:
     action = roslibpy.ActionClient(client, ACTION, FIBONACCI)
     goal_id, outcome = send(action, 19)  # about a second of work
-    wait_for(lambda: outcome.feedback, what="the first feedback")
+    wait_until(lambda: outcome.feedback, what="the first feedback")
     action.cancel_goal(goal_id)
     action.wait_goal(goal_id, timeout=30)
     assert outcome.result is not None and outcome.result["status"] == GoalStatus.CANCELED
@@ -199,7 +200,7 @@ def test_a_goal_to_a_missing_action_server_fails_clearly_and_leaves_the_graph_as
     assert (result["id"], result["result"], result["status"]) == ("g-missing", False, 0)
     assert result["values"] == f"no action server answers {missing}"
     # No action client of the bridge lingers in the graph (once discovery has heard it go).
-    wait_for(lambda: missing not in robot.known_actions(), what="the bridge's action client to leave the graph")
+    wait_until(lambda: missing not in robot.known_actions(), what="the bridge's action client to leave the graph")
     assert robot.server.bridge.sessions and not any(s.actions.goals() for s in robot.server.bridge.sessions)
 
 
@@ -264,7 +265,7 @@ def test_a_client_that_leaves_has_its_goal_cancelled(robot: Robot) -> None:
         goal = {"op": "send_action_goal", "id": "bye", "action": ACTION, "action_type": FIBONACCI}
         goal.update(args={"order": 18}, feedback=True)
         ask(websocket, goal, op="action_feedback")
-    wait_for(lambda: "canceled 18" in robot.nodes.lines("fibonacci"), what="the server to cancel the goal")
+    wait_until(lambda: "canceled 18" in robot.nodes.lines("fibonacci"), what="the server to cancel the goal")
 
 
 @pytest.mark.parametrize(

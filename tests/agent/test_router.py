@@ -6,9 +6,8 @@ import asyncio
 import json
 import logging
 import subprocess
-import time
 import xmlrpc.client
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import aiohttp
@@ -19,40 +18,12 @@ from bridgeos_agent.rosnode import read_header
 from bridgeos_agent.router import RouterSettings, SkillRouter, router_settings_from_env
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.tcpros import TOPIC_STATISTICS_MD5, TopicStatistics, encode_header
-from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import free_port
+from tests.agent.roshelpers import HOST_PYTHON
+from tests.conftest import eventually, free_port
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 
 SKILL = "relay"
-
-
-@pytest.fixture(scope="module")
-def rosmaster(tmp_path_factory) -> Iterator[str]:
-    """Start a ROS master of this module's own."""
-    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
-        yield uri
-
-
-@pytest.fixture
-def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
-    runner = Nodes(rosmaster, tmp_path)
-    try:
-        yield runner
-    finally:
-        runner.kill_all()
-
-
-async def eventually(check: Callable[[], object], timeout: float = 45.0, what: str = "condition") -> object:
-    """Poll a check until it returns something truthy."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = check()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.05)
 
 
 def ns(component: str, location: str) -> str:
@@ -120,14 +91,18 @@ async def test_a_robot_talker_reaches_canonical_listeners_and_an_outside_publish
     assert await router.wait_ready("talker", "cloud", 45)
     assert await router.wait_ready("listener", "robot", 45)
     for key in ("component", "canonical"):
-        await eventually(lambda key=key: len(nodes.messages(key)) >= 20, what=f"{key} listener hears the talker")
+        await eventually(
+            lambda key=key: len(nodes.messages(key)) >= 20, timeout=45, what=f"{key} listener hears the talker"
+        )
     for key in ("component", "canonical"):
         assert {tag for tag, _ in nodes.messages(key)} == {"robot"}
     # "And vice versa": rostopic publishing on the canonical name reaches the component's instance.
     nodes.command(
         "rostopic", "/usr/bin/rostopic", "pub", "-r", "20", "/chatter", "std_msgs/String", "data: 'outside 1 0'"
     )
-    await eventually(lambda: ("outside", 1) in nodes.messages("component"), what="rostopic's message at the component")
+    await eventually(
+        lambda: ("outside", 1) in nodes.messages("component"), timeout=45, what="rostopic's message at the component"
+    )
     # The router never sends its own canonical publication back to itself.
     canonical_tags = {tag for tag, _ in nodes.messages("canonical")}
     assert canonical_tags <= {"robot", "outside"}
@@ -143,15 +118,17 @@ async def test_switching_the_talker_under_a_1khz_stream_loses_and_duplicates_not
     nodes.run("canonical", "listener", "--topic", "/chatter")
     nodes.run("component", "listener", namespace=ns("listener", "robot"))
     assert await router.wait_ready("listener", "robot", 45)
-    await eventually(lambda: router.node.publications["/chatter"].connections, what="the canonical listener")
+    await eventually(
+        lambda: router.node.publications["/chatter"].connections, timeout=45, what="the canonical listener"
+    )
     nodes.run("robot", "talker", "--tag", "robot", "--rate", "1000", "--wait", namespace=ns("talker", "robot"))
-    await eventually(lambda: len(nodes.messages("canonical")) >= 300, what="the robot stream")
+    await eventually(lambda: len(nodes.messages("canonical")) >= 300, timeout=45, what="the robot stream")
     nodes.run("cloud", "talker", "--tag", "cloud", "--rate", "1000", "--wait", namespace=ns("talker", "cloud"))
     assert await router.wait_ready("talker", "cloud", 45)
     await router.switch("talker", "cloud")
     assert router.active("talker") == "cloud"
     switched_at = len(nodes.messages("canonical"))
-    await eventually(lambda: len(nodes.messages("canonical")) >= switched_at + 500, what="the cloud stream")
+    await eventually(lambda: len(nodes.messages("canonical")) >= switched_at + 500, timeout=45, what="the cloud stream")
     for key in ("canonical", "component"):
         heard = nodes.messages(key)
         tags = [tag for tag, _ in heard]
@@ -169,7 +146,9 @@ async def test_pointclouds_of_the_thesis_size_are_relayed_whole(nodes, make_rout
     # Thesis §5.3.1: RGB-D pointclouds of 30-40 MB. Each one must arrive whole, in order, once.
     router = await make_router(skill({"topics": [CHATTER]}), talker="robot", listener="robot")
     nodes.run("canonical", "listener", "--topic", "/chatter")
-    await eventually(lambda: router.node.publications["/chatter"].connections, what="the canonical listener")
+    await eventually(
+        lambda: router.node.publications["/chatter"].connections, timeout=45, what="the canonical listener"
+    )
     nodes.run(
         "robot",
         "talker",
@@ -199,11 +178,14 @@ async def test_switching_the_listener_delivers_every_message_exactly_once(nodes,
     nodes.run(
         "talker", "talker", "--tag", "t", "--rate", "1000", "--count", "3000", "--wait", namespace=ns("talker", "robot")
     )
-    await eventually(lambda: len(nodes.messages("listener-robot")) >= 500, what="the robot listener hears")
+    await eventually(lambda: len(nodes.messages("listener-robot")) >= 500, timeout=45, what="the robot listener hears")
     await router.switch("listener", "cloud")
-    await eventually(lambda: any(line.startswith("sent") for line in nodes.lines("talker")), what="the talker ends")
+    await eventually(
+        lambda: any(line.startswith("sent") for line in nodes.lines("talker")), timeout=45, what="the talker ends"
+    )
     await eventually(
         lambda: len(nodes.messages("listener-robot")) + len(nodes.messages("listener-cloud")) >= 3000,
+        timeout=45,
         what="every message delivered",
     )
     robot = [seq for _, seq in nodes.messages("listener-robot")]
@@ -251,7 +233,9 @@ async def test_a_stalled_subscriber_of_a_big_topic_delays_no_other_topic(nodes, 
             "--wait",
             namespace=ns("server", "robot"),
         )
-        await eventually(lambda: router.statistics()["/big"]["dropped"] > 0, what="the stalled subscriber's drops")
+        await eventually(
+            lambda: router.statistics()["/big"]["dropped"] > 0, timeout=45, what="the stalled subscriber's drops"
+        )
         nodes.run(
             "small",
             "talker",
@@ -264,7 +248,7 @@ async def test_a_stalled_subscriber_of_a_big_topic_delays_no_other_topic(nodes, 
             "--wait",
             namespace=ns("talker", "robot"),
         )
-        await eventually(lambda: len(nodes.messages("listener")) >= 400, what="every small message")
+        await eventually(lambda: len(nodes.messages("listener")) >= 400, timeout=45, what="every small message")
         assert nodes.messages("listener") == [("s", seq) for seq in range(1, 401)]
         stats = router.statistics()
         assert stats["/chatter"]["dropped"] == 0 and stats["/big"]["dropped"] > 0
@@ -343,7 +327,9 @@ async def test_statistics_match_what_was_sent(nodes, make_router, tmp_path):
     script = tmp_path / "stats.py"
     script.write_text(STATISTICS_LISTENER)
     nodes.command("stats", str(script))
-    await eventually(lambda: router.node.publications["/statistics"].connections, what="a /statistics listener")
+    await eventually(
+        lambda: router.node.publications["/statistics"].connections, timeout=45, what="a /statistics listener"
+    )
     nodes.run("listener", "listener", namespace=ns("listener", "cloud"))
     assert await router.wait_ready("listener", "cloud", 45)
     router.traffic("talker"), router.traffic("listener")  # start both windows now
@@ -362,7 +348,7 @@ async def test_statistics_match_what_was_sent(nodes, make_router, tmp_path):
         "--wait",
         namespace=ns("talker", "robot"),
     )
-    await eventually(lambda: len(nodes.messages("listener")) == count, what="every message at the listener")
+    await eventually(lambda: len(nodes.messages("listener")) == count, timeout=45, what="every message at the listener")
     # Each std_msgs/String is a 4-byte length and "t <seq> <time> <padding>".
     expected_bytes = sum(4 + len(f"t {seq} 1700000000.000000 ") + size for seq in range(1, count + 1))
     stats = router.statistics()["/chatter"]
@@ -378,7 +364,7 @@ async def test_statistics_match_what_was_sent(nodes, make_router, tmp_path):
         rows = [json.loads(line) for line in nodes.lines("stats") if line.startswith("[")]
         return [row for row in rows if row[0] == "/chatter"]
 
-    await eventually(lambda: sum(row[1] for row in published()) == count, what="/statistics adds up")
+    await eventually(lambda: sum(row[1] for row in published()) == count, timeout=45, what="/statistics adds up")
     rows = published()
     assert sum(row[3] for row in rows) == expected_bytes and sum(row[2] for row in rows) == 0
 
@@ -462,7 +448,9 @@ async def test_http_is_proxied_to_the_active_instance_and_follows_a_switch_witho
             assert await router.wait_ready("web", "cloud", 30)
             # A request already at the old instance finishes there; the switch waits for it.
             pending = asyncio.create_task(http.get("/api/slow"))
-            await eventually(lambda: router._inflight.get(("web", "robot")), what="the slow request in flight")
+            await eventually(
+                lambda: router._inflight.get(("web", "robot")), timeout=45, what="the slow request in flight"
+            )
             switching = asyncio.create_task(router.switch("web", "cloud"))
             async with http.get("/api/items") as response:
                 assert (await response.json())["instance"] == "cloud"

@@ -25,8 +25,7 @@ from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.router.cloudlink import CloudLink, link_from_env
 from bridgeos_agent.router.handover import FrameLog, fingerprint
 from bridgeos_agent.skillconfig import parse_skill_config
-from tests.agent.roshelpers import Nodes, private_rosmaster
-from tests.agent.test_router import eventually
+from tests.conftest import eventually
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 
@@ -51,21 +50,6 @@ CONFIG = {
 
 def ns(component: str, location: str) -> str:
     return f"/bridgeos/{SKILL}/{component}/{location}"
-
-
-@pytest.fixture(scope="module")
-def rosmaster(tmp_path_factory) -> Iterator[str]:
-    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
-        yield uri
-
-
-@pytest.fixture
-def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
-    runner = Nodes(rosmaster, tmp_path)
-    try:
-        yield runner
-    finally:
-        runner.kill_all()
 
 
 @pytest.fixture
@@ -171,7 +155,9 @@ async def test_a_cloud_to_cloud_link_does_not_cross_the_robots_router(nodes, mak
         "talker", "talker", "--tag", "c", "--rate", "200", "--count", str(count), "--size", "1000", "--wait",
         namespace=ns("talker", "cloud"),
     )  # fmt: skip
-    await eventually(lambda: len(nodes.messages("listener")) >= count, what="every message at the cloud listener")
+    await eventually(
+        lambda: len(nodes.messages("listener")) >= count, timeout=45, what="every message at the cloud listener"
+    )
     assert nodes.messages("listener") == [("c", seq) for seq in range(1, count + 1)]
     # The talker's stream reaches the relay only: the robot's router is not even subscribed to it.
     source = f"{ns('talker', 'cloud')}/chatter"
@@ -181,7 +167,9 @@ async def test_a_cloud_to_cloud_link_does_not_cross_the_robots_router(nodes, mak
     assert received.get(router.node.name, 0) < 512  # its connection header: not one message
     assert received[cloud_relay["node"]] >= count * 1000
     # The relay's counts reach the Skill Manager through the robot's router.
-    await eventually(lambda: link.counts.get("/chatter", {}).get("messages") == count, what="the relay's counts")
+    await eventually(
+        lambda: link.counts.get("/chatter", {}).get("messages") == count, timeout=45, what="the relay's counts"
+    )
     stats = router.statistics()["/chatter"]
     assert stats["messages"] == count and stats["subscribers"]["listener"]["messages"] == count
     assert stats["dropped"] == 0
@@ -202,10 +190,12 @@ async def test_switching_the_subscriber_robot_cloud_robot_under_a_1khz_stream_lo
         namespace=ns("talker", "cloud"),
     )  # fmt: skip
     assert await router.wait_ready("listener", "robot", 45)
-    await eventually(lambda: len(nodes.messages("robot")) >= 800, what="the robot listener hears the cloud talker")
+    await eventually(
+        lambda: len(nodes.messages("robot")) >= 800, timeout=45, what="the robot listener hears the cloud talker"
+    )
     assert await router.wait_ready("listener", "cloud", 45)
     await router.switch("listener", "cloud")
-    await eventually(lambda: len(nodes.messages("cloud")) >= 1000, what="the cloud listener via the relay")
+    await eventually(lambda: len(nodes.messages("cloud")) >= 1000, timeout=45, what="the cloud listener via the relay")
     assert subscribers_of(rosmaster, f"{ns('talker', 'cloud')}/chatter") == {cloud_relay["node"]}
     assert await router.wait_ready("listener", "robot", 45)
     await router.switch("listener", "robot")
@@ -220,7 +210,7 @@ async def test_switching_the_subscriber_robot_cloud_robot_under_a_1khz_stream_lo
     assert cloud == list(range(cloud[0], cloud[0] + len(cloud))), "the cloud listener's share has a gap"
     assert robot == [s for s in range(first, total + 1) if not cloud[0] <= s <= cloud[-1]], "the robot's share"
     await eventually(
-        lambda: link.counts.get("/chatter", {}).get("deliveries", {}).get("listener", [0])[0] == len(cloud)
+        lambda: link.counts.get("/chatter", {}).get("deliveries", {}).get("listener", [0])[0] == len(cloud), timeout=45
     )
     stats = router.statistics()["/chatter"]
     # The robot's own count plus the relay's (the robot's counts what it sent before its listener connected).
@@ -238,17 +228,23 @@ async def test_moving_the_publisher_into_the_cloud_hands_the_link_to_the_relay_w
     nodes.run("listener", "listener", namespace=ns("listener", "cloud"))
     assert await router.wait_ready("listener", "cloud", 45)
     nodes.run("robot", "talker", "--tag", "robot", "--rate", "1000", "--wait", namespace=ns("talker", "robot"))
-    await eventually(lambda: len(nodes.messages("listener")) >= 500, what="the robot talker at the cloud listener")
+    await eventually(
+        lambda: len(nodes.messages("listener")) >= 500, timeout=45, what="the robot talker at the cloud listener"
+    )
     nodes.run("cloud", "talker", "--tag", "cloud", "--rate", "1000", "--wait", namespace=ns("talker", "cloud"))
     assert await router.wait_ready("talker", "cloud", 45)
     await router.switch("talker", "cloud")
-    await eventually(lambda: subscribers_of(rosmaster, f"{ns('talker', 'cloud')}/chatter") == {cloud_relay["node"]})
+    await eventually(
+        lambda: subscribers_of(rosmaster, f"{ns('talker', 'cloud')}/chatter") == {cloud_relay["node"]}, timeout=45
+    )
     heard = len(nodes.messages("listener"))
-    await eventually(lambda: len(nodes.messages("listener")) >= heard + 500, what="the cloud talker via the relay")
+    await eventually(
+        lambda: len(nodes.messages("listener")) >= heard + 500, timeout=45, what="the cloud talker via the relay"
+    )
     assert await router.wait_ready("talker", "robot", 45)
     await router.switch("talker", "robot")
     heard = len(nodes.messages("listener"))
-    await eventually(lambda: len(nodes.messages("listener")) >= heard + 500, what="the robot talker again")
+    await eventually(lambda: len(nodes.messages("listener")) >= heard + 500, timeout=45, what="the robot talker again")
     tags = [tag for tag, _ in nodes.messages("listener")]
     runs = [tags[0]] + [b for a, b in itertools.pairwise(tags) if a != b]
     assert runs == ["robot", "cloud", "robot"], "the streams interleave at a switch"
@@ -265,13 +261,15 @@ async def test_a_subscriber_stopped_in_the_cloud_and_started_on_the_robot_is_ser
     link = CloudLink(cloud_relay["url"], TOKEN, poll=0.3)
     router = await make_router(link, talker="cloud", listener="cloud")
     nodes.run("talker", "talker", "--tag", "c", "--rate", "200", namespace=ns("talker", "cloud"))
-    await eventually(lambda: link.owned == {("/chatter", "listener")}, what="the pair handed to the relay")
+    await eventually(lambda: link.owned == {("/chatter", "listener")}, timeout=45, what="the pair handed to the relay")
     router.set_active("listener", None)  # the component stops...
-    await eventually(lambda: not link.owned, what="the pair taken back")
+    await eventually(lambda: not link.owned, timeout=45, what="the pair taken back")
     nodes.run("robot", "listener", namespace=ns("listener", "robot"))
     assert await router.wait_ready("listener", "robot", 45)
     router.set_active("listener", "robot")  # ...and starts again on the robot
-    await eventually(lambda: len(nodes.messages("robot")) >= 50, what="the robot's router serving the robot listener")
+    await eventually(
+        lambda: len(nodes.messages("robot")) >= 50, timeout=45, what="the robot's router serving the robot listener"
+    )
     seqs = [seq for _, seq in nodes.messages("robot")]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
 
@@ -288,7 +286,9 @@ async def test_without_a_reachable_relay_the_robots_router_relays_everything_and
     nodes.run(
         "talker", "talker", "--tag", "c", "--rate", "200", "--count", "100", "--wait", namespace=ns("talker", "cloud")
     )
-    await eventually(lambda: len(nodes.messages("listener")) >= 100, what="the listener through the robot's router")
+    await eventually(
+        lambda: len(nodes.messages("listener")) >= 100, timeout=45, what="the listener through the robot's router"
+    )
     assert nodes.messages("listener") == [("c", seq) for seq in range(1, 101)]
     assert router.statistics()["/chatter"]["subscribers"]["listener"]["messages"] == 100
 

@@ -6,8 +6,6 @@ starts publishing, so the test decides when the cloud instance can become ready.
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -15,18 +13,13 @@ import pytest
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.protocol import ProtocolError
 from bridgeos_agent.skillconfig import parse_skill_config
-from tests.agent.roshelpers import HOST_PYTHON, NODES, Nodes, private_rosmaster
-from tests.agent.test_controller import agent_settings, eventually, make_robot, running
+from tests.agent.conftest import agent_settings, configured, make_robot
+from tests.agent.roshelpers import HOST_PYTHON, NODES
+from tests.conftest import eventually
 
 pytestmark = [pytest.mark.ros, pytest.mark.django_db(transaction=True), pytest.mark.timeout(180)]
 
 SKILL = "chat"
-
-
-@pytest.fixture(scope="module")
-def rosmaster(tmp_path_factory) -> Iterator[str]:
-    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
-        yield uri
 
 
 def chat_skill(home: Path) -> dict:
@@ -56,41 +49,36 @@ def chat_skill(home: Path) -> dict:
     return parse_skill_config(config).model_dump(mode="json")
 
 
-async def test_a_migration_switches_only_once_the_new_instance_is_ready(cloud, rosmaster, tmp_path, monkeypatch):
+async def test_a_migration_switches_only_once_the_new_instance_is_ready(cloud, rosmaster, nodes, tmp_path, monkeypatch):
     monkeypatch.setenv("BRIDGEOS_ROUTER_READY_TIMEOUT", "3")
-    nodes = Nodes(rosmaster, tmp_path)
     token, _ = await make_robot("route-1", skill=chat_skill(tmp_path))
     controller = RobotController(agent_settings(cloud, "route-1", token, tmp_path / "agent", detect_ros_master=False))
     controller.local_ros_master = controller.ros_master = rosmaster
-    try:
-        async with running(controller):
-            await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
-            record = await controller.start_skill(parse_skill_config(chat_skill(tmp_path)))
-            router = record.supervisor.context["router"]
-            assert router.active("talker") == "robot"
-            nodes.run("listener", "listener", "--topic", "/chatter")
-            # The robot copy got its namespace from the controller; the router relays it to /chatter.
-            await eventually(lambda: len(nodes.messages("listener")) >= 10, 60, "the robot talker on /chatter")
+    async with configured(controller):
+        record = await controller.start_skill(parse_skill_config(chat_skill(tmp_path)))
+        router = record.supervisor.context["router"]
+        assert router.active("talker") == "robot"
+        nodes.run("listener", "listener", "--topic", "/chatter")
+        # The robot copy got its namespace from the controller; the router relays it to /chatter.
+        await eventually(lambda: len(nodes.messages("listener")) >= 10, 60, "the robot talker on /chatter")
 
-            # The cloud copy runs but never gets ready: the migration gives up, the robot copy keeps
-            # running and routed.
-            with pytest.raises(ProtocolError, match="not ready on the cloud within 3 s; it keeps running on the robot"):
-                await controller.migrate_component(record, "talker", "cloud")
-            assert record.locations["talker"] == "robot" and router.active("talker") == "robot"
-            heard = len(nodes.messages("listener"))
-            await eventually(lambda: len(nodes.messages("listener")) >= heard + 10, 30, "the robot copy still heard")
+        # The cloud copy runs but never gets ready: the migration gives up, the robot copy keeps
+        # running and routed.
+        with pytest.raises(ProtocolError, match="not ready on the cloud within 3 s; it keeps running on the robot"):
+            await controller.migrate_component(record, "talker", "cloud")
+        assert record.locations["talker"] == "robot" and router.active("talker") == "robot"
+        heard = len(nodes.messages("listener"))
+        await eventually(lambda: len(nodes.messages("listener")) >= heard + 10, 30, "the robot copy still heard")
 
-            # Now the cloud copy publishes as soon as it starts: the switch happens once it is ready.
-            (tmp_path / "go").touch()
-            # (Its rospy start may take longer than 3 s on a loaded machine.)
-            router.settings.ready_timeout = 60
-            assert await controller.migrate_component(record, "talker", "cloud") == "cloud"
-            assert router.active("talker") == "cloud" and record.locations["talker"] == "cloud"
-            await eventually(lambda: not controller.runtime.get_state().get("components"), 30, "robot copy stopped")
-            cut = len(nodes.messages("listener"))
-            await eventually(lambda: len(nodes.messages("listener")) >= cut + 20, 30, "the cloud talker on /chatter")
-            tags = [tag for tag, _ in nodes.messages("listener")]
-            first_cloud = tags.index("cloud")
-            assert set(tags[first_cloud:]) == {"cloud"} and set(tags[:first_cloud]) == {"robot"}
-    finally:
-        nodes.kill_all()
+        # Now the cloud copy publishes as soon as it starts: the switch happens once it is ready.
+        (tmp_path / "go").touch()
+        # (Its rospy start may take longer than 3 s on a loaded machine.)
+        router.settings.ready_timeout = 60
+        assert await controller.migrate_component(record, "talker", "cloud") == "cloud"
+        assert router.active("talker") == "cloud" and record.locations["talker"] == "cloud"
+        await eventually(lambda: not controller.runtime.get_state().get("components"), 30, "robot copy stopped")
+        cut = len(nodes.messages("listener"))
+        await eventually(lambda: len(nodes.messages("listener")) >= cut + 20, 30, "the cloud talker on /chatter")
+        tags = [tag for tag, _ in nodes.messages("listener")]
+        first_cloud = tags.index("cloud")
+        assert set(tags[first_cloud:]) == {"cloud"} and set(tags[:first_cloud]) == {"robot"}

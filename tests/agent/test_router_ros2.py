@@ -16,7 +16,7 @@ from bridgeos_agent.ros2graph import Ros2Graph, discovery_server_command, rclpy_
 from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.skillconfig import parse_skill_config
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
-from tests.conftest import free_port
+from tests.conftest import eventually, free_port
 
 pytestmark = [
     pytest.mark.timeout(120),
@@ -38,17 +38,6 @@ def skill(router: dict, ros: int = 2) -> dict:
         for name in ("talker", "listener", "server", "viewer")
     }
     return {"skill": "Relay2", "skill_id": SKILL, "components": components, "router": router}
-
-
-async def eventually(check: Callable[[], object], timeout: float = 30.0, what: str = "condition") -> object:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = check()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.05)
 
 
 def contiguous(seqs: list[int]) -> bool:

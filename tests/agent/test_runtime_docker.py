@@ -27,6 +27,7 @@ from bridgeos_agent.runtime import (
 from bridgeos_agent.runtime.docker import DockerRuntime
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
 from tests.agent.roshelpers import Nodes, private_rosmaster
+from tests.conftest import eventually
 
 pytestmark = pytest.mark.docker
 
@@ -130,20 +131,6 @@ def make_spec(
     )
 
 
-async def wait_for(predicate: Callable[[], Any], timeout: float = 15.0, what: str = "condition") -> Any:
-    """Poll until ``predicate`` returns something truthy, or fail after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if asyncio.iscoroutine(value):
-            value = await value
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        await asyncio.sleep(0.05)
-
-
 def status_is(runtime: DockerRuntime, component: str, status: Status) -> Callable[[], Any]:
     async def check() -> ComponentState | None:
         state = await runtime.status("people", component)
@@ -205,7 +192,7 @@ async def test_a_ros_node_in_a_robot_container_talks_to_host_nodes_through_the_r
             state = await runtime.start(make_spec(robot, "talker", command, image=ROS_IMAGE, env=env, ros=True))
             info = api.inspect_container(state.pid_or_container_id)
             assert info["HostConfig"]["NetworkMode"] == "host"
-            await wait_for(lambda: nodes.messages("host-listener"), timeout=60, what="the container's messages")
+            await eventually(lambda: nodes.messages("host-listener"), timeout=60, what="the container's messages")
             assert nodes.messages("host-listener")[0] == ("container", 1)
             # A node that is not ROS stays on the robot's own network.
             plain = await runtime.start(make_spec(robot, "plain"))
@@ -228,7 +215,7 @@ async def test_container_sees_the_env_contract_and_shares_the_skills_volumes(
         volumes=("maps",),
     )
     await runtime.start(writer)
-    lines = await wait_for(logs_contain(runtime, "detector", "ROS_NAMESPACE="), what="env in the logs")
+    lines = await eventually(logs_contain(runtime, "detector", "ROS_NAMESPACE="), timeout=15, what="env in the logs")
     env = dict(line.split("=", 1) for line in lines if "=" in line)
     assert {k: env.get(k) for k in CONTRACT} == CONTRACT
     assert env["MODEL"] == "yolo"
@@ -236,7 +223,7 @@ async def test_container_sees_the_env_contract_and_shares_the_skills_volumes(
 
     reader = make_spec(robot, "sampler", ["sh", "-c", "cat /bridgeos/volumes/maps/note; sleep 3600"], volumes=("maps",))
     await runtime.start(reader)
-    await wait_for(logs_contain(runtime, "sampler", "seen"), what="the note written by the detector")
+    await eventually(logs_contain(runtime, "sampler", "seen"), timeout=15, what="the note written by the detector")
     assert api.inspect_volume(f"bridgeos-{robot}-people-maps")["Labels"]["io.bridgeos.robot"] == robot
 
 
@@ -258,7 +245,7 @@ async def test_crash_restarts_the_container_with_backoff_then_gives_up(
 ) -> None:
     first = await runtime.start(make_spec(robot, "detector", ["sh", "-c", "echo crashing; exit 3"]))
 
-    final = await wait_for(status_is(runtime, "detector", Status.FAILED), what="failed")
+    final = await eventually(status_is(runtime, "detector", Status.FAILED), timeout=15, what="failed")
 
     assert final.restarts == 2
     assert final.exit_code == 3
@@ -270,7 +257,7 @@ async def test_crash_restarts_the_container_with_backoff_then_gives_up(
 async def test_clean_exit_is_not_restarted(runtime: DockerRuntime, robot: str, recorder: Recorder) -> None:
     await runtime.start(make_spec(robot, "detector", ["true"]))
 
-    final = await wait_for(status_is(runtime, "detector", Status.EXITED), what="exited")
+    final = await eventually(status_is(runtime, "detector", Status.EXITED), timeout=15, what="exited")
 
     assert final.exit_code == 0 and final.restarts == 0
     assert recorder.statuses("detector") == ["starting", "running", "exited"]
@@ -295,7 +282,7 @@ async def test_stop_kills_a_container_ignoring_sigterm_once_the_timeout_passes(
     runtime: DockerRuntime, robot: str
 ) -> None:
     await runtime.start(make_spec(robot, "detector", ["sh", "-c", "trap '' TERM; echo ready; sleep 3600"]))
-    await wait_for(logs_contain(runtime, "detector", "ready"), what="the trap to be set")
+    await eventually(logs_contain(runtime, "detector", "ready"), timeout=15, what="the trap to be set")
 
     began = time.monotonic()
     stopped = await runtime.stop("people", "detector", timeout=1)
@@ -309,7 +296,7 @@ async def test_a_container_killed_from_outside_is_restarted(runtime: DockerRunti
 
     api.kill(first.pid_or_container_id)
 
-    again = await wait_for(lambda: _restarted(runtime, "detector"), what="a restart")
+    again = await eventually(lambda: _restarted(runtime, "detector"), timeout=15, what="a restart")
     assert again.pid_or_container_id == first.pid_or_container_id
     assert api.inspect_container(first.pid_or_container_id)["State"]["Running"]
 
@@ -370,7 +357,7 @@ async def test_missing_command_fails_at_once_with_a_clear_message(runtime: Docke
     # missing command shows as exit 127 a moment later: no restart can fix that.
     await runtime.start(make_spec(robot, "detector", ["/opt/nowhere/detector"]))
 
-    final = await wait_for(status_is(runtime, "detector", Status.FAILED), what="failed")
+    final = await eventually(status_is(runtime, "detector", Status.FAILED), timeout=15, what="failed")
 
     assert final.exit_code == 127 and final.restarts == 0
     assert "'/opt/nowhere/detector'] was not found (exit 127): fix the command" in final.message
@@ -396,7 +383,7 @@ async def test_a_new_runtime_readopts_running_containers_and_forgets_dead_ones(
     kept = await first.start(make_spec(robot, "detector"))
     dead = await first.start(make_spec(robot, "sampler"))
     api.kill(kept.pid_or_container_id)
-    restarted = await wait_for(lambda: _restarted(first, "detector"), what="the detector's restart")
+    restarted = await eventually(lambda: _restarted(first, "detector"), timeout=15, what="the detector's restart")
     saved = json.loads(json.dumps(first.get_state()))
     await first.close()
     api.kill(dead.pid_or_container_id)
@@ -413,7 +400,7 @@ async def test_a_new_runtime_readopts_running_containers_and_forgets_dead_ones(
 
         # An adopted container that crashes is restarted, and the restart reported.
         api.kill(kept.pid_or_container_id)
-        again = await wait_for(lambda: _restarted(second, "detector", 2), what="a restart after adoption")
+        again = await eventually(lambda: _restarted(second, "detector", 2), timeout=15, what="a restart after adoption")
         assert again.restarts == 2
         assert recorder.statuses("detector")[:2] == ["restarting", "running"]
     finally:

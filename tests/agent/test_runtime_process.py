@@ -30,6 +30,7 @@ from bridgeos_agent.runtime import (
 )
 from bridgeos_agent.runtime.base import RestartBudget
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
+from tests.conftest import eventually
 
 ROBOT = "robot-1"
 FAST = RestartPolicy(max_restarts=3, window=60.0, backoff_initial=0.05, backoff_max=1.0, jitter=0.0)
@@ -82,20 +83,6 @@ def python(code: str) -> list[str]:
 
 
 SLEEP = ["sleep", "3600"]
-
-
-async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: str = "condition") -> Any:
-    """Poll until ``predicate`` returns something truthy, or fail after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if asyncio.iscoroutine(value):
-            value = await value
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 def alive(pid: int) -> bool:
@@ -160,7 +147,7 @@ async def test_component_sees_the_env_contract_its_volumes_and_its_own_directory
     await runtime.start(spec)
 
     written = runtime.work_dir("people", "detector") / "env.json"
-    seen = json.loads(await wait_for(lambda: written.exists() and written.read_text(), what="env.json"))
+    seen = json.loads(await eventually(lambda: written.exists() and written.read_text(), timeout=10, what="env.json"))
     env = seen["env"]
     assert {k: env.get(k) for k in CONTRACT} == CONTRACT
     assert env["MODEL"] == "yolo"
@@ -180,7 +167,7 @@ async def test_logs_return_the_last_lines_of_stdout_and_stderr(runtime: ProcessR
     code = "import sys, time\nfor i in range(1, 301): print(i)\nprint('oops', file=sys.stderr)\ntime.sleep(3600)"
     await runtime.start(make_spec("detector", python(code)))
 
-    await wait_for(lambda: _ends_with(runtime, "oops"), what="stderr in the log")
+    await eventually(lambda: _ends_with(runtime, "oops"), timeout=10, what="stderr in the log")
 
     assert await runtime.logs("people", "detector", tail=4) == ["298", "299", "300", "oops"]
     assert len(await runtime.logs("people", "detector", tail=1000)) == 301
@@ -206,12 +193,14 @@ async def test_stop_terminates_and_is_not_taken_for_a_crash(runtime: ProcessRunt
 async def test_stop_kills_the_whole_process_group(runtime: ProcessRuntime) -> None:
     await runtime.start(make_spec("detector", ["sh", "-c", "sleep 3600 & echo $! > child.pid; wait"]))
     child_file = runtime.work_dir("people", "detector") / "child.pid"
-    child = int(await wait_for(lambda: child_file.exists() and child_file.read_text().strip(), what="child.pid"))
+    child = int(
+        await eventually(lambda: child_file.exists() and child_file.read_text().strip(), timeout=10, what="child.pid")
+    )
     assert alive(child)
 
     await runtime.stop("people", "detector")
 
-    await wait_for(lambda: not alive(child), timeout=2, what="the child to die")
+    await eventually(lambda: not alive(child), timeout=2, what="the child to die")
 
 
 async def test_stop_kills_a_group_ignoring_sigterm_once_the_timeout_passes(runtime: ProcessRuntime) -> None:
@@ -219,7 +208,9 @@ async def test_stop_kills_a_group_ignoring_sigterm_once_the_timeout_passes(runti
     command = ["sh", "-c", "trap '' TERM; sleep 3600 & echo $! > child.pid; while :; do sleep 0.1; done"]
     state = await runtime.start(make_spec("detector", command))
     child_file = runtime.work_dir("people", "detector") / "child.pid"
-    child = int(await wait_for(lambda: child_file.exists() and child_file.read_text().strip(), what="child.pid"))
+    child = int(
+        await eventually(lambda: child_file.exists() and child_file.read_text().strip(), timeout=10, what="child.pid")
+    )
 
     began = time.monotonic()
     stopped = await runtime.stop("people", "detector", timeout=0.5)
@@ -227,13 +218,13 @@ async def test_stop_kills_a_group_ignoring_sigterm_once_the_timeout_passes(runti
     assert 0.5 <= time.monotonic() - began < 3
     assert stopped.exit_code == 128 + signal.SIGKILL
     assert not alive(state.pid_or_container_id)
-    await wait_for(lambda: not alive(child), timeout=2, what="the child to die")
+    await eventually(lambda: not alive(child), timeout=2, what="the child to die")
 
 
 async def test_crash_restarts_with_growing_backoff_then_gives_up(runtime: ProcessRuntime, recorder: Recorder) -> None:
     await runtime.start(make_spec("detector", ["sh", "-c", "echo crashing; exit 3"]))
 
-    final = await wait_for(_status_is(runtime, "detector", Status.FAILED), what="failed")
+    final = await eventually(_status_is(runtime, "detector", Status.FAILED), timeout=10, what="failed")
     assert final.restarts == 3
     assert final.exit_code == 3
     assert "crashed 4 times within 60 s (last exit code 3)" in final.message
@@ -256,7 +247,7 @@ def _status_is(runtime: ProcessRuntime, component: str, status: Status) -> Calla
 async def test_clean_exit_is_not_restarted(runtime: ProcessRuntime, recorder: Recorder) -> None:
     await runtime.start(make_spec("detector", ["true"]))
 
-    final = await wait_for(_status_is(runtime, "detector", Status.EXITED), what="exited")
+    final = await eventually(_status_is(runtime, "detector", Status.EXITED), timeout=10, what="exited")
 
     assert final.exit_code == 0 and final.restarts == 0
     await asyncio.sleep(0.2)
@@ -268,8 +259,9 @@ async def test_a_component_killed_from_outside_is_restarted(runtime: ProcessRunt
 
     os.kill(first.pid_or_container_id, signal.SIGKILL)
 
-    again = await wait_for(
+    again = await eventually(
         lambda: _restarted(runtime, "detector"),
+        timeout=10,
         what="a restart",
     )
     assert again.pid_or_container_id != first.pid_or_container_id
@@ -284,7 +276,7 @@ async def _restarted(runtime: ProcessRuntime, component: str) -> ComponentState 
 async def test_stop_during_the_backoff_cancels_the_restart(runtime: ProcessRuntime, recorder: Recorder) -> None:
     slow = RestartPolicy(max_restarts=3, backoff_initial=0.5, jitter=0.0)
     await runtime.start(make_spec("detector", ["false"], restart=slow))
-    await wait_for(_status_is(runtime, "detector", Status.RESTARTING), what="restarting")
+    await eventually(_status_is(runtime, "detector", Status.RESTARTING), timeout=10, what="restarting")
 
     stopped = await runtime.stop("people", "detector")
 
@@ -404,13 +396,15 @@ async def test_a_new_runtime_readopts_running_components_and_forgets_dead_ones(t
     kept = await first.start(make_spec("detector", ["sh", "-c", "sleep 3600 & echo $! > child.pid; wait"]))
     dead = await first.start(make_spec("sampler", SLEEP))
     child_file = first.work_dir("people", "detector") / "child.pid"
-    child = int(await wait_for(lambda: child_file.exists() and child_file.read_text().strip(), what="child.pid"))
+    child = int(
+        await eventually(lambda: child_file.exists() and child_file.read_text().strip(), timeout=10, what="child.pid")
+    )
     saved = json.loads(json.dumps(first.get_state()))
     await first.close()
     collect_handles()
     assert alive(kept.pid_or_container_id)
     os.kill(dead.pid_or_container_id, signal.SIGKILL)
-    await wait_for(lambda: not alive(dead.pid_or_container_id), what="the sampler to die")
+    await eventually(lambda: not alive(dead.pid_or_container_id), timeout=10, what="the sampler to die")
 
     recorder = Recorder()
     second = ProcessRuntime(ROBOT, data_dir=tmp_path, on_status=recorder, use_pidfd=use_pidfd, poll_interval=0.05)
@@ -425,13 +419,13 @@ async def test_a_new_runtime_readopts_running_components_and_forgets_dead_ones(t
 
         # An adopted component that crashes is restarted from its saved spec.
         os.kill(kept.pid_or_container_id, signal.SIGKILL)
-        again = await wait_for(lambda: _restarted(second, "detector"), what="a restart")
+        again = await eventually(lambda: _restarted(second, "detector"), timeout=10, what="a restart")
         assert again.pid_or_container_id != kept.pid_or_container_id
         assert recorder.statuses("detector")[:2] == ["restarting", "running"]
 
         await second.stop("people", "detector")
         assert not alive(again.pid_or_container_id)
-        await wait_for(lambda: not alive(child), what="the first launch's child to die")
+        await eventually(lambda: not alive(child), timeout=10, what="the first launch's child to die")
     finally:
         await second.close(stop_components=True)
 
@@ -441,7 +435,9 @@ async def test_adopted_component_is_stopped_with_its_group(tmp_path: Path) -> No
     first = ProcessRuntime(ROBOT, data_dir=tmp_path)
     state = await first.start(make_spec("detector", ["sh", "-c", "sleep 3600 & echo $! > child.pid; wait"]))
     child_file = first.work_dir("people", "detector") / "child.pid"
-    child = int(await wait_for(lambda: child_file.exists() and child_file.read_text().strip(), what="child.pid"))
+    child = int(
+        await eventually(lambda: child_file.exists() and child_file.read_text().strip(), timeout=10, what="child.pid")
+    )
     saved = first.get_state()
     await first.close()
     collect_handles()
@@ -454,7 +450,9 @@ async def test_adopted_component_is_stopped_with_its_group(tmp_path: Path) -> No
         await second.close(stop_components=True)
 
     assert stopped.status == Status.STOPPED
-    await wait_for(lambda: not alive(state.pid_or_container_id) and not alive(child), what="the group to die")
+    await eventually(
+        lambda: not alive(state.pid_or_container_id) and not alive(child), timeout=10, what="the group to die"
+    )
 
 
 async def test_load_state_ignores_a_pid_now_used_by_another_process(runtime: ProcessRuntime) -> None:
@@ -492,8 +490,8 @@ async def test_a_big_log_is_rotated_while_the_component_runs(tmp_path: Path) -> 
         code = "import time\nfor i in range(1000): print(f'line {i:04d}')\ntime.sleep(0.3)\nprint('after')\ntime.sleep(3600)"
         await runtime.start(make_spec("detector", python(code)))
         log = runtime.log_path("people", "detector")
-        await wait_for(lambda: log.with_name(log.name + ".1").exists(), what="the rotated log")
-        await wait_for(lambda: _ends_with(runtime, "after"), what="a line after the rotation")
+        await eventually(lambda: log.with_name(log.name + ".1").exists(), timeout=10, what="the rotated log")
+        await eventually(lambda: _ends_with(runtime, "after"), timeout=10, what="a line after the rotation")
 
         assert log.stat().st_size < 2000
         assert (await runtime.logs("people", "detector", tail=2))[-1] == "after"
@@ -506,17 +504,17 @@ async def test_a_crashed_components_leftover_children_die_before_the_relaunch(ru
     await runtime.start(make_spec("detector", command, restart=RestartPolicy(max_restarts=1, jitter=0)))
     children = runtime.work_dir("people", "detector") / "children"
 
-    await wait_for(_status_is(runtime, "detector", Status.FAILED), what="failed")
+    await eventually(_status_is(runtime, "detector", Status.FAILED), timeout=10, what="failed")
 
     pids = [int(line) for line in children.read_text().split()]
     assert len(pids) == 2
-    await wait_for(lambda: not any(alive(pid) for pid in pids), timeout=2, what="the orphans to die")
+    await eventually(lambda: not any(alive(pid) for pid in pids), timeout=2, what="the orphans to die")
 
 
 async def test_a_command_the_shell_cannot_find_fails_without_restarts(runtime: ProcessRuntime) -> None:
     await runtime.start(make_spec("detector", ["sh", "-c", "exec /opt/nowhere/detector"]))
 
-    final = await wait_for(_status_is(runtime, "detector", Status.FAILED), what="failed")
+    final = await eventually(_status_is(runtime, "detector", Status.FAILED), timeout=10, what="failed")
 
     assert final.exit_code == 127 and final.restarts == 0
     assert "was not found (exit 127)" in final.message

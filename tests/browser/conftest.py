@@ -16,7 +16,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,7 @@ from robots.models import Robot
 from robots.services import create_robot, issue_api_token
 from skills.services import add_skill
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import BIN
+from tests.conftest import BIN, wait_until
 from tests.logguard import watch
 
 from .simrobot import start_simulated_robot, stop_simulated_robot
@@ -90,6 +90,11 @@ class Browser:
         page.get_by_role("button", name="Log in").click()
         page.wait_for_url(f"{self.base_url}/")
         self.wait_live()
+
+    def visit(self, path: str) -> Any:
+        """Open a dashboard page by its path and return the page."""
+        self.page.goto(self.base_url + path)
+        return self.page
 
     def wait_live(self) -> None:
         """Wait until the page's /ws/client/ socket is authenticated."""
@@ -160,15 +165,6 @@ def start_skill(base_url: str, owner: Any, robot_id: str, skill_id: str) -> None
         timeout=30,
     )
     assert response.status_code == 200 and response.json()["accepted"], response.text
-
-
-def wait_until(check: Callable[[], bool], *, timeout: float = 15.0, what: str = "condition") -> None:
-    """Poll the database (or anything) until a check holds."""
-    deadline = time.monotonic() + timeout
-    while not check():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def tail(log: Path, lines: int = 20) -> str:

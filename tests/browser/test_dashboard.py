@@ -45,8 +45,7 @@ def row(page, robot_id: str):
 
 def test_an_operator_logs_in_and_out(browser):
     make_user("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/")
+    page = browser.visit("/")
     expect(page).to_have_url(re.compile(r"/accounts/login/\?next=/$"))
     page.get_by_label("Username").fill("alice")
     page.get_by_label("Password").fill("not-her-password")
@@ -145,8 +144,7 @@ def test_migrating_a_component_changes_its_location_badge(browser, agents):
     token = make_robot(alice, "alice-bot", sample="demo_telemetry")
     agents.start("alice-bot", token)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     browser.wait_live()
     location = page.locator(f'[data-location="{AGENT_SKILL}/filter"]')
     status = page.locator(f'[data-status="{AGENT_SKILL}/filter"]')
@@ -216,8 +214,7 @@ def test_the_robot_page_lists_the_latest_offloading_decisions(browser, simulated
     token = make_robot(alice, "alice-bot")
     simulated_robots.start("alice-bot", token)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     browser.wait_live()
     expect(page.locator(f'[data-location="{SKILL}/sampler"]')).to_have_text("robot")
     expect(page.locator("#decisions tbody tr").first).to_be_visible(timeout=20_000)
@@ -267,8 +264,7 @@ def test_a_command_to_an_offline_robot_says_so(browser):
     make_robot(alice, "alice-bot")
     browser.login("alice")
     browser.expect_http_error(409)
-    page = browser.page
-    page.goto(browser.base_url + f"/robots/alice-bot/#skill-{SKILL}")
+    page = browser.visit(f"/robots/alice-bot/#skill-{SKILL}")
     page.get_by_role("button", name=f"Start skill {SKILL}").click()
     expect(page.get_by_role("alert").filter(has_text="offline")).to_be_visible()
 
@@ -277,8 +273,7 @@ def test_robot_config_edits_are_checked_field_by_field_then_stored(browser):
     alice = make_user("alice")
     make_robot(alice, "alice-bot")
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     browser.wait_live()
     heartbeat = page.locator('input[data-path="heartbeat_interval"]')
     heartbeat.fill("500")
@@ -318,8 +313,7 @@ def test_an_invalid_skill_config_upload_shows_each_error_at_its_field(browser, t
     upload = tmp_path / "people.json"
     upload.write_text(json.dumps(config, indent=2))
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/skills/")
+    page = browser.visit("/skills/")
     page.get_by_label("Config file").set_input_files(upload)
 
     cpu = page.locator('[data-path="components.detector.resources.cpu"]')
@@ -353,8 +347,7 @@ def test_a_template_is_added_to_a_robot_from_the_catalog(browser):
         name="People detection", config=load_sample_skill_config().model_dump(mode="json"), tags=["vision"]
     )
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/skills/")
+    page = browser.visit("/skills/")
     card = page.locator(f'[data-template="{template.pk}"]')
     expect(card).to_contain_text("Detector · either")
     card.get_by_role("button", name="Add").click()
@@ -404,8 +397,7 @@ def test_the_event_log_filters_and_tails_live(browser, agents):
         "Planner crashed", robot_id="alice-bot", level="error", skill=AGENT_SKILL, component="planner", kind="test"
     )
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/events/")
+    page = browser.visit("/events/")
     rows = page.locator("#event-rows tr")
     expect(rows.first).to_be_visible()
     expect(page.locator("#event-rows")).to_contain_text("Robot alice-two created")

@@ -22,8 +22,7 @@ def test_the_robot_page_gives_ticketed_rosbridge_and_foxglove_urls(browser):
     alice = make_user("alice")
     make_robot(alice, "alice-bot", sample=None)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     page.get_by_role("button", name="Get rosbridge and Foxglove URLs").click()
     ws_base = browser.base_url.replace("http", "ws", 1)
     rosbridge = page.get_by_label("rosbridge URL")

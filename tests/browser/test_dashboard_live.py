@@ -31,8 +31,7 @@ def test_events_arrive_pushed_and_nothing_polls(browser):
     alice = make_user("alice")
     make_robot(alice, "alice-bot", sample=None)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/events/")
+    page = browser.visit("/events/")
     browser.wait_live()
     rows = page.locator("#event-rows tr")
     expect(rows.first).to_contain_text("Robot alice-bot created")
@@ -169,8 +168,7 @@ def test_a_failed_components_reason_shows_beside_its_status_and_goes_when_it_run
     why = "short of bandwidth and no running movable component frees enough; it must run on the robot"
     report("alice-bot", "people-detection", "pointcloud", "failed", None, why)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     row = page.locator('tr[data-component="people-detection/pointcloud"]')
     expect(row.locator("[data-status]")).to_have_text("failed")
     expect(row.locator("[data-reason]")).to_have_text(why)  # rendered with the page

@@ -57,8 +57,7 @@ def test_the_owner_records_chatter_from_the_page_then_stops_downloads_and_delete
     token = make_robot(alice, "alice-bot", sample=None)
     agents.start("alice-bot", token)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     expect(page.locator("#recordings-empty")).to_be_visible()
 
     # Once the Live topics card has listed the robot's topics, the form offers them.
@@ -135,8 +134,7 @@ def test_bad_input_or_an_offline_robot_shows_the_apis_answer_and_creates_nothing
     alice = make_user("alice")
     make_robot(alice, "alice-bot", sample=None)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     browser.expect_http_error(400)
 
     start(page, "chatter")

@@ -19,8 +19,7 @@ def test_the_owner_sees_the_robots_live_topics_types_and_a_measured_rate(browser
     token = make_robot(alice, "alice-bot", sample=None)
     agents.start("alice-bot", token)
     browser.login("alice")
-    page = browser.page
-    page.goto(browser.base_url + "/robots/alice-bot/")
+    page = browser.visit("/robots/alice-bot/")
     table = page.locator("#topics")
     load = page.get_by_role("button", name="Show live topics")
     row = table.locator('tr[data-topic="/chatter"]')

@@ -9,6 +9,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
+import httpx
 import pytest
 from asgiref.sync import sync_to_async
 
@@ -57,6 +58,15 @@ async def connected(server: Any, robot_id: str, token: str, *, auto_ack: bool = 
         yield link
     finally:
         await link.close()
+
+
+@asynccontextmanager
+async def alice_and_her_robot(server: Any, *, auto_ack: bool = True) -> AsyncIterator[tuple[Link, httpx.AsyncClient]]:
+    """Create Alice and her robot, connect it and give Alice an API client, for the duration of a block."""
+    alice, key = await make_owner("alice")
+    token = await make_robot(alice, "alice-bot")
+    async with connected(server, "alice-bot", token, auto_ack=auto_ack) as robot, async_client(server, key) as http:
+        yield robot, http
 
 
 # --------------------------------------------------------------------------- robots
@@ -383,9 +393,7 @@ async def test_migrating_without_a_target_moves_the_component_to_the_other_side(
     ],
 )
 async def test_a_command_reaches_the_connected_robot_and_its_ack_is_returned(daphne_server, path, body, event, data):
-    alice, key = await make_owner("alice")
-    token = await make_robot(alice, "alice-bot")
-    async with connected(daphne_server, "alice-bot", token) as robot, async_client(daphne_server, key) as http:
+    async with alice_and_her_robot(daphne_server) as (robot, http):
         pending = asyncio.ensure_future(http.post(path, json=body))
         command = await robot.next(event)
         response = await pending
@@ -397,9 +405,7 @@ async def test_a_command_reaches_the_connected_robot_and_its_ack_is_returned(dap
 
 
 async def test_a_skill_start_carries_the_skills_config(daphne_server):
-    alice, key = await make_owner("alice")
-    token = await make_robot(alice, "alice-bot")
-    async with connected(daphne_server, "alice-bot", token) as robot, async_client(daphne_server, key) as http:
+    async with alice_and_her_robot(daphne_server) as (robot, http):
         pending = asyncio.ensure_future(http.post(f"/api/robot/alice-bot/skill/{SKILL}/start"))
         command = await robot.next(Event.SKILL_START)
         assert (await pending).json()["accepted"] is True
@@ -408,12 +414,7 @@ async def test_a_skill_start_carries_the_skills_config(daphne_server):
 
 
 async def test_a_robot_that_answers_with_an_error_is_reported_as_not_accepted(daphne_server):
-    alice, key = await make_owner("alice")
-    token = await make_robot(alice, "alice-bot")
-    async with (
-        connected(daphne_server, "alice-bot", token, auto_ack=False) as robot,
-        async_client(daphne_server, key) as http,
-    ):
+    async with alice_and_her_robot(daphne_server, auto_ack=False) as (robot, http):
         pending = asyncio.ensure_future(http.post(f"/api/robot/alice-bot/skill/{SKILL}/start"))
         command = await robot.next(Event.SKILL_START)
         await robot.send(Event.ERROR_MESSAGE, {"message": "no GPU", "code": "unavailable"}, reply_to=command.id)
@@ -434,12 +435,7 @@ def test_a_command_to_an_offline_robot_is_a_conflict_at_once(http):
 
 
 async def test_a_robot_that_never_answers_times_out_after_the_wait(daphne_server):
-    alice, key = await make_owner("alice")
-    token = await make_robot(alice, "alice-bot")
-    async with (
-        connected(daphne_server, "alice-bot", token, auto_ack=False),
-        async_client(daphne_server, key) as http,
-    ):
+    async with alice_and_her_robot(daphne_server, auto_ack=False) as (_, http):
         started = time.monotonic()
         response = await http.post("/api/robot/alice-bot/stop?wait=0.5")
         elapsed = time.monotonic() - started

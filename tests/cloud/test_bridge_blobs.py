@@ -24,8 +24,8 @@ from bridgeos_agent.bridges.fanout import SharedTail
 from bridgeos_agent.bridges.relay import BridgeRelay
 from bridgeos_agent.protocol import BlobWindow, Event
 from robots.bridges import RobotBridges
-from tests.cloud.test_bridge_relay import counters, raw, robot, ros, token_client, url, wait_for
-from tests.conftest import Server, another_daphne
+from tests.cloud.test_bridge_relay import counters, raw, robot, ros, token_client, url
+from tests.conftest import Server, another_daphne, wait_until
 
 __all__ = ["robot", "ros"]  # test_bridge_relay's fixtures, on this module's own daphne
 
@@ -176,7 +176,7 @@ def test_five_clients_of_a_large_topic_get_it_whole_while_the_link_carries_one_c
                     _, subscription, _ = struct.unpack_from("<BIQ", frame)
                     assert subscription == ident  # each client's own head in front of the shared bytes
                     into.append(ros1_string(frame[13:]))
-        wait_for(lambda: min(len(h) for h in heard) >= 8, timeout=30, what="the roslibpy clients' messages")
+        wait_until(lambda: min(len(h) for h in heard) >= 8, timeout=30, what="the roslibpy clients' messages")
     finally:
         for fox in foxes:
             fox.close()

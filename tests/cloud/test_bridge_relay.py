@@ -7,7 +7,6 @@ clients a robot's owner would use, authenticated with an API token or a single-u
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import json
 import os
@@ -16,11 +15,9 @@ import shutil
 import socket
 import struct
 import subprocess
-import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -38,7 +35,7 @@ from robots.models import BridgeTicket, Robot
 from robots.services import create_robot, issue_api_token
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
-from tests.conftest import ROOT, Server, another_daphne
+from tests.conftest import ROOT, LoopThread, Server, another_daphne, wait_until
 
 pytestmark = [pytest.mark.ros, pytest.mark.django_db(transaction=True), pytest.mark.timeout(120)]
 
@@ -46,38 +43,6 @@ BYTES_PER_S = 40_000  # each client's cap in this cloud
 MAX_FRAME = 64 * 1024  # the largest client frame this cloud passes on
 FRAMES_PER_S = 100  # how often a client may send, with bursts of 200
 JS_DIR = ROOT / "tests" / "js" / "roslib"
-
-
-def wait_for(check: Callable[[], Any], timeout: float = 15, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        result = check()
-        if result:
-            return result
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
-class LoopThread:
-    """The agent's asyncio loop in a thread of its own: the clients here block the test's thread."""
-
-    def __init__(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name="bridge-agent", daemon=True)
-        self.thread.start()
-
-    def start(self, coroutine: Any) -> Future[Any]:
-        return asyncio.run_coroutine_threadsafe(coroutine, self.loop)
-
-    def call(self, function: Callable[[], Any]) -> Any:
-        async def run() -> Any:
-            return function()
-
-        return self.start(run()).result(10)
-
-    def stop(self) -> None:
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(5)
 
 
 @pytest.fixture(scope="module")
@@ -107,7 +72,7 @@ def ros(tmp_path_factory) -> Iterator[tuple[str, Nodes]]:
         nodes.run("server", "server", "--service", "/trigger", "--tag", "robot")
         nodes.tool("/usr/bin/rosparam", "set", "/robot/gain", "2.5")
         try:
-            wait_for(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
+            wait_until(lambda: "ready" in nodes.lines("server") and "ready" in nodes.lines("listener"), what="nodes")
             yield master, nodes
         finally:
             nodes.kill_all()
@@ -151,13 +116,13 @@ def robot(cloud: Server, ros: tuple[str, Nodes], tmp_path: Path, monkeypatch: py
     controller.bridges.engine_options = {"rosbridge": {"linger_s": 0.3}}
     running = loop.start(controller.run())
     try:
-        wait_for(lambda: Robot.objects.filter(id="br-1", connected=True).exists(), what="the robot connected")
+        wait_until(lambda: Robot.objects.filter(id="br-1", connected=True).exists(), what="the robot connected")
         yield Bot("br-1", api_token, controller, loop)
     finally:
         loop.loop.call_soon_threadsafe(controller.stop)
         running.result(30)
         loop.stop()
-        wait_for(lambda: not Robot.objects.filter(connected=True).exists(), what="the robot recorded offline")
+        wait_until(lambda: not Robot.objects.filter(connected=True).exists(), what="the robot recorded offline")
 
 
 def url(cloud: Server, robot_id: str, kind: str = "rosbridge") -> str:
@@ -235,7 +200,7 @@ def test_roslibpy_reaches_the_robots_topics_services_rosapi_and_params_through_t
         heard: list[dict[str, Any]] = []
         chatter = roslibpy.Topic(client, "/chatter", "std_msgs/String")
         chatter.subscribe(heard.append)
-        wait_for(lambda: len(heard) >= 5, what="the robot's talker through the cloud")
+        wait_until(lambda: len(heard) >= 5, what="the robot's talker through the cloud")
         assert all(message["data"].startswith("robot ") for message in heard)
         assert "/chatter" in robot.engine().subscribed_topics()  # subscribed on the robot while listened to
 
@@ -246,7 +211,7 @@ def test_roslibpy_reaches_the_robots_topics_services_rosapi_and_params_through_t
             said.publish(roslibpy.Message({"data": f"client 1 {time.time():.6f}"}))
             return any(line.startswith("client ") for line in nodes.lines("listener"))
 
-        wait_for(listener_heard, what="the robot's listener to hear the client")
+        wait_until(listener_heard, what="the robot's listener to hear the client")
 
         trigger = roslibpy.Service(client, "/trigger", "std_srvs/Trigger")
         assert trigger.call(roslibpy.ServiceRequest({}), timeout=15) == {"success": True, "message": "robot"}
@@ -258,7 +223,7 @@ def test_roslibpy_reaches_the_robots_topics_services_rosapi_and_params_through_t
         assert roslibpy.Param(client, "/robot/gain").get(timeout=10) == 4.0
 
         chatter.unsubscribe()
-        wait_for(lambda: "/chatter" not in robot.engine().subscribed_topics(), what="the robot to unsubscribe")
+        wait_until(lambda: "/chatter" not in robot.engine().subscribed_topics(), what="the robot to unsubscribe")
     finally:
         client.close()
 
@@ -276,7 +241,7 @@ def test_a_stalled_viewer_slows_neither_the_robot_nor_a_live_viewer(cloud, robot
         roslibpy.Topic(live, "/chatter", "std_msgs/String").subscribe(chatter.append)
         other = token_client(cloud, robot)
         roslibpy.Topic(other, "/chatter", "std_msgs/String", throttle_rate=1000).subscribe(throttled.append)
-        wait_for(lambda: fast and chatter and throttled, what="the live viewers' first messages")
+        wait_until(lambda: fast and chatter and throttled, what="the live viewers' first messages")
         start = (len(fast), len(chatter), len(throttled))
         time.sleep(3.0)
         got_fast, got_chatter, got_throttled = (
@@ -299,7 +264,7 @@ def test_a_stalled_viewer_slows_neither_the_robot_nor_a_live_viewer(cloud, robot
         assert max(drops) > 100, drops
         # And on the cloud's /metrics, told by the robot with the frames it still sends.
         where = {"kind": "rosbridge", "where": "robot_queue"}
-        wait_for(lambda: counters(cloud, **where)["bridgeos_bridge_drops_total"] > 100, what="drops on /metrics")
+        wait_until(lambda: counters(cloud, **where)["bridgeos_bridge_drops_total"] > 100, what="drops on /metrics")
     finally:
         live.close()
         stalled.close()

@@ -22,8 +22,8 @@ from bridgeos_agent.ros2graph import rclpy_missing
 from robots.models import Robot
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.test_rosbridge_actions import FIBONACCI, run_action_server
-from tests.cloud.test_bridge_relay import Bot, LoopThread, cloud, make_robot, raw, token_client, url, wait_for
-from tests.conftest import Server
+from tests.cloud.test_bridge_relay import Bot, cloud, make_robot, raw, token_client, url
+from tests.conftest import LoopThread, Server, wait_until
 
 pytestmark = [
     pytest.mark.ros,
@@ -59,8 +59,8 @@ def ros2_robot(cloud: Server, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     controller = loop.call(lambda: RobotController(settings, plugins={}))
     running = loop.start(controller.run())
     try:
-        wait_for(lambda: Robot.objects.filter(id="bra-1", connected=True).exists(), what="the robot connected")
-        wait_for(lambda: "ready" in nodes.lines("fibonacci"), what="the ROS 2 action server")
+        wait_until(lambda: Robot.objects.filter(id="bra-1", connected=True).exists(), what="the robot connected")
+        wait_until(lambda: "ready" in nodes.lines("fibonacci"), what="the ROS 2 action server")
         yield Bot("bra-1", api_token, controller, loop), nodes
     finally:
         loop.loop.call_soon_threadsafe(controller.stop)
@@ -90,7 +90,7 @@ def test_roslibpys_action_client_reaches_a_ros2_action_server_through_the_cloud(
     client = token_client(cloud, bot)
     try:
         servers = roslibpy.Service(client, "/rosapi/action_servers", "rosapi/GetActionServers")
-        wait_for(
+        wait_until(
             lambda: ACTION in servers.call(roslibpy.ServiceRequest({}), timeout=15)["action_servers"],
             timeout=20,
             what="the action server in /rosapi/action_servers",
@@ -107,7 +107,7 @@ def test_roslibpys_action_client_reaches_a_ros2_action_server_through_the_cloud(
 
         cancelled = Outcome()
         goal_id = action.send_goal(roslibpy.Goal({"order": 40}), *cancelled.callbacks())
-        wait_for(lambda: cancelled.feedback, what="feedback of the long goal")
+        wait_until(lambda: cancelled.feedback, what="feedback of the long goal")
         action.cancel_goal(goal_id)
         action.wait_goal(goal_id, timeout=30)
         assert cancelled.result is not None and cancelled.result["status"] == GoalStatus.CANCELED

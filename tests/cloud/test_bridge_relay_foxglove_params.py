@@ -17,8 +17,8 @@ import pytest
 
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.roshelpers import Nodes
-from tests.cloud.test_bridge_relay import Bot, LoopThread, cloud, robot, ros, ticket
-from tests.conftest import Server
+from tests.cloud.test_bridge_relay import Bot, cloud, robot, ros, ticket
+from tests.conftest import LoopThread, Server
 
 pytestmark = [
     pytest.mark.ros,

@@ -18,8 +18,8 @@ from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.ros2graph import rclpy_missing
 from robots.models import Robot
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
-from tests.cloud.test_bridge_relay import Bot, LoopThread, cloud, make_robot, token_client, wait_for
-from tests.conftest import Server
+from tests.cloud.test_bridge_relay import Bot, cloud, make_robot, token_client
+from tests.conftest import LoopThread, Server, wait_until
 
 pytestmark = [
     pytest.mark.ros,
@@ -57,8 +57,8 @@ def ros2_robot(cloud: Server, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     controller = loop.call(lambda: RobotController(settings, plugins={}))
     running = loop.start(controller.run())
     try:
-        wait_for(lambda: Robot.objects.filter(id="br2-1", connected=True).exists(), what="the robot connected")
-        wait_for(lambda: "ready" in nodes.lines("server"), what="the ROS 2 service server")
+        wait_until(lambda: Robot.objects.filter(id="br2-1", connected=True).exists(), what="the robot connected")
+        wait_until(lambda: "ready" in nodes.lines("server"), what="the ROS 2 service server")
         yield Bot("br2-1", api_token, controller, loop), nodes
     finally:
         loop.loop.call_soon_threadsafe(controller.stop)
@@ -72,20 +72,20 @@ def test_roslibpy_subscribes_and_calls_a_service_of_a_ros2_robot_through_the_clo
     client = token_client(cloud, bot)
     try:
         # The ROS 2 graph discovers the talker a moment after it joins: the topic list says when.
-        wait_for(lambda: TOPIC in client.get_topics(), timeout=20, what="the ROS 2 talker in /rosapi/topics")
+        wait_until(lambda: TOPIC in client.get_topics(), timeout=20, what="the ROS 2 talker in /rosapi/topics")
         assert client.get_topic_type(TOPIC) == "std_msgs/msg/String"
         heard: list[dict[str, Any]] = []
         chatter = roslibpy.Topic(client, TOPIC, "std_msgs/msg/String")
         chatter.subscribe(heard.append)
-        wait_for(lambda: len(heard) >= 5, what="the ROS 2 talker through the cloud")
+        wait_until(lambda: len(heard) >= 5, what="the ROS 2 talker through the cloud")
         assert all(message["data"].startswith("ros2 ") for message in heard)
         assert bot.controller.bridges.graph is not None
         assert type(bot.controller.bridges.graph).__name__ == "Ros2BridgeGraph"
 
-        wait_for(lambda: SERVICE in client.get_services(), timeout=20, what="the ROS 2 service in /rosapi/services")
+        wait_until(lambda: SERVICE in client.get_services(), timeout=20, what="the ROS 2 service in /rosapi/services")
         trigger = roslibpy.Service(client, SERVICE, "std_srvs/srv/Trigger")
         assert trigger.call(roslibpy.ServiceRequest({}), timeout=15) == {"success": True, "message": "ros2_robot"}
         chatter.unsubscribe()
-        wait_for(lambda: TOPIC not in bot.engine().subscribed_topics(), what="the robot to leave the topic")
+        wait_until(lambda: TOPIC not in bot.engine().subscribed_topics(), what="the robot to leave the topic")
     finally:
         client.close()

@@ -24,13 +24,13 @@ from mcap.reader import make_reader
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.ros2graph import rclpy_missing
 from robots.models import Robot
-from tests.agent.bridgeclients import FoxgloveSide, RosbridgeSide, wait_for
+from tests.agent.bridgeclients import FoxgloveSide, RosbridgeSide
 from tests.agent.foxgloveclient import FoxgloveClient, node_client_ready
 from tests.agent.ros2helpers import Ros2Nodes, loopback_graph
 from tests.agent.roshelpers import HOST_PYTHON, Nodes, private_rosmaster
 from tests.agent.test_bridge_to_bridge import COUNT, STRING_SCHEMA, node_texts, publish_to_everyone, seqs
-from tests.cloud.test_bridge_relay import LoopThread, make_robot, ticket
-from tests.conftest import Server, another_daphne
+from tests.cloud.test_bridge_relay import make_robot, ticket
+from tests.conftest import LoopThread, Server, another_daphne, wait_until
 
 pytestmark = [pytest.mark.ros, pytest.mark.django_db(transaction=True), pytest.mark.timeout(180)]
 
@@ -104,15 +104,19 @@ def _agent(robot_id: str, ros: str, cloud: Server, home: Path, nodes: Any, optio
     controller = loop.call(lambda: RobotController(settings, plugins={}))
     running = loop.start(controller.run())
     try:
-        wait_for(lambda: Robot.objects.filter(id=robot_id, connected=True).exists(), what="the robot connected")
-        wait_for(lambda: "ready" in nodes.lines(TOPIC), what="the ROS listener")
+        wait_until(
+            lambda: Robot.objects.filter(id=robot_id, connected=True).exists(), timeout=20, what="the robot connected"
+        )
+        wait_until(lambda: "ready" in nodes.lines(TOPIC), timeout=20, what="the ROS listener")
         yield Bot(robot_id, ros, api_token, nodes)
     finally:
         loop.loop.call_soon_threadsafe(controller.stop)
         running.result(30)
         loop.stop()
         # The cloud records the departure before the test's data is flushed away (else they deadlock).
-        wait_for(lambda: not Robot.objects.filter(connected=True).exists(), what="the robot recorded offline")
+        wait_until(
+            lambda: not Robot.objects.filter(connected=True).exists(), timeout=20, what="the robot recorded offline"
+        )
 
 
 def rosbridge_client(cloud: Server, bot: Bot, name: str) -> RosbridgeSide:
@@ -138,7 +142,7 @@ def recorded(cloud: Server, bot: Bot, recording: str) -> list[str]:
         answer = httpx.get(base, headers=headers, timeout=10).json()
         return answer if answer["status"] in ("finished", "failed") else None
 
-    assert wait_for(done, timeout=30, what="the recording assembled")["status"] == "finished"
+    assert wait_until(done, timeout=30, what="the recording assembled")["status"] == "finished"
     data = httpx.get(f"{base}/download", headers=headers, timeout=30).content
     if bot.ros == "ros1":
         from mcap_ros1.decoder import DecoderFactory
@@ -197,7 +201,7 @@ def test_clients_through_the_cloud_hear_each_other_once_and_the_recording_keeps_
             viewer.publish(TOPIC, f"fox {sent} {time.time():.6f}")
             return bool(seqs(first.heard(TOPIC), "fox") and seqs(second.heard(TOPIC), "fox"))
 
-        wait_for(heard_viewer, timeout=30, what="the rosbridge clients to hear the Foxglove client")
+        wait_until(heard_viewer, timeout=30, what="the rosbridge clients to hear the Foxglove client")
         texts = recorded(cloud, robot, recording)
         assert sorted(set(seqs(texts, "probe"))) == list(range(1, COUNT + 1))
         assert len(seqs(texts, "probe")) == COUNT  # recorded once each

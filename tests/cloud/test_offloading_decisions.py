@@ -13,7 +13,7 @@ from asgiref.sync import sync_to_async
 from bridgeos_agent.protocol import Event
 from monitoring.models import Event as LogEvent
 
-from .wsutil import client_link, make_owner, make_robot, robot_link
+from .wsutil import client_link, new_robot_link
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.asyncio, pytest.mark.timeout(120)]
 
@@ -49,8 +49,7 @@ def logged(robot_id: str) -> list[LogEvent]:
 
 
 async def test_a_move_is_stored_as_an_event_and_reaches_the_owner_live(daphne_server):
-    alice, api_token = await make_owner("alice")
-    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    robot, api_token = await new_robot_link(daphne_server, "alice-bot", "alice")
     client = await client_link(daphne_server, api_token)
     sent = await robot.send(Event.OFFLOADING_DECISION, decision())
     await robot.wait_acked(sent)
@@ -101,8 +100,7 @@ async def test_a_move_is_stored_as_an_event_and_reaches_the_owner_live(daphne_se
     ],
 )
 async def test_a_malformed_decision_is_refused_and_nothing_is_stored(daphne_server, changes, field):
-    owner, _ = await make_owner("owner")
-    robot = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    robot, _ = await new_robot_link(daphne_server, "r1")
     await robot.ws.send(
         '{"event":"offloading_decision","id":"d-1","reply_to":null,"ts":1.0,"data":'
         + json.dumps(decision(**changes))
@@ -115,8 +113,7 @@ async def test_a_malformed_decision_is_refused_and_nothing_is_stored(daphne_serv
 
 
 async def test_a_decision_about_an_unknown_component_is_refused(daphne_server):
-    owner, _ = await make_owner("owner")
-    robot = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    robot, _ = await new_robot_link(daphne_server, "r1")
     sent = await robot.send(Event.OFFLOADING_DECISION, decision(component="nope"))
     error = await robot.next(Event.ERROR_MESSAGE)
     assert error.reply_to == sent.id and error.data["code"] == "not_found"

@@ -17,7 +17,7 @@ from bridgeos_agent.protocol import Event
 from robots.models import Robot
 from robots.services import RobotOffline, relay_command
 
-from .wsutil import client_link, make_owner, make_robot, robot_link
+from .wsutil import client_link, make_owner, make_robot, new_robot_link, robot_link
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.asyncio]
 
@@ -115,8 +115,7 @@ async def test_connection_events_reach_the_owner_live(daphne_server):
 
 
 async def test_a_command_round_trips_client_cloud_robot_cloud_client(daphne_server):
-    alice, token = await make_owner("alice")
-    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    robot, token = await new_robot_link(daphne_server, "alice-bot", "alice")
     client = await client_link(daphne_server, token)
 
     pending = asyncio.ensure_future(
@@ -155,8 +154,7 @@ async def test_a_command_to_an_offline_robot_fails_at_once(daphne_server):
 
 
 async def test_client_requests_are_answered_from_the_cloud_records(daphne_server):
-    alice, token = await make_owner("alice")
-    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    robot, token = await new_robot_link(daphne_server, "alice-bot", "alice")
     sent = await robot.send(
         Event.METRICS, {"metrics": [{"name": "cpu", "value": v, "ts": 1000.0 + v} for v in range(5)]}
     )
@@ -192,8 +190,7 @@ async def test_client_requests_are_answered_from_the_cloud_records(daphne_server
 
 
 async def test_config_update_is_validated_stored_and_relayed(daphne_server):
-    alice, token = await make_owner("alice")
-    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    robot, token = await new_robot_link(daphne_server, "alice-bot", "alice")
     client = await client_link(daphne_server, token)
 
     answer = await client.request(Event.ROBOT_CONFIG_UPDATE, {"robot": "alice-bot", "changes": {"threshold": 0.9}})
@@ -220,8 +217,7 @@ async def test_config_update_is_validated_stored_and_relayed(daphne_server):
 
 
 async def test_relay_command_reaches_the_robot_and_returns_its_answer(daphne_server):
-    alice, _ = await make_owner("alice")
-    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    robot, _ = await new_robot_link(daphne_server, "alice-bot", "alice")
     requests = [
         (Event.OFFLOADING_GET, {}, Event.OFFLOADING, {"mode": "auto"}),
         (
@@ -259,8 +255,7 @@ async def test_relay_command_reaches_the_robot_and_returns_its_answer(daphne_ser
 
 
 async def test_every_command_reaches_the_robot_and_its_ack_returns(daphne_server):
-    alice, token = await make_owner("alice")
-    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    robot, token = await new_robot_link(daphne_server, "alice-bot", "alice")
     client = await client_link(daphne_server, token)
     commands = [
         (Event.ROBOT_START, {}),
@@ -284,8 +279,7 @@ async def test_every_command_reaches_the_robot_and_its_ack_returns(daphne_server
 
 
 async def test_a_components_api_reply_goes_to_its_requester_and_nothing_else(daphne_server):
-    alice, _ = await make_owner("alice")
-    robot = await robot_link(daphne_server, "alice-bot", await make_robot("alice-bot", alice))
+    robot, _ = await new_robot_link(daphne_server, "alice-bot", "alice")
     log_start = daphne_server.log.stat().st_size
     data = {"skill": "people-detection", "method": "GET", "path": "/components", "query": "", "body": None}
     pending = asyncio.ensure_future(relay_command("alice-bot", Event.COMPONENTS_API, data, wait=5))

@@ -17,8 +17,9 @@ from monitoring.models import Event as LogEvent
 from monitoring.models import Metric
 from robots.models import Robot
 from skills.models import Component, Skill
+from tests.conftest import eventually
 
-from .wsutil import make_owner, make_robot, robot_link
+from .wsutil import make_owner, make_robot, new_robot_link, robot_link
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.asyncio]
 
@@ -38,14 +39,6 @@ def count(model, **filters) -> int:
     return model.objects.filter(**filters).count()
 
 
-async def eventually(check, timeout: float = 5.0):
-    """Poll an async check until it returns truthy."""
-    async with asyncio.timeout(timeout):
-        while not (result := await check()):
-            await asyncio.sleep(0.05)
-    return result
-
-
 async def test_robot_authenticates_and_receives_its_config(daphne_server):
     owner, _ = await make_owner("owner")
     token = await make_robot("r1", owner)
@@ -59,7 +52,7 @@ async def test_robot_authenticates_and_receives_its_config(daphne_server):
     assert robot.connected and robot.last_seen is not None and robot.channel
     assert await count(LogEvent, robot_id="r1", kind="connection_established") == 1
     await link.close()
-    robot = await eventually(lambda: _disconnected("r1"))
+    robot = await eventually(lambda: _disconnected("r1"), timeout=5)
     assert await count(LogEvent, robot_id="r1", kind="connection_lost") == 1
 
 
@@ -103,8 +96,7 @@ async def test_link_raises_on_refused_credentials(daphne_server):
 
 
 async def test_robot_reports_are_applied_and_acknowledged(daphne_server):
-    owner, _ = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    link, _ = await new_robot_link(daphne_server, "r1")
     reports = [
         (Event.SKILL_CONNECT, {"skill": "people-detection", "manager_url": "http://127.0.0.1:7000"}),
         (Event.SKILL_STATUS, {"skill": "people-detection", "status": "running"}),
@@ -143,8 +135,7 @@ async def test_robot_reports_are_applied_and_acknowledged(daphne_server):
 
 
 async def test_a_failed_components_reason_is_kept_with_its_status_and_cleared_when_it_runs(daphne_server):
-    owner, api_token = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    link, api_token = await new_robot_link(daphne_server, "r1")
     why = "short of bandwidth and no running movable component frees enough; it must run on the robot"
     failed = {"skill": "people-detection", "component": "pointcloud", "status": "failed", "message": why}
     await link.wait_acked(await link.send(Event.COMPONENT_STATUS, failed))
@@ -165,8 +156,7 @@ async def test_a_failed_components_reason_is_kept_with_its_status_and_cleared_wh
 
 
 async def test_robot_sends_its_local_skill_config(daphne_server):
-    owner, _ = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner, with_skill=False))
+    link, _ = await new_robot_link(daphne_server, "r1", with_skill=False)
     config = {
         "skill": "Echo",
         "skill_id": "echo",
@@ -182,8 +172,7 @@ async def test_robot_sends_its_local_skill_config(daphne_server):
 
 
 async def test_robot_asks_for_config_and_statuses(daphne_server):
-    owner, _ = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    link, _ = await new_robot_link(daphne_server, "r1")
     config = await link.request(Event.ROBOT_CONFIG_GET)
     assert config.event == Event.ROBOT_CONFIG
     assert config.data["config"]["offloading"] == "auto"
@@ -194,8 +183,7 @@ async def test_robot_asks_for_config_and_statuses(daphne_server):
 
 
 async def test_duplicate_event_is_applied_once(daphne_server):
-    owner, _ = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    link, _ = await new_robot_link(daphne_server, "r1")
     data = {"skill": "people-detection", "component": "detector", "status": "failed"}
     first = await link.send(Event.COMPONENT_STATUS, data)
     await link.wait_acked(first)
@@ -214,7 +202,7 @@ async def test_duplicate_is_recognised_after_reconnecting(daphne_server):
     first = await link.send(Event.SKILL_STATUS, {"skill": "people-detection", "status": "starting"})
     await link.wait_acked(first)
     await link.close()
-    await eventually(lambda: _disconnected("r1"))
+    await eventually(lambda: _disconnected("r1"), timeout=5)
 
     # A new connection (a new consumer) still knows the id was applied.
     again = await robot_link(daphne_server, "r1", token)
@@ -225,8 +213,7 @@ async def test_duplicate_is_recognised_after_reconnecting(daphne_server):
 
 
 async def test_metrics_are_stored_then_acknowledged(daphne_server):
-    owner, _ = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    link, _ = await new_robot_link(daphne_server, "r1")
     points = [
         {"name": "cpu", "value": i / 10, "ts": 1_700_000_000 + i, "skill": "people-detection", "component": "sampler"}
         for i in range(100)
@@ -302,8 +289,7 @@ async def test_bad_frames_get_a_clear_error_and_change_nothing(daphne_server, fr
 
 
 async def test_oversized_frame_is_refused(daphne_server):
-    owner, _ = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    link, _ = await new_robot_link(daphne_server, "r1")
     padding = "x" * (1024 * 1024)
     await link.ws.send(json.dumps({"event": "error_message", "id": "big", "data": {"message": padding}}))
     error = await link.next(Event.ERROR_MESSAGE)
@@ -312,8 +298,7 @@ async def test_oversized_frame_is_refused(daphne_server):
 
 
 async def test_a_flood_is_refused_then_closed(daphne_server):
-    owner, _ = await make_owner("owner")
-    link = await robot_link(daphne_server, "r1", await make_robot("r1", owner))
+    link, _ = await new_robot_link(daphne_server, "r1")
     # Acks cost the cloud almost nothing, so they arrive faster than the limit refills.
     frame = protocol.encode(protocol.ack_frame("nothing-pending", now=0))
     # Far more than the limit (2,000 frames/s in tests) admits, however fast the server drains them.

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from asgiref.sync import sync_to_async
 from django.contrib.auth import get_user_model
 
@@ -28,13 +30,18 @@ def make_robot(robot_id: str, owner, *, with_skill: bool = True) -> str:
     return token
 
 
-async def robot_link(server, robot_id: str, token: str) -> Link:
-    """Connect a robot and consume the frames the cloud sends on connect."""
+async def robot_login(server, robot_id: str, token: str, **credentials: Any) -> tuple[Link, dict]:
+    """Connect a robot (with extra credentials: a ROS master, a ROS 2 graph); return the link and the success data."""
     link = Link(server.ws_url + "/ws/robot/")
-    await link.connect(Event.AUTHENTICATION_ROBOT, {"robot": robot_id, "token": token})
+    success = await link.connect(Event.AUTHENTICATION_ROBOT, {"robot": robot_id, "token": token, **credentials})
     await link.next(Event.CONNECTION_ESTABLISHED)
     await link.next(Event.ROBOT_CONFIG)
-    return link
+    return link, dict(success.data)
+
+
+async def robot_link(server, robot_id: str, token: str) -> Link:
+    """Connect a robot and consume the frames the cloud sends on connect."""
+    return (await robot_login(server, robot_id, token))[0]
 
 
 async def client_link(server, token: str) -> Link:
@@ -42,3 +49,9 @@ async def client_link(server, token: str) -> Link:
     link = Link(server.ws_url + "/ws/client/")
     await link.connect(Event.AUTHENTICATION_CLIENT, {"token": token})
     return link
+
+
+async def new_robot_link(server, robot_id: str, owner: str = "owner", *, with_skill: bool = True) -> tuple[Link, str]:
+    """Create a user and a robot of theirs, and connect the robot; return its link and the user's API token."""
+    user, api_token = await make_owner(owner)
+    return await robot_link(server, robot_id, await make_robot(robot_id, user, with_skill=with_skill)), api_token

@@ -11,9 +11,13 @@ from bridgeos_agent import metrics
 from bridgeos_agent.cli import main
 from bridgeos_agent.controller import RobotController
 from bridgeos_agent.skillconfig import parse_skill_config
-from tests.agent.conftest import cloud  # noqa: F401  (the fixture: a daphne of the test's own, with a Celery worker)
-from tests.agent.test_controller import agent_settings, eventually, make_robot, running
-from tests.conftest import free_port
+from tests.agent.conftest import (
+    agent_settings,
+    cloud,  # noqa: F401  (the fixture: a daphne of the test's own, with a Celery worker)
+    make_robot,
+    running,
+)
+from tests.conftest import eventually, free_port
 
 from .promutil import promtool_check_metrics, value
 

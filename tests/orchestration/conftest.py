@@ -22,7 +22,8 @@ from typing import Any
 import pytest
 from asgiref.sync import sync_to_async
 
-from tests.agent.conftest import Cloud
+# nodes and rosmaster: the agent tests' fixtures, for the modules here that run rospy nodes too.
+from tests.agent.conftest import Cloud, nodes, rosmaster  # noqa: F401
 from tests.conftest import BIN, ROOT, close_other_sessions, remove_cloud_copies, service_env
 from tests.logguard import watch
 

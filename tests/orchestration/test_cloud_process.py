@@ -20,8 +20,9 @@ from bridgeos_agent.protocol import Event
 from bridgeos_agent.skillconfig import parse_skill_config
 from monitoring.models import Event as LogEvent
 from skills.models import CloudInstance, Component
-from tests.agent.test_controller import agent_settings, eventually, make_robot, running, running_workers
+from tests.agent.conftest import agent_settings, configured, make_robot, running_workers
 from tests.cloud.wsutil import client_link
+from tests.conftest import eventually
 
 from .conftest import make_stack, observe_async
 
@@ -80,8 +81,7 @@ async def test_start_stop_start_in_quick_succession_leaves_exactly_one_cloud_pro
     token, _ = await make_robot("race-1", skill=config)
     controller = RobotController(agent_settings(stack.server, "race-1", token, tmp_path / "agent"), plugins={})
     data = {"skill": SKILL, "component": "worker", "location": "cloud"}
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         await controller.start_skill(parse_skill_config(config), starting=[])
         # Bursts of start/stop/start reach two worker processes at once.
         for _ in range(3):
@@ -118,8 +118,7 @@ async def test_a_migration_goes_robot_to_cloud_and_back_with_the_right_status_th
     controller = RobotController(agent_settings(stack.server, "mig-2", token, tmp_path / "agent"), plugins={})
     headers = {"Authorization": f"Token {api_token}"}
     path = f"/api/robot/mig-2/skill/{SKILL}/component/mover/migrate"
-    async with running(controller), httpx.AsyncClient(base_url=stack.url, headers=headers, timeout=60) as api:
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller), httpx.AsyncClient(base_url=stack.url, headers=headers, timeout=60) as api:
         await controller.start_skill(parse_skill_config(config))
         await eventually(lambda: _row_is("mig-2", "mover", ("running", "robot")), what="running on the robot")
         watcher = await client_link(stack.server, api_token)
@@ -166,8 +165,7 @@ async def test_a_failed_cloud_start_rolls_the_migration_back_and_says_why(stack,
     token, api_token = await make_robot("mig-3", skill=config)
     controller = RobotController(agent_settings(stack.server, "mig-3", token, tmp_path / "agent"), plugins={})
     headers = {"Authorization": f"Token {api_token}"}
-    async with running(controller), httpx.AsyncClient(base_url=stack.url, headers=headers, timeout=60) as api:
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller), httpx.AsyncClient(base_url=stack.url, headers=headers, timeout=60) as api:
         await controller.start_skill(parse_skill_config(config))
         await eventually(lambda: _row_is("mig-3", "mover", ("running", "robot")), what="running on the robot")
         pid = running_workers(controller)["mover"]
@@ -198,8 +196,7 @@ async def test_volume_changes_travel_robot_to_cloud_and_back_in_changed_chunks_o
     )
     token, _ = await make_robot("vol-1", skill=config)
     controller = RobotController(agent_settings(stack.server, "vol-1", token, tmp_path / "agent"), plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         await controller.start_skill(parse_skill_config(config))
         robot_volume = Path(controller.runtime.volumes_dir(SKILL)) / "data"
         cloud_volume = stack.volumes / "vol-1" / SKILL / "data"

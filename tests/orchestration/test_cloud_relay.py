@@ -14,7 +14,6 @@ import os
 import signal
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import psutil
@@ -23,16 +22,16 @@ from asgiref.sync import sync_to_async
 
 from bridgeos_agent import protocol
 from bridgeos_agent.controller import RobotController
-from bridgeos_agent.link import Link
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.router.cloudlink import CloudLink
 from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.relay import KIND_CLOUD_RELAY, observe_relays
 from skills.models import CloudRelay, Component
-from tests.agent.roshelpers import Nodes, private_rosmaster
-from tests.agent.test_controller import agent_settings, eventually, make_robot, running
+from tests.agent.conftest import agent_settings, configured, make_robot
 from tests.agent.test_router_cloudrelay import CONFIG, SKILL, ns, subscribers_of
+from tests.cloud.wsutil import robot_login
+from tests.conftest import eventually
 
 from .conftest import make_stack
 
@@ -45,32 +44,8 @@ pytestmark = [
 
 
 @pytest.fixture(scope="module")
-def rosmaster(tmp_path_factory) -> Iterator[str]:
-    with private_rosmaster(tmp_path_factory.mktemp("rosmaster")) as uri:
-        yield uri
-
-
-@pytest.fixture(scope="module")
 def stack(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator:
     yield from make_stack("process", tmp_path_factory.mktemp("relay"))
-
-
-@pytest.fixture
-def nodes(rosmaster: str, tmp_path: Path) -> Iterator[Nodes]:
-    runner = Nodes(rosmaster, tmp_path)
-    try:
-        yield runner
-    finally:
-        runner.kill_all()
-
-
-async def login(stack, robot_id: str, token: str, master: str) -> tuple[Link, dict]:
-    """Authenticate a robot with its ROS master; return the link and the success frame's data."""
-    link = Link(stack.ws_url + "/ws/robot/")
-    success = await link.connect(Event.AUTHENTICATION_ROBOT, {"robot": robot_id, "token": token, "ros_master": master})
-    await link.next(Event.CONNECTION_ESTABLISHED)
-    await link.next(Event.ROBOT_CONFIG)
-    return link, dict(success.data)
 
 
 @sync_to_async
@@ -102,7 +77,7 @@ async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_
 ):
     token, api_token = await make_robot("rl-one", skill=CONFIG)
     plain_token, plain_api_token = await make_robot("rl-plain", skill={**CONFIG, "components": _robot_only()})
-    link, success = await login(stack, "rl-one", token, rosmaster)
+    link, success = await robot_login(stack, "rl-one", token, ros_master=rosmaster)
     try:
         # The login answer names the Skill's relay (a valid protocol payload, parsed as the agent parses it).
         started = time.monotonic()
@@ -151,7 +126,7 @@ async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_
             await router.close()
 
         # A robot whose Skill runs only on the robot gets no relay.
-        plain_link, plain = await login(stack, "rl-plain", plain_token, rosmaster)
+        plain_link, plain = await robot_login(stack, "rl-plain", plain_token, ros_master=rosmaster)
         await plain_link.close()
         assert "cloud_relays" not in plain and await relay_row("rl-plain") is None
 
@@ -182,7 +157,7 @@ async def test_the_worker_runs_a_skills_relay_the_robot_is_told_of_and_stops_it_
 
 async def test_a_skill_added_while_its_robot_is_connected_gets_its_relay_with_skill_start(stack, rosmaster):
     token, api_token = await make_robot("rl-late", skill={**CONFIG, "components": _robot_only()})
-    link, success = await login(stack, "rl-late", token, rosmaster)
+    link, success = await robot_login(stack, "rl-late", token, ros_master=rosmaster)
     try:
         assert "cloud_relays" not in success
         owner = {"Authorization": f"Token {api_token}"}
@@ -227,8 +202,7 @@ async def test_an_agent_links_its_skill_router_to_the_relay_the_cloud_named(stac
     settings = agent_settings(stack.server, "rl-agent", token, tmp_path / "agent", detect_ros_master=False)
     controller = RobotController(settings)
     controller.local_ros_master = controller.ros_master = rosmaster
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         relay = controller.cloud_relays[SKILL]
         await eventually(lambda: _is(relay_status("rl-agent"), "running"), timeout=45, what="the relay running")
         record = await controller.start_skill(parse_skill_config(CONFIG), starting=[])
@@ -244,7 +218,7 @@ async def test_a_relay_goes_with_its_robot_and_with_cloud_down(stack, rosmaster)
 
     for robot_id in ("rl-gone", "rl-moved", "rl-down"):
         token, _ = await make_robot(robot_id, skill=CONFIG)
-        link, _ = await login(stack, robot_id, token, rosmaster)
+        link, _ = await robot_login(stack, robot_id, token, ros_master=rosmaster)
         await link.close()
         await eventually(lambda r=robot_id: _is(relay_status(r), "running"), timeout=45, what=f"{robot_id}'s relay")
 
@@ -277,13 +251,13 @@ def _disconnected(robot_id: str) -> bool:
 
 async def test_a_relay_running_an_older_config_of_its_skill_is_replaced_at_the_next_login(stack, rosmaster):
     token, _ = await make_robot("rl-conf", skill=CONFIG)
-    link, first = await login(stack, "rl-conf", token, rosmaster)
+    link, first = await robot_login(stack, "rl-conf", token, ros_master=rosmaster)
     await link.close()
     await eventually(lambda: _is(relay_status("rl-conf"), "running"), timeout=45, what="the relay running")
     [before] = await relays_of("rl-conf")
     # Same config at the next login: the same process.
     await eventually(lambda: _disconnected("rl-conf"), timeout=30, what="the robot gone")
-    link, again = await login(stack, "rl-conf", token, rosmaster)
+    link, again = await robot_login(stack, "rl-conf", token, ros_master=rosmaster)
     await link.close()
     assert again["cloud_relays"] == first["cloud_relays"]
     await asyncio.sleep(2)
@@ -292,7 +266,7 @@ async def test_a_relay_running_an_older_config_of_its_skill_is_replaced_at_the_n
     changed = {**CONFIG, "skill": "Chat, renamed"}
     await sync_to_async(_set_config)("rl-conf", changed)
     await eventually(lambda: _disconnected("rl-conf"), timeout=30, what="the robot gone")
-    link, third = await login(stack, "rl-conf", token, rosmaster)
+    link, third = await robot_login(stack, "rl-conf", token, ros_master=rosmaster)
     await link.close()
     assert third["cloud_relays"] == first["cloud_relays"]
     await eventually(lambda: _replaced(before.id), timeout=30, what="the relay replaced")

@@ -24,7 +24,6 @@ import websockets
 from asgiref.sync import sync_to_async
 
 from bridgeos_agent import protocol
-from bridgeos_agent.link import Link
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.ros2graph import namespace_arguments, rclpy_missing
 from bridgeos_agent.rosnames import instance_namespace
@@ -32,7 +31,9 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot
 from skills.cloud.runtime import KIND_ROS2_DISCOVERY
 from skills.models import CloudInstance, RobotCloud
-from tests.agent.test_controller import eventually, make_robot
+from tests.agent.conftest import make_robot
+from tests.cloud.wsutil import robot_login
+from tests.conftest import eventually
 
 from .conftest import make_stack, observe_async
 
@@ -97,16 +98,6 @@ def stack(django_db_setup, django_db_blocker, tmp_path_factory) -> Iterator:
 # --------------------------------------------------------------------------- helpers
 
 
-async def login(stack, robot_id: str, token: str, ros2: dict | None) -> tuple[Link, dict]:
-    """Authenticate a robot (with its ROS 2 graph, if any); return the link and the success frame's data."""
-    link = Link(stack.ws_url + "/ws/robot/")
-    credentials = {"robot": robot_id, "token": token, **({"ros2": ros2} if ros2 is not None else {})}
-    success = await link.connect(Event.AUTHENTICATION_ROBOT, credentials)
-    await link.next(Event.CONNECTION_ESTABLISHED)
-    await link.next(Event.ROBOT_CONFIG)
-    return link, dict(success.data)
-
-
 def node(code: str, args: list[str], server: str, **env: str) -> subprocess.Popen:
     """Start an rclpy node in a process of its own, a client of the discovery server ``server`` only."""
     clean = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "RMW_"))}
@@ -166,7 +157,7 @@ async def test_a_robot_logging_in_with_ros2_gets_a_running_discovery_server_and_
     from django.conf import settings
 
     token, api_token = await make_robot("r2-one")
-    link, success = await login(stack, "r2-one", token, GRAPH)
+    link, success = await robot_login(stack, "r2-one", token, ros2=GRAPH)
     address = success["ros2_discovery_server"]
     low, high = (int(p) for p in settings.BRIDGEOS["CLOUD_ROS2_DISCOVERY_PORTS"].split("-"))
     assert low <= port_of(address) <= high
@@ -199,7 +190,7 @@ async def test_a_robot_logging_in_with_ros2_gets_a_running_discovery_server_and_
 
     # Back without ROS 2: no server named, the one it had is stopped, the API shows no graph.
     await link.close()
-    link, success = await login(stack, "r2-one", token, None)
+    link, success = await robot_login(stack, "r2-one", token)
     try:
         assert "ros2_discovery_server" not in success
         await eventually(lambda: _is(server_status("r2-one"), "stopped"), timeout=60, what="the server stopped")
@@ -207,7 +198,7 @@ async def test_a_robot_logging_in_with_ros2_gets_a_running_discovery_server_and_
         assert (await sync_to_async(Robot.objects.get)(id="r2-one")).ros2 is None
         # The port stays the robot's: it gets the same address when it comes back with ROS 2.
         await link.close()
-        link, success = await login(stack, "r2-one", token, GRAPH)
+        link, success = await robot_login(stack, "r2-one", token, ros2=GRAPH)
         assert success["ros2_discovery_server"] == address
         await eventually(lambda: _is(server_status("r2-one"), "running"), timeout=60, what="the server back")
     finally:
@@ -217,8 +208,8 @@ async def test_a_robot_logging_in_with_ros2_gets_a_running_discovery_server_and_
 async def test_two_robots_cloud_graphs_are_isolated_on_one_host_and_domain_and_go_with_their_robots(stack):
     token_a, _ = await make_robot("r2-a")
     token_b, _ = await make_robot("r2-b")
-    link_a, success_a = await login(stack, "r2-a", token_a, GRAPH)
-    link_b, success_b = await login(stack, "r2-b", token_b, GRAPH)
+    link_a, success_a = await robot_login(stack, "r2-a", token_a, ros2=GRAPH)
+    link_b, success_b = await robot_login(stack, "r2-b", token_b, ros2=GRAPH)
     server_a, server_b = success_a["ros2_discovery_server"], success_b["ros2_discovery_server"]
     assert server_a != server_b
     for robot_id in ("r2-a", "r2-b"):
@@ -262,7 +253,7 @@ async def test_a_ros2_cloud_copy_runs_in_its_robots_graph_with_its_namespace(sta
     }
     config = parse_skill_config(config).model_dump(mode="json")
     token, _ = await make_robot("r2-copy", skill=config)
-    link, success = await login(stack, "r2-copy", token, GRAPH)
+    link, success = await robot_login(stack, "r2-copy", token, ros2=GRAPH)
     address = success["ros2_discovery_server"]
     namespace = instance_namespace(SKILL, "talker", "cloud")
     listener = None

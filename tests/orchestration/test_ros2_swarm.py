@@ -23,7 +23,9 @@ from bridgeos_agent.protocol import Event
 from bridgeos_agent.rosnames import instance_namespace
 from bridgeos_agent.skillconfig import parse_skill_config
 from skills.cloud.runtime import object_name
-from tests.agent.test_controller import eventually, make_robot
+from tests.agent.conftest import make_robot
+from tests.cloud.wsutil import robot_login
+from tests.conftest import eventually
 
 from .conftest import make_stack
 from .test_ros2_discovery import (
@@ -34,7 +36,6 @@ from .test_ros2_discovery import (
     _copy_running,
     _copy_stopped,
     heard,
-    login,
     node,
     server_status,
     stop,
@@ -81,7 +82,7 @@ async def test_a_ros2_cloud_copy_in_the_ros2_image_talks_through_its_robots_disc
         },
     }
     token, _ = await make_robot("r2-swarm", skill=parse_skill_config(config).model_dump(mode="json"))
-    link, success = await login(stack, "r2-swarm", token, GRAPH)
+    link, success = await robot_login(stack, "r2-swarm", token, ros2=GRAPH)
     address = success["ros2_discovery_server"]
     namespace = instance_namespace(SKILL, "talker", "cloud")
     listener = None
@@ -145,7 +146,7 @@ async def test_a_ros2_use_case_node_runs_as_a_swarm_cloud_copy_from_the_ros2_ima
         },
     }
     token, _ = await make_robot("r2-usecase", skill=parse_skill_config(config).model_dump(mode="json"))
-    link, success = await login(stack, "r2-usecase", token, GRAPH)
+    link, success = await robot_login(stack, "r2-usecase", token, ros2=GRAPH)
     address = success["ros2_discovery_server"]
     namespace = instance_namespace("usecase2swarm", "pointcloud", "cloud")
     try:

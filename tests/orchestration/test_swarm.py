@@ -24,7 +24,8 @@ from bridgeos_agent.skillconfig import parse_skill_config
 from monitoring.models import Event, Metric
 from skills.cloud.runtime import KIND_ROS_MASTER, object_name
 from skills.models import CloudInstance, Component, RobotCloud
-from tests.agent.test_controller import agent_settings, eventually, make_robot, running
+from tests.agent.conftest import agent_settings, configured, make_robot
+from tests.conftest import eventually
 from tests.e2e.conftest import host_ros_env
 
 from .conftest import make_stack, observe_async
@@ -129,8 +130,7 @@ async def test_a_cloud_component_runs_as_a_swarm_service_with_its_env_and_networ
     settings = agent_settings(stack.server, "swarm-1", token, tmp_path / "agent", detect_ros_master=False)
     controller = RobotController(settings, plugins={})
     client = docker.from_env()
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         # No ROS master on this robot: the cloud runs one of its own for it and says where.
         assert controller.ros_master is not None and controller.ros_master.startswith("http://127.0.0.1:")
         record = await controller.start_skill(parse_skill_config(skill(web=web_component())))
@@ -213,8 +213,7 @@ async def test_a_robot_without_a_ros_master_gets_one_and_its_nodes_talk_to_cloud
     token, _ = await make_robot("swarm-2", skill=skill(**components))
     settings = agent_settings(stack.server, "swarm-2", token, tmp_path / "agent", detect_ros_master=False)
     controller = RobotController(settings, plugins={})
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         master = controller.ros_master
         port = int(master.rsplit(":", 1)[1])
         low, high = (int(p) for p in stack.env["BRIDGEOS_CLOUD_ROS_MASTER_PORTS"].split("-"))
@@ -258,8 +257,7 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
     token, _ = await make_robot("swarm-3", skill=skill(ticker=ticker_component()))
     controller = RobotController(agent_settings(stack.server, "swarm-3", token, tmp_path / "agent"), plugins={})
     client = docker.from_env()
-    async with running(controller):
-        await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+    async with configured(controller):
         record = await controller.start_skill(parse_skill_config(skill(ticker=ticker_component())))
         first = await eventually(lambda: running_instance("swarm-3", "ticker"), timeout=90, what="ticker running")
         await eventually(lambda: record.cloud_containers.get("ticker"), what="the robot told where it runs")
@@ -272,7 +270,7 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
             instance = await instance_of("swarm-3", "ticker")
             return instance if instance.status == "running" and instance.container.get("id") != old_id else None
 
-        again = await eventually(restarted, timeout=90, what="the copy restarted")
+        again = await eventually(restarted, timeout=90, what="the copy restarted", interval=0.1)
         crashes = await events_of("swarm-3", "cloud_component_crashed")
         assert len(crashes) == 1 and crashes[0].level == "error"
         assert "started" in crashes[0].data["logs"] and crashes[0].data["exit_code"] == 137
@@ -290,7 +288,7 @@ async def test_the_reconciler_restarts_a_killed_cloud_container_and_logs_why(sta
             await asyncio.to_thread(stack.reconcile)
             return await sync_to_async(list)(Metric.objects.filter(robot_id="swarm-3", component="ticker", name="ram"))
 
-        ram = await eventually(measured, timeout=60, what="the copy's memory stored")
+        ram = await eventually(measured, timeout=60, what="the copy's memory stored", interval=0.1)
         assert all(point.labels == {"location": "cloud"} and point.value > 0 for point in ram)
         await controller.stop_skill(SKILL)
 
@@ -301,8 +299,7 @@ async def test_a_worker_killed_mid_start_leaves_exactly_one_copy(stack, tmp_path
     client = docker.from_env()
     name = object_name("swarm-4", SKILL, "ticker")
     try:
-        async with running(controller):
-            await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        async with configured(controller):
             await controller.start_skill(parse_skill_config(skill(ticker=ticker_component())))
             # Kill the worker (its whole process group) the moment the service exists: mid-task.
             await eventually(lambda: not _sync_no_service(client, name), timeout=60, what="the service created")
@@ -315,7 +312,7 @@ async def test_a_worker_killed_mid_start_leaves_exactly_one_copy(stack, tmp_path
                 return await running_instance("swarm-4", "ticker")
 
             try:
-                instance = await eventually(settled, timeout=90, what="the copy adopted")
+                instance = await eventually(settled, timeout=90, what="the copy adopted", interval=0.1)
             except AssertionError:
                 row = await instance_of("swarm-4", "ticker")
                 seen = [(o.component, o.status) for o in await observe_async("swarm") if o.robot == "swarm-4"]
@@ -422,8 +419,7 @@ async def test_a_ros_talker_migrates_robot_to_cloud_to_robot_while_a_listener_co
     headers = {"Authorization": f"Token {api_token}"}
     path = f"/api/robot/swarm-5/skill/{SKILL}/component/talker/migrate"
     try:
-        async with running(controller), httpx.AsyncClient(base_url=stack.url, headers=headers, timeout=90) as api:
-            await asyncio.wait_for(controller.config_from_cloud.wait(), 15)
+        async with configured(controller), httpx.AsyncClient(base_url=stack.url, headers=headers, timeout=90) as api:
             await eventually(lambda: _master_recorded("swarm-5"), timeout=60, what="the robot's ROS master")
             env = {**host_ros_env(), "ROS_MASTER_URI": controller.ros_master}
             listener = await asyncio.to_thread(_spawn, [HOST_PYTHON, "-c", LISTENER], env, heard)
