@@ -232,9 +232,15 @@ async def test_statistics_count_what_was_routed(world, tmp_path):
         args += ("--gate", str(gate))
     nodes.run("talker", "talker", *args, namespace=ns("talker", "robot"))
     if world.ros == 2:
-        # The listener's delivery opens once the talker is seen; a fixed settle was too short on
-        # a loaded CI machine, so the talker starts only when the listener has matched it.
-        assert await router.wait_ready("listener", "robot", 30)
+        # The listener's delivery opens once the talker is seen: the talker starts only when the
+        # listener has matched that delivery (a fixed settle lost the first messages on loaded CI).
+        def matched() -> bool:
+            topic = router._topics.get("/chatter")
+            delivery = topic.deliveries.get("listener") if topic is not None else None
+            sink = delivery.robot if delivery is not None else None
+            return sink is not None and sink.get_subscription_count() > 0
+
+        await eventually(matched, what="the listener matched the router's delivery")
     gate.touch()
     await eventually(lambda: len(nodes.messages("listener")) >= 200, what="every message")
     stats = router.statistics()["/chatter"]

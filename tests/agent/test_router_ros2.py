@@ -297,3 +297,32 @@ async def test_cloud_instances_are_reached_through_the_robots_discovery_server(n
     assert await router.wait_ready("talker", "cloud", 30)
     await eventually(lambda: len(nodes.messages("listener")) >= 10, what="the cloud talker reaches the robot")
     assert {tag for tag, _ in nodes.messages("listener")} == {"c"}
+
+
+QOS_PROBE = """
+import time, rclpy
+from rclpy.duration import Duration
+from rclpy.qos import DurabilityPolicy, QoSProfile, qos_check_compatible
+from std_msgs.msg import String
+from bridgeos_agent.router.ros2discovery import _as_asked
+rclpy.init()
+node = rclpy.create_node("qos_probe")
+node.create_subscription(String, "plain", lambda m: None, 10)
+strict = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, deadline=Duration(seconds=1))
+node.create_subscription(String, "strict", lambda m: None, strict)
+time.sleep(0.5)
+for topic in ("plain", "strict"):
+    asked = node.get_subscriptions_info_by_topic("/" + topic)[0].qos_profile
+    print(topic, qos_check_compatible(QoSProfile(depth=10), _as_asked(asked))[0].name)
+rclpy.shutdown()
+"""
+
+
+def test_a_subscriber_that_asks_for_no_deadline_is_not_taken_for_an_incompatible_one():
+    env = {**os.environ, **loopback_graph().env()}
+    env["ROS_DOMAIN_ID"] = str(int(os.environ.get("ROS_DOMAIN_ID") or 44) + 1)  # a graph of its own
+    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    done = subprocess.run([sys.executable, "-c", QOS_PROBE], capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["plain", "OK", "strict", "ERROR"]

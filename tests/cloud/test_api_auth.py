@@ -64,6 +64,8 @@ ROUTES = [
     # The registry's token server takes Basic credentials only, as Distribution's clients send them
     # (tests/registry): an API token in a Token header is refused like no credentials at all.
     Route("GET", "/api/registry/token", 401, 401, 401),
+    # Each caller's own namespace (tests/registry/test_notifications.py shows the listings differ).
+    Route("GET", "/api/registry/repositories", 200, 200, 200),
     Route("GET", "/api/robot", 200, 200, 200, lists=True),
     Route("POST", "/api/robot", 201, 201, 201, body={"id": "{role}-made"}),
     Route("POST", "/api/robot/start", 200, 200, 200),

@@ -244,10 +244,24 @@ class Ros2Discovery(RouterBase):
                 if publisher.get_subscription_count() >= node.count_subscribers(name):
                     continue  # every subscriber matched
                 for info in node.get_subscriptions_info_by_topic(name):
-                    compatibility, reason = qos_check_compatible(topic.qos, info.qos_profile)
+                    compatibility, reason = qos_check_compatible(topic.qos, _as_asked(info.qos_profile))
                     if compatibility == QoSCompatibility.ERROR:
                         self._route_error(
                             topic.canonical,
                             f"a subscriber of {name} asks for a QoS the publisher does not offer ({reason}); "
                             "it gets nothing",
                         )
+
+
+def _as_asked(profile: Any) -> Any:
+    """Return a subscriber's QoS as it asked: the graph reports an unset deadline or lease as Infinite.
+
+    Checked as they come, every subscriber that asked for no deadline would be "incompatible" with a
+    publisher that offers none (found on a loaded machine, where a subscriber was not matched yet).
+    """
+    from rclpy.duration import Duration, Infinite
+
+    for field in ("deadline", "lifespan", "liveliness_lease_duration"):
+        if getattr(profile, field) == Infinite:
+            setattr(profile, field, Duration())
+    return profile
