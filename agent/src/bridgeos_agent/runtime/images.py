@@ -125,7 +125,11 @@ class ImagePuller:
         """Pull a Skill's images ahead of its start (image -> its components); a failure is the start's to say."""
         if self._connect is None or not wanted:
             return
-        api = await self._connect()
+        try:
+            api = await self._connect()
+        except RuntimeFailure as exc:
+            logger.warning("skill %s: its images are not pulled ahead: %s", skill, exc)
+            return
         for image, components in wanted.items():
             report = on_pull(skill, components[0], image) if on_pull is not None else None
             try:
