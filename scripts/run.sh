@@ -41,7 +41,12 @@ fi
 REGISTRY_PORT="${BRIDGEOS_REGISTRY_PORT:-5000}"
 REALM_HOST="$HOST"; [ "$REALM_HOST" = 0.0.0.0 ] && REALM_HOST=127.0.0.1
 registry_note=""
-if ! command -v docker-registry >/dev/null 2>&1; then
+registry_shared=""  # the standing registry scripts/services.sh started for this data directory and cloud
+registry_pid=$(cat "$DATA_DIR/registry/registry.pid" 2>/dev/null || true)
+if [ -n "$registry_pid" ] && [ "$(cat "/proc/$registry_pid/comm" 2>/dev/null)" = docker-registry ] \
+   && grep -qF "realm: \"http://$REALM_HOST:$PORT/api/registry/token\"" "$DATA_DIR/registry/config.yml" 2>/dev/null; then
+  registry_shared=1
+elif ! command -v docker-registry >/dev/null 2>&1; then
   registry_note="not installed: Skills' images are not pinned and robots pull nothing (scripts/services.sh registry)"
 elif (exec 3<>"/dev/tcp/127.0.0.1/$REGISTRY_PORT") 2>/dev/null; then
   registry_note="port $REGISTRY_PORT is taken: not started (set BRIDGEOS_REGISTRY_PORT)"
@@ -51,7 +56,9 @@ status database "${DATABASE_URL:-SQLite file in $DATA_DIR}"
 $PY manage.py migrate --no-input -v 0 >>"$LOGS/manage.log" 2>&1 || { echo "migrate failed, see $LOGS/manage.log" >&2; tail -5 "$LOGS/manage.log" >&2; exit 1; }
 login=$($PY manage.py ensure_operator 2>>"$LOGS/manage.log")
 status runtime "cloud copies run as $BRIDGEOS_CLOUD_RUNTIME"
-if [ -z "$registry_note" ]; then
+if [ -n "$registry_shared" ]; then
+  export BRIDGEOS_REGISTRY_HOST="${BRIDGEOS_REGISTRY_HOST:-127.0.0.1:$REGISTRY_PORT}"
+elif [ -z "$registry_note" ]; then
   $PY manage.py registry_config --realm "http://$REALM_HOST:$PORT/api/registry/token" \
     --listen "127.0.0.1:$REGISTRY_PORT" --storage "$DATA_DIR/registry/storage" --out "$DATA_DIR/registry" \
     >>"$LOGS/manage.log" 2>&1 || { echo "registry_config failed, see $LOGS/manage.log" >&2; exit 1; }
@@ -90,7 +97,9 @@ for _ in $(seq 1 100); do
   sleep 0.1
 done
 status daphne "http://$HOST:$PORT/ (access log $LOGS/daphne.log)"
-if [ -z "$registry_note" ]; then
+if [ -n "$registry_shared" ]; then
+  status registry "127.0.0.1:$REGISTRY_PORT, started by scripts/services.sh, tokens from this cloud (docker login 127.0.0.1:$REGISTRY_PORT)"
+elif [ -z "$registry_note" ]; then
   docker-registry serve "$DATA_DIR/registry/config.yml" >>"$LOGS/registry.log" 2>&1 &
   pids+=($!)
   status registry "127.0.0.1:$REGISTRY_PORT, tokens from this cloud (docker login 127.0.0.1:$REGISTRY_PORT; log $LOGS/registry.log)"

@@ -302,8 +302,19 @@ part_node() {
     report node "$t" "node $(node --version), ${did[*]}"
 }
 
-# Debian's CNCF Distribution registry and skopeo; the tests start their own registry with a
-# config from `manage.py registry_config`, so none is started here.
+# Debian's CNCF Distribution registry and skopeo. With the project installed (make install), a
+# registry for `make run`'s cloud starts too, as a standing service like PostgreSQL: on
+# 127.0.0.1:$REGISTRY_PORT, its storage and config under the default data directory, tokens from
+# the cloud `make run` serves (which then uses this registry instead of starting its own). The
+# tests start their own registries on free ports.
+REGISTRY_PORT="${BRIDGEOS_REGISTRY_PORT:-5000}"
+REGISTRY_DIR="${BRIDGEOS_DATA_DIR:-$ROOT_DIR/.data}/registry"
+REGISTRY_LOG=/var/log/bridgeos-registry.log
+registry_running() {  # the registry this script started for this data directory answers
+    local pid
+    pid=$(cat "$REGISTRY_DIR/registry.pid" 2>/dev/null) || return 1
+    [[ $(cat "/proc/$pid/comm" 2>/dev/null) == docker-registry ]] && port_open "$REGISTRY_PORT"
+}
 part_registry() {
     local t; t=$(now)
     if ! have docker-registry || ! have skopeo; then
@@ -311,7 +322,32 @@ part_registry() {
     fi
     local did="present"
     [[ $INSTALLED == *" docker-registry "* ]] && did="installed"
-    report registry "$t" "$did: docker-registry $(docker-registry --version 2>/dev/null | awk '{print $3}'), $(skopeo --version 2>/dev/null)"
+    local version
+    version="docker-registry $(docker-registry --version 2>/dev/null | awk '{print $3}'), $(skopeo --version 2>/dev/null)"
+    if registry_running; then
+        report registry "$t" "$version; already running on 127.0.0.1:$REGISTRY_PORT (log $REGISTRY_LOG)"; return
+    fi
+    if port_open "$REGISTRY_PORT"; then
+        report registry "$t" "$did: $version; port $REGISTRY_PORT is taken by something else, none started (set BRIDGEOS_REGISTRY_PORT)"; return
+    fi
+    if [[ ! -x $ROOT_DIR/.venv/bin/python ]]; then
+        report registry "$t" "$did: $version; make run starts one (make install first to start it here)"; return
+    fi
+    mkdir -p "$REGISTRY_DIR"
+    if ! (cd "$ROOT_DIR" && .venv/bin/python manage.py registry_config \
+            --realm "http://127.0.0.1:${BRIDGEOS_PORT:-8000}/api/registry/token" \
+            --listen "127.0.0.1:$REGISTRY_PORT" --storage "$REGISTRY_DIR/storage" --out "$REGISTRY_DIR") \
+            >>"$REGISTRY_LOG" 2>&1; then
+        missing registry "$t" "manage.py registry_config failed, see $REGISTRY_LOG"; return
+    fi
+    setsid nohup docker-registry serve "$REGISTRY_DIR/config.yml" >>"$REGISTRY_LOG" 2>&1 </dev/null &
+    echo $! >"$REGISTRY_DIR/registry.pid"
+    local _
+    for _ in $(seq 1 100); do registry_running && break; sleep 0.1; done
+    if ! registry_running; then
+        missing registry "$t" "docker-registry did not start, see $REGISTRY_LOG"; return
+    fi
+    report registry "$t" "$did: $version; started on 127.0.0.1:$REGISTRY_PORT for make run's cloud (log $REGISTRY_LOG)"
 }
 
 for part in "${ALL_PARTS[@]}"; do
