@@ -38,6 +38,7 @@ from bridgeos_agent.robotconfig import RobotConfig
 from bridgeos_agent.ros2graph import Ros2Graph
 from bridgeos_agent.rosmaster import find_ros_master
 from bridgeos_agent.runtime import ComponentSpec, Runtime, Usage, create_runtime
+from bridgeos_agent.runtime.usage import MIB
 from bridgeos_agent.session import AuthenticationRefused, Session
 from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 from bridgeos_agent.state import SkillRecord, StateFile, find_skill, previous_placement
@@ -78,7 +79,8 @@ class RobotController:
             from bridgeos_agent.runtime.images import RegistryLogin
 
             # Images the robot lacks come from its cloud's registry, with tokens only its cloud grants.
-            options.setdefault("registry", RegistryLogin.for_cloud(settings.master, settings.robot, settings.token))
+            login = RegistryLogin.for_cloud(settings.master, settings.robot, settings.token, settings.ca_file)
+            options.setdefault("registry", login)
         self.runtime: Runtime = runtime or create_runtime(
             settings.runtime,
             settings.robot,
@@ -90,6 +92,8 @@ class RobotController:
             runtime.on_status = self.placement.on_runtime_status
         if hasattr(self.runtime, "on_pull"):  # a runtime that pulls images reports their progress
             self.runtime.on_pull = self.placement.pull_progress
+        if hasattr(self.runtime, "images"):  # and keeps every image a Skill of the robot names
+            self.runtime.images.in_use = self._images_in_use
         if plugins is None:
             from bridgeos_agent.manager import skill_manager_plugin
             from bridgeos_agent.router import skill_router_plugin
@@ -339,6 +343,10 @@ class RobotController:
         if source == "cloud":
             self.config_from_cloud.set()
         self.network.apply_config(config)
+        images = getattr(self.runtime, "images", None)
+        if images is not None:
+            images.keep = config.images.keep_per_repository
+            images.disk_reserve = int(config.images.disk_reserve_mb * MIB)
         use_subnet = getattr(self.runtime, "use_subnet", None)
         if config.subnets is not None and use_subnet is not None:
             use_subnet(config.subnets.local)
@@ -347,6 +355,15 @@ class RobotController:
             self.say(f"robot config received (heuristic {config.heuristic}, offloading {config.offloading})")
 
     # ------------------------------------------------------------------ Skills
+
+    def _images_in_use(self) -> set[str]:
+        """Return the images the robot's Skills run on the robot (kept when unused images are removed)."""
+        return {
+            component.robot.image
+            for record in self.skills.values()
+            for component in record.config.components.values()
+            if component.robot is not None and component.robot.image
+        }
 
     async def _startup(self) -> None:
         """Once the cloud sent a config, relaunch the Skills that ran before, in parallel."""

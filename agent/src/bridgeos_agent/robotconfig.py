@@ -126,6 +126,20 @@ class Vpn(_Model):
     )
 
 
+class ImagePolicy(_Model):
+    """Say how a robot keeps the images it pulls from the cloud's registry."""
+
+    keep_per_repository: int = Field(
+        default=3,
+        ge=1,
+        le=100,
+        description="Pulled images kept per repository besides those a Skill uses (the newest first).",
+    )
+    disk_reserve_mb: NonNegative = Field(
+        default=256, description="Disk (MiB) a pull must leave free under Docker's data root, else disk_full."
+    )
+
+
 class Costs(_Model):
     """Price the resources used by the monetary policy and migration heuristics."""
 
@@ -166,6 +180,7 @@ class RobotConfig(_Model):
     )
     subnets: Subnets | None = None
     vpn: Vpn = Field(default_factory=Vpn)
+    images: ImagePolicy = Field(default_factory=ImagePolicy)
     tls_ca: str | None = Field(
         default=None,
         max_length=65536,

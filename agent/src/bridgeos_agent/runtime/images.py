@@ -11,6 +11,14 @@ hold the image's compressed size three times over (the download and the unpacked
 a reserve; else the pull is refused as ``disk_full`` with the sizes named. Progress (bytes done
 and total) goes to a callback as the engine reports it. Two components of one image share one
 pull.
+
+A pull cut by a lost link resumes: the engine itself retries a layer's download from where it
+stopped (an HTTP Range request) for a while, and when it gives up, the agent pulls again with
+growing gaps, up to ``retry_for`` seconds; layers already complete are kept by the engine and not
+fetched again. Refusals (no such image, no token, a full disk) are not retried. After a pull,
+the images no Skill uses any more are removed by the policy ``keep`` (the newest ``keep`` images
+of each repository stay, besides every image a container or a Skill of the robot uses), so an
+updated Skill does not fill the disk.
 """
 
 from __future__ import annotations
@@ -20,21 +28,24 @@ import ipaddress
 import logging
 import re
 import shutil
+import ssl
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 import aiohttp
 import docker.errors
+import requests
 from docker.api import APIClient
 
 from bridgeos_agent.imagerefs import split_reference
 from bridgeos_agent.runtime.base import RuntimeFailure
 from bridgeos_agent.runtime.usage import MIB
 
-__all__ = ["DiskFull", "ImagePuller", "RegistryLogin"]
+__all__ = ["DiskFull", "ImagePuller", "PullCut", "RegistryLogin", "unused_images"]
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +57,11 @@ MANIFEST_TYPES = (
     "application/vnd.oci.image.index.v1+json",
 )
 CHALLENGE_PARAM = re.compile(r'(\w+)="([^"]*)"')
+# What the engine says when a pull is refused rather than cut: no use pulling again.
+REFUSED = re.compile(
+    r"unauthorized|denied|not found|manifest unknown|no such|invalid reference|no space left", re.IGNORECASE
+)
+RETRY_GAPS = (1.0, 2.0, 4.0, 8.0, 15.0, 30.0)  # seconds between pulls again after a cut, then every 30 s
 
 Progress = Callable[[int, int], None]  # (bytes done, bytes in all)
 
@@ -56,6 +72,10 @@ class DiskFull(RuntimeFailure):
     code = "disk_full"
 
 
+class PullCut(RuntimeFailure):
+    """A pull stopped by the network rather than refused: pulling again resumes it."""
+
+
 @dataclass(frozen=True)
 class RegistryLogin:
     """The robot's credentials, and the only token realm they are ever sent to: its own cloud."""
@@ -63,13 +83,18 @@ class RegistryLogin:
     robot: str
     token: str
     cloud: str  # scheme://host[:port] of the cloud
+    ca_file: Path | None = None  # the cloud's CA, which also signs its registry's certificate
 
     @classmethod
-    def for_cloud(cls, master: str, robot: str, token: str) -> RegistryLogin:
+    def for_cloud(cls, master: str, robot: str, token: str, ca_file: Path | None = None) -> RegistryLogin:
         """Build the login for the cloud an agent connects to (its ``--master`` URL, ws(s) or http(s))."""
         parts = urlsplit(master)
         scheme = {"ws": "http", "wss": "https"}.get(parts.scheme, parts.scheme)
-        return cls(robot, token, f"{scheme}://{parts.netloc}")
+        return cls(robot, token, f"{scheme}://{parts.netloc}", ca_file)
+
+    def tls(self) -> ssl.SSLContext | bool:
+        """Return how to verify the registry's and the realm's certificates (the cloud's CA when given)."""
+        return ssl.create_default_context(cafile=str(self.ca_file)) if self.ca_file else True
 
     def owns(self, realm: str) -> bool:
         """Tell whether a token realm is this robot's cloud."""
@@ -97,13 +122,20 @@ class ImagePuller:
         *,
         disk_reserve: int = 256 * MIB,
         connect: Callable[[], Awaitable[APIClient]] | None = None,
+        keep: int = 3,
+        retry_for: float = 600.0,
     ) -> None:
         self.login = login
         self._call = call  # runs a blocking Docker SDK call in the runtime's thread pool
         self._connect = connect  # the runtime's engine client, for pulls ahead of any start
         self.disk_reserve = disk_reserve
+        self.keep = keep  # images kept per repository besides those in use
+        self.retry_for = retry_for  # seconds a cut pull is tried again before the start fails
+        self.in_use: Callable[[], set[str]] = set  # the images the robot's Skills name (the controller's)
+        self.ahead: set[str] = set()  # images pulled ahead for Skills added but not started yet
         self._pulls: dict[str, asyncio.Future[None]] = {}
         self.bytes_pulled = 0
+        self.pulls_cut = 0
 
     async def ensure(self, api: APIClient, image: str, who: str, progress: Progress | None = None) -> bool:
         """Make sure the engine has ``image``; return whether it was pulled. RuntimeFailure says why not."""
@@ -130,6 +162,7 @@ class ImagePuller:
         except RuntimeFailure as exc:
             logger.warning("skill %s: its images are not pulled ahead: %s", skill, exc)
             return
+        self.ahead.update(wanted)
         for image, components in wanted.items():
             report = on_pull(skill, components[0], image) if on_pull is not None else None
             try:
@@ -138,6 +171,45 @@ class ImagePuller:
                 logger.warning("pulling ahead for %s", exc)
 
     async def _pull(self, api: APIClient, image: str, who: str, progress: Progress | None) -> None:
+        """Pull once, and again with growing gaps while the network cuts it; then prune what is unused."""
+        deadline = time.monotonic() + self.retry_for
+        for attempt in range(1_000_000):
+            try:
+                await self._pull_once(api, image, who, progress)
+                break
+            except PullCut as exc:
+                self.pulls_cut += 1
+                gap = RETRY_GAPS[min(attempt, len(RETRY_GAPS) - 1)]
+                if time.monotonic() + gap > deadline:
+                    raise RuntimeFailure(f"{exc}; gave up after {self.retry_for:.0f} s of trying again") from None
+                logger.warning("%s; pulling again in %.0f s (complete layers are kept)", exc, gap)
+                await asyncio.sleep(gap)
+        try:
+            await self.prune(api)
+        except (docker.errors.APIError, RuntimeFailure) as exc:
+            logger.warning("removing images no Skill uses: %s", exc)
+
+    async def prune(self, api: APIClient) -> list[str]:
+        """Remove the registry images the policy lets go (see ``unused_images``); return their ids."""
+        images = await self._call(api.images)
+        containers = await self._call(api.containers, all=True)
+        used = {str(c.get("ImageID", "")) for c in containers}
+        wanted = self.in_use() | self.ahead
+        for image in images:
+            if wanted & {*(image.get("RepoDigests") or ()), *(image.get("RepoTags") or ())}:
+                used.add(str(image["Id"]))
+        removed = []
+        for image_id in unused_images(images, used, self.keep):
+            try:
+                await self._call(api.remove_image, image_id, force=False)
+                removed.append(image_id)
+            except docker.errors.APIError as exc:  # taken by a container made meanwhile: it stays
+                logger.info("image %s stays: %s", image_id[:19], exc.explanation)
+        if removed:
+            logger.info("removed %d image(s) no Skill uses (keeping %d per repository)", len(removed), self.keep)
+        return removed
+
+    async def _pull_once(self, api: APIClient, image: str, who: str, progress: Progress | None) -> None:
         registry, repository, reference = split_reference(image)
         if registry is None:
             raise RuntimeFailure(
@@ -147,9 +219,14 @@ class ImagePuller:
             )
         started = time.monotonic()
         base = f"{'http' if _loopback(registry) else 'https'}://{registry}"
-        async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=30)) as session:
+        tls = self.login.tls() if self.login else True
+        connector = aiohttp.TCPConnector(ssl=tls)
+        async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=30), connector=connector) as session:
             token = await self._token(session, base, repository, who, image)
-            sizes = await self._layers(session, base, repository, reference, token, who)
+            try:
+                sizes = await self._layers(session, base, repository, reference, token, who)
+            except (aiohttp.ClientError, OSError, TimeoutError) as exc:
+                raise PullCut(f"{who}: reading {image!r}'s manifest was cut ({exc or type(exc).__name__})") from None
         total = sum(sizes.values())
         await self._check_disk(api, image, total, who)
         logger.info("%s: pulling %s (%.1f MB) from %s", who, image, total / 1e6, registry)
@@ -173,9 +250,9 @@ class ImagePuller:
                 challenge = answer.headers.get("WWW-Authenticate", "")
                 status = answer.status
         except (aiohttp.ClientError, OSError, TimeoutError) as exc:
-            raise RuntimeFailure(
+            raise PullCut(
                 f"{who}: image {image!r} is not on this robot and its registry {base} cannot be reached "
-                f"({exc or type(exc).__name__}); it starts once the registry answers"
+                f"({exc or type(exc).__name__})"
             ) from None
         if status == 200:
             return ""
@@ -196,9 +273,7 @@ class ImagePuller:
                 body = await answer.json(content_type=None) if answer.status == 200 else {}
                 status = answer.status
         except (aiohttp.ClientError, OSError, TimeoutError, ValueError) as exc:
-            raise RuntimeFailure(
-                f"{who}: the cloud's token realm did not answer ({exc or type(exc).__name__})"
-            ) from None
+            raise PullCut(f"{who}: the cloud's token realm did not answer ({exc or type(exc).__name__})") from None
         token = body.get("token") or body.get("access_token") if isinstance(body, dict) else None
         if status != 200 or not token:
             raise RuntimeFailure(f"{who}: the cloud refused this robot a token to pull {image!r} ({status})")
@@ -269,8 +344,9 @@ class ImagePuller:
         try:
             for chunk in api.pull(repository, tag=reference, stream=True, decode=True, auth_config=auth):
                 if "error" in chunk or "errorDetail" in chunk:
-                    detail = chunk.get("errorDetail", {}).get("message") or chunk.get("error")
-                    raise RuntimeFailure(f"{who}: pulling {image!r} failed: {detail}")
+                    said = str(chunk.get("errorDetail", {}).get("message") or chunk.get("error"))
+                    failure = RuntimeFailure if REFUSED.search(said) else PullCut
+                    raise failure(f"{who}: pulling {image!r} failed: {said}")
                 layer, status = chunk.get("id", ""), chunk.get("status", "")
                 detail = chunk.get("progressDetail") or {}
                 if status == "Downloading" and "current" in detail:
@@ -287,4 +363,30 @@ class ImagePuller:
         except docker.errors.APIError as exc:
             refused = f"{who}: the registry would not give {image!r} to this robot"
             raise RuntimeFailure(f"{refused}: {exc.explanation}") from None
+        except (OSError, requests.exceptions.RequestException) as exc:  # the engine's stream broke
+            raise PullCut(f"{who}: pulling {image!r} was cut: {exc}") from None
         return sum(sizes.get(layer, done.get(layer, 0)) for layer in fetched)
+
+
+def unused_images(images: list[Mapping[str, Any]], used: set[str], keep: int) -> list[str]:
+    """Return the ids of pulled images to remove: beyond the newest ``keep`` of each repository, unused.
+
+    Only images from a registry count (a name with a registry host); images built on the robot
+    are never touched. An image in several repositories stays when any of them keeps it.
+    """
+    by_repository: dict[str, list[Mapping[str, Any]]] = {}
+    for image in images:
+        names = [*(image.get("RepoDigests") or ()), *(image.get("RepoTags") or ())]
+        for name in names:
+            registry, repository, _ = split_reference(name)
+            if registry is not None and "<none>" not in name:
+                group = by_repository.setdefault(f"{registry}/{repository}", [])
+                if image not in group:
+                    group.append(image)
+    kept: set[str] = set(used)
+    candidates: set[str] = set()
+    for group in by_repository.values():
+        newest = sorted(group, key=lambda image: int(image.get("Created") or 0), reverse=True)
+        kept.update(str(image["Id"]) for image in newest[:keep])
+        candidates.update(str(image["Id"]) for image in newest[keep:])
+    return sorted(candidates - kept)
