@@ -34,7 +34,7 @@ def test_the_newest_images_of_each_repository_stay_and_those_in_use_too():
         image("dangling", 0, "<none>:<none>"),
     ]
     assert unused_images(images, used=set(), keep=2) == ["a1", "a2"]
-    assert unused_images(images, used={"a1"}, keep=2) == ["a2"]
+    assert unused_images(images, used={"a4"}, keep=2) == ["a1"]  # a4 in use: a3 and a2 are the newest spare
     assert unused_images(images, used=set(), keep=1) == ["a1", "a2", "a3"]
     assert unused_images(images, used=set(), keep=10) == []
     # An image in two repositories stays while either keeps it: a1 is carol's newest.
@@ -50,7 +50,11 @@ async def test_a_robot_keeps_the_newest_pulls_of_a_repository_and_every_image_a_
     published,
     fleet,  # noqa: F811
 ):
-    versions = [published(f"alice/kept:{n}") for n in range(1, 5)]
+    versions = []
+    for n in range(1, 5):
+        if versions:
+            await asyncio.sleep(1.1)  # an image's creation time counts in seconds: one version a second
+        versions.append(published(f"alice/kept:{n}"))
     api = APIClient(version="auto", timeout=30)
 
     async def call(function, *args, **kwargs):

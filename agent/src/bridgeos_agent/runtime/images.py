@@ -369,7 +369,7 @@ class ImagePuller:
 
 
 def unused_images(images: list[Mapping[str, Any]], used: set[str], keep: int) -> list[str]:
-    """Return the ids of pulled images to remove: beyond the newest ``keep`` of each repository, unused.
+    """Return the ids of pulled images to remove: unused, and beyond the newest ``keep`` unused of their repository.
 
     Only images from a registry count (a name with a registry host); images built on the robot
     are never touched. An image in several repositories stays when any of them keeps it.
@@ -386,7 +386,8 @@ def unused_images(images: list[Mapping[str, Any]], used: set[str], keep: int) ->
     kept: set[str] = set(used)
     candidates: set[str] = set()
     for group in by_repository.values():
-        newest = sorted(group, key=lambda image: int(image.get("Created") or 0), reverse=True)
+        spare = [image for image in group if str(image["Id"]) not in used]
+        newest = sorted(spare, key=lambda image: int(image.get("Created") or 0), reverse=True)
         kept.update(str(image["Id"]) for image in newest[:keep])
         candidates.update(str(image["Id"]) for image in newest[keep:])
     return sorted(candidates - kept)
