@@ -6,10 +6,13 @@ import base64
 import contextlib
 import secrets
 import shutil
+import socket
 import subprocess
 import tarfile
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -18,8 +21,9 @@ import pytest
 from django.contrib.auth import get_user_model
 from django.core.management import call_command
 
+from network import pki
 from robots.services import create_robot, issue_api_token
-from tests.conftest import free_port, stop_process, wait_for_port
+from tests.conftest import free_port, stop_process
 from tests.logguard import watch
 
 PASSWORD = "correct-horse-battery-42"
@@ -60,10 +64,97 @@ def serving(config: Path, host: str, log: Path) -> Iterator[Path]:
     with log.open("wb") as out:
         process = subprocess.Popen(["docker-registry", "serve", str(config)], stdout=out, stderr=subprocess.STDOUT)
     try:
-        wait_for_port(int(host.rpartition(":")[2]), process)
+        address, _, port = host.rpartition(":")
+        _wait_listening(address, int(port), process)
         yield log
     finally:
         stop_process(process)
+
+
+def _wait_listening(address: str, port: int, process: subprocess.Popen, timeout: float = 30.0) -> None:
+    """Wait until the registry accepts on ADDRESS:PORT (not only loopback), failing early if it died."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(f"docker-registry exited with {process.returncode} before listening on {port}")
+        try:
+            socket.create_connection((address, port), timeout=0.2).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"docker-registry did not listen on {address}:{port} within {timeout} s")
+
+
+# Where every Docker engine on this machine looks for a registry's CA (the machine's own and the
+# second engines of tests/net/engine.py alike: dockerd has no flag for another directory).
+CERTS_D = Path("/etc/docker/certs.d")
+
+
+@dataclass
+class TlsRegistry(Registry):
+    """A registry serving HTTPS on a host address, with a certificate of a test CA that engines here trust."""
+
+    ca_pem: str
+    ca_file: Path  # alone in its directory: skopeo's --cert-dir reads every *.crt, *.cert and *.key there
+
+    @property
+    def url(self) -> str:
+        return f"https://{self.host}"
+
+    @property
+    def cert_dir(self) -> Path:
+        """Return the certs.d directory that makes engines on this machine verify the registry."""
+        return CERTS_D / self.host
+
+    def push(self, source: str, target: str, who: Account) -> subprocess.CompletedProcess:
+        """Copy an image of this machine's engine into the registry as ``who``, verifying its certificate."""
+        trusted = ["--dest-cert-dir", str(self.ca_file.parent), "--dest-creds", who.creds]
+        command = ["skopeo", "copy", "--quiet", *trusted, f"docker-daemon:{source}", f"docker://{self.host}/{target}"]
+        return subprocess.run(command, capture_output=True, text=True, timeout=300)
+
+
+@contextlib.contextmanager
+def tls_registry(daphne_server, base: Path, address: str, *, trust: bool = True) -> Iterator[TlsRegistry]:
+    """Serve a registry over TLS on ``address`` (e.g. the host end of a namespace's link), as robots and nodes see one.
+
+    Its certificate is issued for that IP by a CA made for the run; ``trust`` writes the CA to
+    /etc/docker/certs.d/ADDRESS:PORT, so every engine on this machine (second engines in
+    namespaces too) pulls from it, and removes it afterwards. Tokens come from the test daphne.
+    """
+    if shutil.which("docker-registry") is None:
+        pytest.skip("docker-registry is not installed: bash scripts/services.sh registry")
+    base.mkdir(parents=True, exist_ok=True)
+    host = f"{address}:{free_port()}"
+    now = datetime.now(UTC)
+    ca_key, ca_cert = pki.make_ca("bridgeOS test registry CA", now=now)
+    key, cert = pki.issue(ca_key, ca_cert, address, server=True, now=now, names=[address])
+    tls, ca_dir = base / "tls", base / "ca"
+    tls.mkdir(exist_ok=True)
+    ca_dir.mkdir(exist_ok=True)
+    (ca_dir / "ca.crt").write_text(pki.pem(ca_cert))
+    (tls / "registry.crt").write_text(pki.pem(cert) + pki.pem(ca_cert))
+    (tls / "registry.key").write_text(pki.key_pem(key))
+    realm = f"{daphne_server.url}/api/registry/token"
+    call_command(
+        "registry_config",
+        realm=realm,
+        listen=host,
+        storage=str(base / "storage"),
+        out=str(base / "conf"),
+        tls_cert=str(tls / "registry.crt"),
+        tls_key=str(tls / "registry.key"),
+        stdout=None,
+    )
+    registry = TlsRegistry(host, base / "registry.log", realm, ca_pem=pki.pem(ca_cert), ca_file=ca_dir / "ca.crt")
+    try:
+        if trust:
+            registry.cert_dir.mkdir(parents=True, exist_ok=True)
+            (registry.cert_dir / "ca.crt").write_text(registry.ca_pem)
+        with serving(base / "conf" / "config.yml", host, registry.log):
+            yield registry
+    finally:
+        if trust:
+            shutil.rmtree(registry.cert_dir, ignore_errors=True)
 
 
 @dataclass
