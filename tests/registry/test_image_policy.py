@@ -47,7 +47,7 @@ def test_the_newest_images_of_each_repository_stay_and_those_in_use_too():
 @pytest.mark.log_errors(PUSH_PROBE)
 async def test_a_robot_keeps_the_newest_pulls_of_a_repository_and_every_image_a_skill_names(
     daphne_server,
-    published,
+    published,  # noqa: F811
     fleet,  # noqa: F811
 ):
     versions = []

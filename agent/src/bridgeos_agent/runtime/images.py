@@ -24,6 +24,7 @@ updated Skill does not fill the disk.
 from __future__ import annotations
 
 import asyncio
+import base64
 import ipaddress
 import logging
 import re
@@ -267,9 +268,9 @@ class ImagePuller:
                 f"({cloud}); the robot's credentials go to its own cloud only"
             )
         query = {"service": params.get("service", ""), "scope": f"repository:{repository}:pull"}
-        auth = aiohttp.BasicAuth(self.login.robot, self.login.token)
+        basic = base64.b64encode(f"{self.login.robot}:{self.login.token}".encode()).decode()
         try:
-            async with session.get(realm, params=query, auth=auth) as answer:
+            async with session.get(realm, params=query, headers={"Authorization": f"Basic {basic}"}) as answer:
                 body = await answer.json(content_type=None) if answer.status == 200 else {}
                 status = answer.status
         except (aiohttp.ClientError, OSError, TimeoutError, ValueError) as exc:
