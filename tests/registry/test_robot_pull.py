@@ -214,13 +214,13 @@ async def test_an_agent_pulls_a_skills_image_as_it_is_added_tells_the_cloud_how_
         await asyncio.wait_for(controller.config_from_cloud.wait(), 20)
         await sync_to_async(lambda: add_skill(Robot.objects.get(id=robot), skill))()
         # Added, not started: the robot pulls the image ahead, so the start will not wait for bytes.
-        for _ in range(150):  # counted once the pull has ended
-            if controller.metrics.image_bytes[("pull", "hello")] > 0:
+        for _ in range(150):  # the engine lists the image once the pull has ended
+            if run("docker", "image", "inspect", image).returncode == 0:
                 break
             await asyncio.sleep(0.2)
         else:
             raise AssertionError("the robot did not pull the image of the Skill it was told of")
-        assert run("docker", "image", "inspect", image).returncode == 0
+        assert controller.metrics.image_bytes[("pull", "hello")] > 0
         headers = {"Authorization": f"Token {fleet.alice_token.secret}"}
         async with httpx.AsyncClient(base_url=daphne_server.url, headers=headers, timeout=60) as api:
             answer = await api.post(f"/api/robot/{robot}/skill/pull/start", params={"wait": 30})
