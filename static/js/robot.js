@@ -198,10 +198,11 @@ function renderComponent(sid, component) {
     }
   });
   const outcome = el("span", { class: "outcome", role: "status" });
+  const image = el("span", { class: "sub image" });
   const row = el(
     "tr",
     { dataset: { component: key } },
-    el("th", { scope: "row" }, el("span", {}, cid), el("span", { class: "sub" }, component.name ?? "")),
+    el("th", { scope: "row" }, el("span", {}, cid), el("span", { class: "sub" }, component.name ?? ""), image),
     el("td", { dataset: { label: "May run" } }, ALLOWED[allowed] ?? allowed),
     el("td", { dataset: { label: "Location" } }, location),
     el("td", { dataset: { label: "Status" } }, status, reason, pull),
@@ -212,7 +213,7 @@ function renderComponent(sid, component) {
       outcome,
     ),
   );
-  componentRows.set(key, { location, status, reason, pull, migrate, outcome, where });
+  componentRows.set(key, { location, status, reason, pull, migrate, outcome, where, image });
   updateComponent(sid, cid);
   return row;
 }
@@ -230,6 +231,11 @@ function updateComponent(sid, cid) {
   // Why it is in that status (why it failed), as the robot said; nothing once it runs again.
   setText(cells.reason, component.message || "");
   cells.status.title = component.message || "";
+  // The image it runs: a Skill's image from the cloud's registry is pinned, so the digest shows.
+  const runs = component.container?.[active]?.image ?? component.container?.robot?.image ?? "";
+  const [name, digest] = runs.split("@");
+  setText(cells.image, digest ? `${name}@${digest.slice(0, 19)}…` : runs);
+  cells.image.title = runs;
   // Its image on the way to the robot: bytes pulled of its compressed size, until it runs.
   const pull = component.container?.robot?.pull;
   const pulling = Boolean(pull) && component.status !== "running" && component.status !== "failed";

@@ -38,6 +38,7 @@ DECISION_METRIC = "offloading.decision"
 MIGRATION_S = 0.3
 # A Skill Manager decides for each movable component every few rounds of metrics.
 DECISION_EVERY = 3
+PULL_STEP_S = 1.0  # between a simulated pull's progress reports (the agent's: at most one a second)
 
 
 class SimulatedRobot:
@@ -124,8 +125,25 @@ class SimulatedRobot:
             allowed = component.get("location", "robot")
             state = components.setdefault(component_id, {"allowed": allowed, "active": "", "status": "stopped"})
             location = state["active"] or ("cloud" if allowed == "cloud" else "robot")
+            image = (component.get("robot") or {}).get("image")
+            if image and location == "robot":
+                await self.pull(skill_id, component_id, image)
             await self.set_component(skill_id, component_id, "running", location)
+            if image and location == "robot":
+                container = {"runtime": "docker", "id": f"{component_id}-container", "image": image}
+                data = {"skill": skill_id, "component": component_id, "location": "robot", "container": container}
+                await self.link.send(Event.COMPONENT_INFORMATION, data)
         await self.link.send(Event.SKILL_STATUS, {"skill": skill_id, "status": "running"})
+
+    async def pull(self, skill_id: str, component_id: str, image: str, total: int = 50_000_000) -> None:
+        """Report a pull of a component's image as the agent does: bytes done of its size, a second apart."""
+        await self.set_component(skill_id, component_id, "starting", "robot")
+        for done in range(0, total + 1, total // 4):
+            pull = {"image": image, "done": done, "total": total}
+            container = {"runtime": "docker", "image": image, "pull": pull}
+            data = {"skill": skill_id, "component": component_id, "location": "robot", "container": container}
+            await self.link.send(Event.COMPONENT_INFORMATION, data)
+            await asyncio.sleep(PULL_STEP_S)
 
     async def stop_skill(self, skill_id: str) -> None:
         await self.link.send(Event.SKILL_STATUS, {"skill": skill_id, "status": "stopping"})

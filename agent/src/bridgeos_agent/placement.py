@@ -210,6 +210,9 @@ class Placement:
             Event.COMPONENT_LOCATION, {"skill": record.config.skill_id, "component": name, "location": "robot"}
         )
         container: dict[str, Any] = {"runtime": controller.runtime.name}
+        launch = record.config.components[name].robot
+        if controller.runtime.name == "docker" and launch is not None and launch.image:
+            container["image"] = launch.image[:256]  # pinned by the cloud: the digest it runs shows
         ident = state.pid_or_container_id
         if isinstance(ident, int):
             container["pid"] = ident
