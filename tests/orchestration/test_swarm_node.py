@@ -104,16 +104,31 @@ def launch_spec(robot: Robot, config: dict):
 
 
 def run_on_swarm(robot_id: str, operation):
-    """Run ``operation(runtime)`` on a Swarm runtime of the robot; remove the robot's services afterwards."""
+    """Run ``operation(runtime)`` on a Swarm runtime of the robot; remove the robot's services and network afterwards."""
 
     async def main():
         runtime = SwarmRuntime(robot_id, data_dir=django_settings.DATA_DIR / "cloud" / "runtime")
         try:
             return await operation(runtime)
         finally:
-            await runtime.close(stop_components=True)
+            await remove_all(runtime)
 
     return asyncio.run(main())
+
+
+async def remove_all(runtime: SwarmRuntime) -> None:
+    """Remove the robot's services, then its network once Swarm has detached them from it, then close."""
+    try:
+        for item in await runtime.observe():
+            if item.robot == runtime.robot:
+                await runtime.remove(item)
+        for _ in range(100):
+            await runtime.remove_network()
+            if runtime.network not in (await runtime.networks()).values():
+                break
+            await asyncio.sleep(0.2)
+    finally:
+        await runtime.close()
 
 
 def start_and_wait(spec):
