@@ -11,6 +11,7 @@ Swarm never restarts a task here (restart condition ``none``): a crash leaves th
 failed for the reconciler to see, log and restart with backoff (``restart``). Skill volumes
 are bind mounts of the cloud's volume directory, which volume sync keeps in step with the
 robot. Every Docker SDK call blocks, so calls run in a small thread pool of the runtime's own.
+A service carries the pull token its node needs for an image of the cloud's registry (swarmauth).
 """
 
 from __future__ import annotations
