@@ -79,6 +79,13 @@ def _push(registry: Any, local: str, repository: str, work: Path) -> str:
     return digest_file.read_text().strip()
 
 
+def _placed(service: str) -> bool:
+    """Tell whether Swarm has given the service's task a node."""
+    import docker
+
+    return any(task.get("NodeID") for task in docker.APIClient(version="auto").tasks(filters={"service": service}))
+
+
 def swarm_node_pull_s(size_mb: int = 50, *, work: Path | None = None) -> dict[str, float]:
     """Time a cloud copy of a new image of ``size_mb`` MB from its service's creation to running on a second node.
 
@@ -129,8 +136,17 @@ def swarm_node_pull_s(size_mb: int = 50, *, work: Path | None = None) -> dict[st
         async def timed() -> float:
             runtime = SwarmRuntime(spec.robot, data_dir=work / "runtime")
             try:
-                started = time.perf_counter()
-                await runtime.start(spec)
+                name = runtime.service_name(spec.skill, spec.component)
+                node.availability("active")  # paused otherwise: no other task of this machine lands there
+                try:
+                    started = time.perf_counter()
+                    await runtime.start(spec)
+                    for _ in range(3000):  # a minute at most; wait_running says why if it never is
+                        if _placed(name):
+                            break
+                        await asyncio.sleep(0.02)
+                finally:
+                    node.availability("pause")
                 state = await runtime.wait_running(spec.skill, spec.component, 600)
                 took = time.perf_counter() - started
                 if state.status is not Status.RUNNING:

@@ -1,5 +1,10 @@
 """A second Swarm node: an engine of its own in a network namespace, linked to this machine, joined as a worker.
 
+While it is up, Swarm would place any new task of this machine (another test's, another
+session's) on it first, as the emptiest node, where its image is missing. So the node is
+*paused* (no new tasks) except inside :meth:`SwarmNode.accepting`, which a test holds only while
+its own constrained task is being placed.
+
 The namespace reaches this machine over one veth pair (a /30: this machine's end is
 ``host_address``, the node's ``address``); a registry listening on ``host_address`` is what the
 node pulls from, so every byte it pulls crosses that link. The node starts with an empty image
@@ -37,6 +42,19 @@ class SwarmNode:
     def node_id(self) -> str:
         return self.engine.node_id
 
+    def availability(self, state: str) -> None:
+        """Set the node's availability: ``active`` (takes new tasks) or ``pause`` (keeps what it runs)."""
+        run("docker", "node", "update", "--availability", state, self.node_id)
+
+    @contextlib.contextmanager
+    def accepting(self) -> Iterator[None]:
+        """Let Swarm place new tasks on the node while the block runs; keep them there afterwards."""
+        self.availability("active")
+        try:
+            yield
+        finally:
+            self.availability("pause")
+
 
 def _free_subnet() -> ipaddress.IPv4Network:
     """Return a /30 of POOL that no interface here is on, starting from one derived from this process's pid."""
@@ -73,7 +91,9 @@ def swarm_node(name: str = "node") -> Iterator[SwarmNode]:
         network.exec(namespace, "ip", "route", "add", "default", "via", host_address)
         engine = Engine(namespace, name, address=address).start()
         engine.join_swarm()
-        yield SwarmNode(engine, network, namespace, host_address, address, host_end)
+        node = SwarmNode(engine, network, namespace, host_address, address, host_end)
+        node.availability("pause")
+        yield node
     finally:
         if engine is not None:
             engine.close()

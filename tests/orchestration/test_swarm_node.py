@@ -131,23 +131,33 @@ async def remove_all(runtime: SwarmRuntime) -> None:
         await runtime.close()
 
 
-def start_and_wait(spec):
-    """Create the copy's service and wait for its task to run or fail; return its state, node and the task's error."""
+def start_and_wait(node: SwarmNode, spec):
+    """Create the copy's service and wait for its task to run or fail; return its state and the task's node."""
 
     async def operation(runtime: SwarmRuntime):
-        state = await runtime.start(spec)
-        if state.status is not Status.RUNNING:
-            state = await runtime.wait_running(spec.skill, spec.component, START_TIMEOUT_S)
+        await placed(node, runtime, runtime.start(spec))
+        state = await runtime.wait_running(spec.skill, spec.component, START_TIMEOUT_S)
         return state, node_of(runtime.service_name(spec.skill, spec.component))
 
     return run_on_swarm(spec.robot, operation)
 
 
+async def placed(node: SwarmNode, runtime: SwarmRuntime, action) -> None:
+    """Await a create or restart with the node taking new tasks, until the copy's new task has a node."""
+    with node.accepting():
+        state = await action
+        name = runtime.service_name(state.skill, state.component)
+        for _ in range(300):
+            if node_of(name):
+                return
+            await asyncio.sleep(0.1)
+    raise AssertionError(f"Swarm placed no task of {name} within 30 s")
+
+
 def node_of(service: str) -> str:
-    """Return the node the service's newest task was placed on."""
+    """Return the node the service's newest task was placed on (empty: not placed yet)."""
     tasks = docker.APIClient(version="auto").tasks(filters={"service": service})
-    newest = max(tasks, key=task_key)
-    return newest.get("NodeID", "")
+    return max(tasks, key=task_key).get("NodeID", "") if tasks else ""
 
 
 def node_digests(node: SwarmNode) -> list[str]:
@@ -175,14 +185,14 @@ def test_a_cloud_copy_runs_on_a_node_that_never_had_its_image_only_with_the_toke
     assert bob_token.status_code == 200 and bob_token.json()["token"], bob_token.text
     bobs = encode_auth(bob_token.json()["token"], node_registry.host)
     for auth in ("", bobs):
-        state, node = start_and_wait(dataclasses.replace(spec, registry_auth=auth))
+        state, node = start_and_wait(swarm_worker, dataclasses.replace(spec, registry_auth=auth))
         assert node == swarm_worker.node_id
         assert state.status is Status.FAILED, state
         assert re.search(r"No such image|unauthorized|denied", state.message or ""), state.message
     assert node_digests(swarm_worker) == []
 
     # With the cloud's token for Alice it runs there, from the pinned digest the node pulled.
-    state, node = start_and_wait(spec)
+    state, node = start_and_wait(swarm_worker, spec)
     assert state.status is Status.RUNNING, state.message
     assert node == swarm_worker.node_id
     assert node_digests(swarm_worker) == [repository_digest]
@@ -203,12 +213,12 @@ def test_a_restarted_copy_gets_a_fresh_token_where_the_one_it_was_created_with_e
     expired = dataclasses.replace(spec, registry_auth=registry_auth(spec.launch.image, robot.owner, now=past))
 
     async def operation(runtime: SwarmRuntime):
-        await runtime.start(expired)
+        await placed(swarm_worker, runtime, runtime.start(expired))
         refused = await runtime.wait_running(SKILL, "far", START_TIMEOUT_S)
         # An update without registry auth keeps the token Swarm has: expired, so refused again.
-        await runtime.restart(dataclasses.replace(spec, registry_auth=""))
+        await placed(swarm_worker, runtime, runtime.restart(dataclasses.replace(spec, registry_auth="")))
         kept = await runtime.wait_running(SKILL, "far", START_TIMEOUT_S)
-        await runtime.restart(spec)  # the spec the cloud builds now: a fresh token
+        await placed(swarm_worker, runtime, runtime.restart(spec))  # as the cloud builds it now: a fresh token
         return refused, kept, await runtime.wait_running(SKILL, "far", START_TIMEOUT_S)
 
     refused, kept, state = run_on_swarm(robot.id, operation)
