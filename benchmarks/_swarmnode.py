@@ -1,8 +1,8 @@
 """How long a Swarm node takes to run a cloud copy of an image it never had (issue 33, ``swarm_node_pull_s``).
 
 A second engine in a network namespace joins this machine's Swarm as a worker; a registry
-serves TLS on this machine's end of the node's link. An image of random bytes (``--quick``:
-about 50 MB, else about 200 MB) is pushed with a token the cloud's signing key mints, and a
+serves TLS on this machine's end of the node's link. An image of 10 MB layers of random bytes
+(``--quick``: about 50 MB, else about 200 MB) is pushed with a token the cloud's signing key mints, and a
 cloud copy of it, pinned by digest and constrained to the node, is created through the cloud's
 Swarm runtime with the pull token the cloud gives Swarm. The figure is the time from the
 service's creation to its task running on the node: the node's pull over the link included.
@@ -36,6 +36,7 @@ for path in (HERE, HERE.parent):  # run as a module or imported beside _common b
 from _common import log, setup_django  # noqa: E402
 
 MB = 1_000_000
+LAYER_MB = 10  # images of several layers, as images.py's robot pulls
 OWNER = "alice"
 
 
@@ -102,7 +103,7 @@ def swarm_node_pull_s(size_mb: int = 50, *, work: Path | None = None) -> dict[st
     from tests.net import engine
     from tests.net.swarmnode import swarm_node
     from tests.registry.conftest import tls_registry
-    from tests.registry.images import sleeper_image
+    from tests.registry.layered import build_layered_image
 
     reason = engine.available()
     if reason:
@@ -113,7 +114,8 @@ def swarm_node_pull_s(size_mb: int = 50, *, work: Path | None = None) -> dict[st
     realm = types.SimpleNamespace(url="http://127.0.0.1:9")  # never called: the node presents the cloud's token
     with swarm_node("bench") as node, tls_registry(realm, work / "registry", node.host_address, notify="off") as reg:
         log(f"node {node.node_id} at {node.address}, registry {reg.host}; building a {size_mb} MB image")
-        local = sleeper_image(work / "image", padding_bytes=size_mb * MB)
+        layers = max(1, size_mb // LAYER_MB)
+        local = build_layered_image(work / "image", f"bridgeos-bench/node:{os.getpid():x}", layers, LAYER_MB * MB)
         try:
             digest = _push(reg, local, f"{OWNER}/bench-node", work)
         finally:
@@ -168,6 +170,11 @@ def swarm_node_pull_s(size_mb: int = 50, *, work: Path | None = None) -> dict[st
         return {"swarm_node_pull_s": round(took, 3), "swarm_node_image_mb": round(size, 1)}
 
 
+def measure(quick: bool) -> dict[str, float]:
+    """Return swarm_node_pull_s for an image of about 50 MB (``quick``) or 200 MB; benchmarks/images.py calls it."""
+    return swarm_node_pull_s(50 if quick else 200)
+
+
 def main() -> None:
     import argparse
     import json
@@ -177,7 +184,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench-swarmnode-") as data:
         setup_django({"BRIDGEOS_DATA_DIR": data, "BRIDGEOS_CLOUD_ID": f"bench-node-{os.getpid():x}"})
-        figures = swarm_node_pull_s(50 if args.quick else 200, work=Path(data))
+        figures = measure(args.quick)
     print(json.dumps(figures), flush=True)
 
 

@@ -14,6 +14,7 @@ import base64
 import dataclasses
 import json
 import re
+import secrets
 import subprocess
 from datetime import UTC, datetime, timedelta
 
@@ -32,7 +33,7 @@ from skills.services import add_skill
 from tests.net import engine as second_engine
 from tests.net.swarmnode import SwarmNode, swarm_node
 from tests.registry.conftest import ask_token, make_fleet, tls_registry
-from tests.registry.images import sleeper_image
+from tests.registry.layered import build_layered_image
 from tests.registry.test_docker_registry import PUSH_PROBE
 
 pytestmark = [
@@ -77,7 +78,8 @@ def publish(node_registry, tmp_path):
     """Return a function that pushes a new image as Alice and leaves none of it in this machine's engine."""
 
     def push(target: str, who) -> str:
-        local = sleeper_image(tmp_path / target.replace("/", "_").replace(":", "_"))
+        local = f"bridgeos-test/node:{secrets.token_hex(4)}"
+        build_layered_image(tmp_path / local.rpartition(":")[2], local, 1, 4096)
         try:
             done = node_registry.push(local, target, who)
             assert done.returncode == 0, done.stderr
