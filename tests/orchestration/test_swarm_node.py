@@ -134,12 +134,13 @@ async def remove_all(runtime: SwarmRuntime) -> None:
 
 
 def start_and_wait(node: SwarmNode, spec):
-    """Create the copy's service and wait for its task to run or fail; return its state and the task's node."""
+    """Create the copy's service, wait until its task runs or fails; return its state, node and inspected service."""
 
     async def operation(runtime: SwarmRuntime):
         await placed(node, runtime, runtime.start(spec))
         state = await runtime.wait_running(spec.skill, spec.component, START_TIMEOUT_S)
-        return state, node_of(runtime.service_name(spec.skill, spec.component))
+        name = runtime.service_name(spec.skill, spec.component)
+        return state, node_of(name), docker.APIClient(version="auto").inspect_service(name)
 
     return run_on_swarm(spec.robot, operation)
 
@@ -187,16 +188,18 @@ def test_a_cloud_copy_runs_on_a_node_that_never_had_its_image_only_with_the_toke
     assert bob_token.status_code == 200 and bob_token.json()["token"], bob_token.text
     bobs = encode_auth(bob_token.json()["token"], node_registry.host)
     for auth in ("", bobs):
-        state, node = start_and_wait(swarm_worker, dataclasses.replace(spec, registry_auth=auth))
+        state, node, _ = start_and_wait(swarm_worker, dataclasses.replace(spec, registry_auth=auth))
         assert node == swarm_worker.node_id
         assert state.status is Status.FAILED, state
         assert re.search(r"No such image|unauthorized|denied", state.message or ""), state.message
     assert node_digests(swarm_worker) == []
 
     # With the cloud's token for Alice it runs there, from the pinned digest the node pulled.
-    state, node = start_and_wait(swarm_worker, spec)
+    state, node, service = start_and_wait(swarm_worker, spec)
     assert state.status is Status.RUNNING, state.message
     assert node == swarm_worker.node_id
+    token = json.loads(base64.urlsafe_b64decode(spec.registry_auth))["registrytoken"]
+    assert token not in json.dumps(service), "the Engine API shows the service's pull token"
     assert node_digests(swarm_worker) == [repository_digest]
     here = subprocess.run(["docker", "image", "inspect", spec.launch.image], capture_output=True)
     assert here.returncode != 0, "this machine's engine pulled the image: the node should have, alone"
