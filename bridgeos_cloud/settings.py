@@ -358,6 +358,9 @@ BRIDGEOS = {
     "REGISTRY_ISSUER": env_str("BRIDGEOS_REGISTRY_ISSUER", "bridgeos-cloud"),
     "REGISTRY_SERVICE": env_str("BRIDGEOS_REGISTRY_SERVICE", "bridgeos-registry"),
     "REGISTRY_TOKEN_TTL_S": env_float("BRIDGEOS_REGISTRY_TOKEN_TTL_S", 300.0),
+    # The pull token a cloud copy's Swarm service carries for its nodes (skills/cloud/swarmauth.py): it
+    # must outlive a task waiting for a node with room or a slow pull; every restart brings a new one.
+    "REGISTRY_SWARM_TOKEN_S": env_float("BRIDGEOS_REGISTRY_SWARM_TOKEN_S", 86400.0),
     # The cloud's own registry as images name it (host[:port]); a Skill's images there are pinned
     # by digest when it is added (registry/pinning.py). Empty: images are kept as written. How the
     # cloud reaches it (default http on loopback, else https) and the CA file its certificate is

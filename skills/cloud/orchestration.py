@@ -16,6 +16,7 @@ from django.conf import settings
 from django.core.exceptions import ValidationError
 from django.db import transaction
 
+from bridgeos_agent.imagerefs import split_reference
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Location
 from bridgeos_agent.ros2graph import DEFAULT_RMW, namespace_arguments
@@ -37,6 +38,7 @@ from .runtime import (
     ros_networking,
     runtime_name,
 )
+from .swarmauth import PullRefused, registry_auth
 
 logger = logging.getLogger(__name__)
 
@@ -179,6 +181,7 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
         env["ROS_NAMESPACE"] = instance_namespace(skill.skill_id, component.component_id, "cloud")
         env.update(_ros_address(robot.id, skill.skill_id, component.component_id))
     return CloudSpec(
+        registry_auth=_registry_auth(component.component_id, launch.image or "", robot),
         robot=robot.id,
         skill=skill.skill_id,
         component=component.component_id,
@@ -191,6 +194,24 @@ def cloud_spec(instance: CloudInstance) -> CloudSpec:
         ros=declared.ros,
         token=instance.token,
     )
+
+
+def _registry_auth(component_id: str, image: str, robot: Robot) -> str:
+    """Return the registry auth a copy's image of the cloud's registry needs; LaunchFailed if it cannot run.
+
+    Such an image must be the digest the Skill was pinned to when it was added, so every copy runs
+    the same bytes whatever its tag does later (registry/pinning.py).
+    """
+    registry, _, reference = split_reference(image)
+    if registry and registry == settings.BRIDGEOS["REGISTRY_HOST"] and not reference.startswith("sha256:"):
+        raise LaunchFailed(
+            f"component {component_id}: the cloud image {image!r} is not pinned by digest"
+            " (the Skill was stored without being added through the API): add the Skill again"
+        )
+    try:
+        return registry_auth(image, robot.owner)
+    except PullRefused as exc:
+        raise LaunchFailed(f"component {component_id}: {exc}") from None
 
 
 def ros2_env(robot: Robot) -> dict[str, str]:

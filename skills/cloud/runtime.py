@@ -134,9 +134,11 @@ class EngineBusy(RuntimeFailure):
 
 @dataclass(frozen=True)
 class CloudSpec(ComponentSpec):
-    """A component's cloud launch: the agent's spec and its launch token."""
+    """A component's cloud launch: the agent's spec, its launch token and the registry auth its image needs."""
 
     token: str = ""
+    # X-Registry-Auth for the image of the cloud's registry (swarmauth.registry_auth); a secret: never printed.
+    registry_auth: str = field(default="", repr=False, compare=False)
 
 
 @dataclass

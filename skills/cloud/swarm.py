@@ -11,6 +11,7 @@ Swarm never restarts a task here (restart condition ``none``): a crash leaves th
 failed for the reconciler to see, log and restart with backoff (``restart``). Skill volumes
 are bind mounts of the cloud's volume directory, which volume sync keeps in step with the
 robot. Every Docker SDK call blocks, so calls run in a small thread pool of the runtime's own.
+A service carries the pull token its node needs for an image of the cloud's registry (swarmauth).
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from bridgeos_agent.runtime.base import (
 from bridgeos_agent.runtime.engine import open_client
 from bridgeos_agent.runtime.usage import cpu_share, docker_usage, get_json
 
+from . import swarmauth
 from .runtime import (
     DISCOVERY_COMPONENT,
     KIND_COMPONENT,
@@ -128,8 +130,10 @@ class SwarmRuntime(CloudRuntime):
             await asyncio.to_thread(self._make_volume_dirs, spec)
             try:
                 created = await self._call(
-                    api.create_service,
-                    **service_config(self.robot, self.service_name(spec.skill, spec.component), spec, network),
+                    swarmauth.create_service,
+                    api,
+                    service_config(self.robot, self.service_name(spec.skill, spec.component), spec, network),
+                    self._registry_auth(spec),
                 )
                 self._ids[name] = created["ID"]
             except docker.errors.APIError as exc:
@@ -309,21 +313,30 @@ class SwarmRuntime(CloudRuntime):
         service = await self._service(name)
         if service is None:
             return await self.start(spec)
+        replaced = await self._newest_task(name)
         template = dict(service["Spec"]["TaskTemplate"])
         # A new ForceUpdate value makes Swarm replace the task even though the spec is unchanged.
         template["ForceUpdate"] = int(template.get("ForceUpdate") or 0) + 1
         try:
+            # A fresh registry token with it: the one the service was created with may have expired.
             await self._call(
-                api.update_service,
-                service["ID"],
-                version=service["Version"]["Index"],
-                task_template=template,
-                fetch_current_spec=True,
+                swarmauth.update_service,
+                api,
+                service,
+                {**service["Spec"], "TaskTemplate": template},
+                self._registry_auth(spec),
             )
         except docker.errors.APIError as exc:
             raise RuntimeFailure(
                 f"component {spec.skill}/{spec.component}: cannot restart: {exc.explanation}"
             ) from None
+        # Swarm makes the new task a moment later: report it, not the failed one it replaces.
+        deadline = time.monotonic() + 10
+        while replaced is not None and time.monotonic() < deadline:
+            task = await self._newest_task(name)
+            if task is not None and task["ID"] != replaced["ID"]:
+                break
+            await asyncio.sleep(0.05)
         return await self.status(spec.skill, spec.component)
 
     async def start_ros_master(self, port: int) -> ComponentState:
@@ -436,6 +449,9 @@ class SwarmRuntime(CloudRuntime):
 
     def _own_labels(self) -> list[str]:
         return [f"{LABEL_CLOUD}={cloud_id()}", f"{LABEL_ROBOT}={self.robot}"]
+
+    def _registry_auth(self, spec: ComponentSpec) -> str:
+        return spec.registry_auth if isinstance(spec, CloudSpec) else ""
 
     def _host_networked(self, spec: ComponentSpec) -> bool:
         return isinstance(spec, CloudSpec) and spec.ros and ros_networking() == "host"

@@ -37,9 +37,15 @@ def log_driver() -> dict[str, Any]:
     return {"Name": config.type, "Options": config.config}
 
 
-def task_key(task: Mapping[str, Any]) -> tuple[int, str]:
-    """Order a service's tasks: the newest (highest version, then creation time) last."""
-    return (int((task.get("Version") or {}).get("Index", 0)), str(task.get("CreatedAt", "")))
+def task_key(task: Mapping[str, Any]) -> tuple[str, int]:
+    """Order a service's tasks: the last created last (then the highest version).
+
+    Not the version first: a replaced task's version moves past its replacement's when Swarm
+    marks it for shutdown, while the replacement is still being placed. Docker trims the
+    creation time's trailing zeros, so its fraction is padded to compare as text.
+    """
+    stamp, _, fraction = str(task.get("CreatedAt", "")).removesuffix("Z").partition(".")
+    return (f"{stamp}.{fraction:0<9}", int((task.get("Version") or {}).get("Index", 0)))
 
 
 def task_state(skill: str, component: str, task: Mapping[str, Any]) -> ComponentState:

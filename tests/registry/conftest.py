@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import io
 import secrets
 import shutil
 import socket
@@ -114,12 +115,15 @@ class TlsRegistry(Registry):
 
 
 @contextlib.contextmanager
-def tls_registry(daphne_server, base: Path, address: str, *, trust: bool = True) -> Iterator[TlsRegistry]:
+def tls_registry(
+    daphne_server, base: Path, address: str, *, trust: bool = True, notify: str | None = None
+) -> Iterator[TlsRegistry]:
     """Serve a registry over TLS on ``address`` (e.g. the host end of a namespace's link), as robots and nodes see one.
 
     Its certificate is issued for that IP by a CA made for the run; ``trust`` writes the CA to
     /etc/docker/certs.d/ADDRESS:PORT, so every engine on this machine (second engines in
-    namespaces too) pulls from it, and removes it afterwards. Tokens come from the test daphne.
+    namespaces too) pulls from it, and removes it afterwards. Tokens come from ``daphne_server``
+    (anything with a ``url``); ``notify`` is registry_config's (``"off"``: no push notifications).
     """
     if shutil.which("docker-registry") is None:
         pytest.skip("docker-registry is not installed: bash scripts/services.sh registry")
@@ -143,7 +147,8 @@ def tls_registry(daphne_server, base: Path, address: str, *, trust: bool = True)
         out=str(base / "conf"),
         tls_cert=str(tls / "registry.crt"),
         tls_key=str(tls / "registry.key"),
-        stdout=None,
+        notify=notify,
+        stdout=io.StringIO(),  # what it wrote is in base: keep the output of a benchmark to its figures
     )
     registry = TlsRegistry(host, base / "registry.log", realm, ca_pem=pki.pem(ca_cert), ca_file=ca_dir / "ca.crt")
     try:
