@@ -231,30 +231,36 @@ async def start_after_add(
     headers = {"Authorization": f"Token {token}"}
     try:
         await asyncio.wait_for(controller.config_from_cloud.wait(), 30)
-        times = {}
+        times: dict[str, list[float]] = {"warm": [], "ahead": []}
         # The image is there (the cut pull left it): a first start makes the robot's network and
-        # warms the agent, so neither measured start pays for that; then one with the image there
-        # before its Skill came; then, the image removed, one the add's pull ahead prepared.
-        for skill in ("prime", "warm", "ahead"):
-            if skill == "ahead":
+        # warms the agent, so no measured start pays for that; then starts with the image there
+        # before their Skill came; then, the image removed each time, starts the add's pull
+        # ahead prepared. Each kind's best counts: one start is a fifth of a second, and a
+        # scheduler's hiccup on a shared machine is not either path's cost.
+        for skill in ("prime", "warm-1", "warm-2", "warm-3", "ahead-1", "ahead-2"):
+            kind = skill.partition("-")[0]
+            if kind == "ahead":
                 robot.forget(image)
             config = {
-                "skill": skill.title(),
+                "skill": skill.replace("-", " ").title(),
                 "skill_id": skill,
                 "components": {"hello": {"name": "Hello", "location": "robot", "robot": {"image": image}}},
             }
             async with httpx.AsyncClient(base_url=base_url, headers=headers, timeout=60) as api:
                 (await api.post(f"/api/robot/{robot_id}/skill/add", json={"config": config})).raise_for_status()
-            if skill == "ahead":  # the add's pull ahead ends before the start is asked
+            if kind == "ahead":  # the add's pull ahead ends before the start is asked
                 deadline = time.monotonic() + 600
                 while robot.engine.docker("image", "inspect", image, check=False).returncode != 0:
                     if time.monotonic() > deadline:
                         raise RuntimeError("the robot did not pull ahead the image of the Skill it was told of")
                     await asyncio.sleep(0.1)
-            times[skill] = await start_s(base_url, headers, robot_id, skill)
+            took = await start_s(base_url, headers, robot_id, skill)
+            if kind in times:
+                times[kind].append(took)
             async with httpx.AsyncClient(base_url=base_url, headers=headers, timeout=60) as api:
                 await api.post(f"/api/robot/{robot_id}/skill/{skill}/stop", params={"wait": 30})
-        return times["ahead"], times["warm"]
+        log(f"starts after the pull ahead {times['ahead']} s, with the image there before {times['warm']} s")
+        return min(times["ahead"]), min(times["warm"])
     finally:
         controller.stop()
         await asyncio.wait_for(task, 60)
