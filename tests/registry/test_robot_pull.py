@@ -11,6 +11,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from django.core.management import call_command
 from docker.api import APIClient
 
 from bridgeos_agent.imagerefs import split_reference
@@ -18,8 +19,9 @@ from bridgeos_agent.runtime import ComponentSpec, RuntimeFailure
 from bridgeos_agent.runtime.docker import DockerRuntime
 from bridgeos_agent.runtime.images import DiskFull, ImagePuller, RegistryLogin
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
+from tests.conftest import free_port
 
-from .conftest import make_fleet
+from .conftest import make_fleet, serving
 from .test_docker_registry import PUSH_PROBE, push, run
 
 pytestmark = [pytest.mark.docker, pytest.mark.django_db(transaction=True), pytest.mark.log_errors(PUSH_PROBE)]
@@ -214,13 +216,15 @@ async def test_an_agent_pulls_a_skills_image_as_it_is_added_tells_the_cloud_how_
         await asyncio.wait_for(controller.config_from_cloud.wait(), 20)
         await sync_to_async(lambda: add_skill(Robot.objects.get(id=robot), skill))()
         # Added, not started: the robot pulls the image ahead, so the start will not wait for bytes.
-        for _ in range(150):  # the engine lists the image once the pull has ended
-            if run("docker", "image", "inspect", image).returncode == 0:
+        for _ in range(150):  # the engine lists the image once the pull has ended; its bytes are counted then
+            if (
+                run("docker", "image", "inspect", image).returncode == 0
+                and controller.metrics.image_bytes[("pull", "hello")] > 0
+            ):
                 break
             await asyncio.sleep(0.2)
         else:
             raise AssertionError("the robot did not pull the image of the Skill it was told of")
-        assert controller.metrics.image_bytes[("pull", "hello")] > 0
         headers = {"Authorization": f"Token {fleet.alice_token.secret}"}
         async with httpx.AsyncClient(base_url=daphne_server.url, headers=headers, timeout=60) as api:
             answer = await api.post(f"/api/robot/{robot}/skill/pull/start", params={"wait": 30})
@@ -245,3 +249,34 @@ async def test_an_agent_pulls_a_skills_image_as_it_is_added_tells_the_cloud_how_
         await viewer.close()
         remove_robot_objects(robot)
         run("docker", "rmi", "-f", image)
+
+
+async def test_a_pull_whose_registry_is_out_of_reach_is_tried_again_until_it_answers(
+    daphne_server, registry, published, fleet, tmp_path
+):
+    image = published("alice/sleeper:4")
+    # A second registry on the first one's storage, on a port nothing listens on yet.
+    host = f"127.0.0.1:{free_port()}"
+    storage = registry.log.parent / "storage"
+    call_command(
+        "registry_config", realm=registry.realm, listen=host, storage=str(storage), out=str(tmp_path), stdout=None
+    )
+    moved = image.replace(registry.host, host)
+    api = APIClient(version="auto", timeout=30)
+
+    async def call(function, *args, **kwargs):
+        return await asyncio.to_thread(function, *args, **kwargs)
+
+    login = RegistryLogin.for_cloud(daphne_server.url, fleet.alice_robot.name, fleet.alice_robot.secret)
+    puller = ImagePuller(login, call)
+    pull = asyncio.ensure_future(puller.ensure(api, moved, "component pull/hello"))
+    try:
+        await asyncio.sleep(1.5)
+        assert not pull.done(), "a pull from a registry out of reach ended at once"
+        with serving(tmp_path / "config.yml", host, tmp_path / "registry.log"):
+            assert await asyncio.wait_for(pull, 60) is True
+        assert puller.pulls_cut >= 1
+        assert run("docker", "image", "inspect", moved).returncode == 0
+    finally:
+        pull.cancel()
+        run("docker", "rmi", "-f", moved)

@@ -150,9 +150,15 @@ class ImagePuller:
         pending = self._pulls.get(image)
         if pending is None:
             pending = self._pulls[image] = asyncio.ensure_future(self._pull(api, image, who, progress))
-            pending.add_done_callback(lambda _: self._pulls.pop(image, None))
+            pending.add_done_callback(lambda done: self._ended(image, done))
         await asyncio.shield(pending)
         return True
+
+    def _ended(self, image: str, pull: asyncio.Future[None]) -> None:
+        """Forget a finished pull; its failure is each waiter's to report, and seen even with none left."""
+        self._pulls.pop(image, None)
+        if not pull.cancelled():
+            pull.exception()  # retrieved: a pull whose waiters were all cancelled (the agent stopping) is no error
 
     async def prefetch(self, skill: str, wanted: Mapping[str, list[str]], on_pull: Any = None) -> None:
         """Pull a Skill's images ahead of its start (image -> its components); a failure is the start's to say."""
@@ -187,7 +193,8 @@ class ImagePuller:
                 await asyncio.sleep(gap)
         try:
             await self.prune(api)
-        except (docker.errors.APIError, RuntimeFailure) as exc:
+        except (docker.errors.APIError, requests.exceptions.RequestException, OSError, RuntimeError) as exc:
+            # Best effort: the next pull prunes again. RuntimeError: the agent is stopping (its pool shut).
             logger.warning("removing images no Skill uses: %s", exc)
 
     async def prune(self, api: APIClient) -> list[str]:
