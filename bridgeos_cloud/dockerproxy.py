@@ -294,6 +294,9 @@ class DockerProxy:
                 logger.warning("refused for %s: %s", peer, exc)
                 writer.write(error_response(403, str(exc)))
                 return
+            if request.method not in ("GET", "HEAD"):
+                # What changed on the engine, and for whom: the operator's trail of the orchestration's writes.
+                logger.info("forwarding for %s: %s %s", peer, request.method, strip_version(request.target))
             await self._forward(request, writer)
         except (ConnectionError, asyncio.IncompleteReadError) as exc:
             logger.info("connection from %s ended: %s", peer, exc)

@@ -13,7 +13,8 @@
 # BRIDGEOS_REGISTRY_NAMES (names and addresses its TLS certificate carries, comma-separated, default
 # this host's name and 127.0.0.1; the first names it in image references), BRIDGEOS_CLOUD_ADDRESS
 # (where cloud copies reach the load balancer, default this host's first address),
-# BRIDGEOS_CLOUD_VOLUMES_DIR (host directory of cloud copies' volumes, default .data/deploy/STACK/volumes).
+# BRIDGEOS_CLOUD_VOLUMES_DIR (host directory of cloud copies' volumes, default .data/deploy/STACK/volumes),
+# BRIDGEOS_STACK_PLACEMENT (a placement constraint for the cloud's services, default any Linux node).
 set -euo pipefail
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 STACK=${BRIDGEOS_STACK:-bridgeos}
@@ -55,6 +56,7 @@ undeploy() {  # [--volumes]
     if [[ ${1:-} == --volumes ]]; then
         local volumes; volumes=$(docker volume ls -q --filter "label=com.docker.stack.namespace=$STACK")
         [[ -z $volumes ]] || docker volume rm $volumes >/dev/null
+        untrust_registry
         rm -rf "$BRIDGEOS_SECRETS_DIR" "$BRIDGEOS_CLOUD_VOLUMES_DIR"
         say "removed its volumes${volumes:+ (${volumes//$'\n'/ })}, secrets and cloud copies' volumes"
     else
@@ -133,6 +135,16 @@ trust_registry() {  # this engine trusts the registry's certificate through cert
     done
 }
 
+untrust_registry() {  # forget what trust_registry installed, if it is still this stack's CA
+    local name dir
+    for name in "${REGISTRY_NAME_LIST[@]}"; do
+        dir=/etc/docker/certs.d/$name:$BRIDGEOS_REGISTRY_PORT
+        if [[ -f $BRIDGEOS_SECRETS_DIR/ca.crt ]] && cmp -s "$dir/ca.crt" "$BRIDGEOS_SECRETS_DIR/ca.crt"; then
+            rm -f "$dir/ca.crt" && rmdir "$dir" 2>/dev/null || true
+        fi
+    done
+}
+
 wait_healthy() {
     local deadline=$((SECONDS + WAIT_S)) svc pending
     while :; do
@@ -145,6 +157,16 @@ wait_healthy() {
             die "not healthy within $WAIT_S s (waiting for: ${pending[*]:-the load balancer})"
         fi
         sleep 2
+    done
+}
+
+rolled_back() {  # print the services whose spec is not the image just deployed (Swarm rolled them back)
+    local svc var image
+    for svc in daphne:CLOUD worker:CLOUD beat:CLOUD docker-proxy:CLOUD postgres:POSTGRES redis:REDIS lb:HAPROXY \
+        registry:REGISTRY; do
+        var="BRIDGEOS_${svc#*:}_IMAGE"
+        image=$(docker service inspect --format '{{.Spec.TaskTemplate.ContainerSpec.Image}}' "${STACK}_${svc%%:*}")
+        [[ $image == "${!var}"* ]] || printf '%s ' "${svc%%:*}"
     done
 }
 
@@ -200,6 +222,8 @@ deploy() {
     say "stack $STACK deployed from $BRIDGEOS_REGISTRY_HOST (daphne x$DAPHNE_REPLICAS, worker x$WORKER_REPLICAS);" \
         "waiting for it to be healthy"
     wait_healthy
+    local back; back=$(rolled_back)
+    [[ -z $back ]] || die "Swarm rolled back ${back% } (its new tasks failed: docker service ps --no-trunc ${STACK}_${back%% *})"
     say "healthy after $((SECONDS - t)) s"
     echo "bridgeOS Cloud: http://127.0.0.1:$BRIDGEOS_HTTP_PORT/   (robots: ws://HOST:$BRIDGEOS_HTTP_PORT)"
     echo "Image registry: $BRIDGEOS_REGISTRY_HOST (TLS from the cloud's CA; docker login with a user's password or API token)"
