@@ -29,6 +29,9 @@ IFS=, read -r -a REGISTRY_NAME_LIST <<<"$REGISTRY_NAMES"
 export BRIDGEOS_REGISTRY_HOST="${REGISTRY_NAME_LIST[0]}:$BRIDGEOS_REGISTRY_PORT"
 first_address() { hostname -I 2>/dev/null | awk '{print $1}'; }
 export BRIDGEOS_CLOUD_ADDRESS=${BRIDGEOS_CLOUD_ADDRESS:-$(first_address)}
+# Labels the cloud copies, ROS masters and robot networks the stack's worker makes; the default (from the
+# database's address, the same in every stack) would let two stacks on one Swarm take each other's for strays.
+export BRIDGEOS_CLOUD_ID=${BRIDGEOS_CLOUD_ID:-$STACK}
 export BRIDGEOS_CLOUD_VOLUMES_DIR=${BRIDGEOS_CLOUD_VOLUMES_DIR:-$ROOT_DIR/.data/deploy/$STACK/volumes}
 # The docker CLI's login to the stack's registry stays with the stack, not in the operator's ~/.docker.
 export DOCKER_CONFIG=${BRIDGEOS_DEPLOY_DOCKER_CONFIG:-$BRIDGEOS_SECRETS_DIR/docker}
@@ -43,6 +46,10 @@ say() { printf '%s\n' "deploy: $*"; }
 die() { printf '%s\n' "deploy: $*" >&2; exit 1; }
 
 undeploy() {  # [--volumes]
+    # What the stack's worker made lives outside the stack: its cloud copies and robot networks go first.
+    local made
+    made=$(docker service ls -q --filter "label=io.bridgeos.cloud=$BRIDGEOS_CLOUD_ID")
+    [[ -z $made ]] || docker service rm $made >/dev/null
     # Always asked, even when no service is listed: a deploy that failed half-way leaves secrets and networks.
     docker stack rm "$STACK" >/dev/null 2>&1 || true
     # Tasks and the network go asynchronously; volumes can be removed only once containers are gone.
@@ -52,6 +59,8 @@ undeploy() {  # [--volumes]
         ((SECONDS < deadline)) || die "stack $STACK still has containers or networks after 60 s"
         sleep 1
     done
+    made=$(docker network ls -q --filter "label=io.bridgeos.cloud=$BRIDGEOS_CLOUD_ID")
+    [[ -z $made ]] || docker network rm $made >/dev/null 2>&1 || say "some robot networks are still in use: $made"
     say "removed stack $STACK"
     if [[ ${1:-} == --volumes ]]; then
         local volumes; volumes=$(docker volume ls -q --filter "label=com.docker.stack.namespace=$STACK")
