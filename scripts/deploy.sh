@@ -203,6 +203,8 @@ push_images() {  # push the stack's images to its registry as the operator; poin
 deploy() {
     [[ $(docker info --format '{{.Swarm.LocalNodeState}}' 2>/dev/null) == active ]] ||
         die "this machine is not in a Swarm: scripts/services.sh swarm"
+    [[ -n $BRIDGEOS_CLOUD_ADDRESS ]] ||
+        die "this host has no address for cloud copies to reach the cloud at: set BRIDGEOS_CLOUD_ADDRESS"
     bash "$ROOT_DIR/docker/build-images.sh" stack
     pin_images
     mkdir -p "$BRIDGEOS_SECRETS_DIR" "$DOCKER_CONFIG" "$BRIDGEOS_CLOUD_VOLUMES_DIR"

@@ -466,7 +466,8 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
     spec = service_spec(services["Name"])
     assert spec["TaskTemplate"]["ContainerSpec"]["Image"] == pinned
     # ... created by the worker through the proxy, which logs each write it forwards.
-    proxy_log = run("docker", "service", "logs", f"{stack.name}_docker-proxy")
+    logs = ["docker", "service", "logs", f"{stack.name}_docker-proxy"]
+    proxy_log = subprocess.run(logs, capture_output=True, text=True, timeout=60, check=True).stderr  # Python logs there
     assert "POST /services/create" in proxy_log and "refused" in proxy_log
 
     stopped = httpx.post(
