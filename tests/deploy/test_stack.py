@@ -164,7 +164,8 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     deployed = None
     try:
         # Builds whichever stack image is missing or stale (bash docker/build-images.sh stack), then deploys.
-        run("bash", str(DEPLOY), env=env, timeout=900)
+        output = run("bash", str(DEPLOY), env=env, timeout=900)
+        print("\n".join(line for line in output.splitlines() if line.startswith("deploy:")))
         password = (secrets / "operator_password").read_text().strip()
         deployed = Stack(name, int(env["BRIDGEOS_HTTP_PORT"]), password, secrets, int(env["BRIDGEOS_REGISTRY_PORT"]))
         yield deployed
@@ -426,6 +427,7 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
     assert refused.startswith("403 POST /containers/create with HostConfig.Privileged"), refused
 
     # A user's image pushed to the stack's registry runs as a cloud copy: a Swarm service from its digest.
+    began = time.monotonic()
     client_env = {**os.environ, "DOCKER_CONFIG": str(stack.secrets / "docker")}
     image = f"{stack.registry}/operator/ticker:1"
     run("docker", "tag", "bridgeos/base:bookworm", image)
@@ -462,6 +464,9 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
         "the cloud copy running",
     )
     assert info["container"]["cloud"]["runtime"] == "swarm"
+    print(
+        f"pushed, added, started and running as a Swarm service {time.monotonic() - began:.1f} s after the push began"
+    )
     services = json.loads(run("docker", "service", "ls", "--format", "{{json .}}", "--filter", f"name=bos-{robot_id}"))
     spec = service_spec(services["Name"])
     assert spec["TaskTemplate"]["ContainerSpec"]["Image"] == pinned
@@ -479,3 +484,4 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
         60,
         "the cloud copy's service removed",
     )
+    print(f"stopped and removed {time.monotonic() - began:.1f} s after the push began")
