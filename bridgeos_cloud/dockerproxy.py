@@ -72,6 +72,7 @@ ALLOWED: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
     ]
 )
 SPEC_CHECKED = re.compile(r"^/services/(create|[^/]+/update)$")
+NETWORK_DRIVERS = ("overlay", "bridge")
 
 
 class Refused(Exception):
@@ -100,6 +101,11 @@ class Policy:
             )
         if method == "POST" and SPEC_CHECKED.match(path):
             self.check_service_spec(_json(body, path))
+        if method == "POST" and path == "/networks/create":
+            driver = str(_json(body, path).get("Driver") or "bridge")
+            if driver not in NETWORK_DRIVERS:
+                # macvlan, ipvlan and the like put containers on the host's own segment.
+                raise Refused(f"a network with driver {driver!r} is refused (allowed: {', '.join(NETWORK_DRIVERS)})")
         if method == "POST" and path == "/images/create" and "fromSrc" in parse_qs(urlsplit(target).query):
             raise Refused("POST /images/create?fromSrc (an image import) is refused: only pulls are forwarded")
 

@@ -206,3 +206,11 @@ def test_a_service_the_orchestration_makes_is_created_inspected_and_removed_thro
     finally:
         subprocess.run(["docker", "service", "rm", name], capture_output=True, timeout=60, check=False)
         client.close()
+
+
+def test_a_network_on_the_hosts_own_segment_is_refused(proxy: str) -> None:
+    name = f"proxy-net-{uuid.uuid4().hex[:8]}"
+    body = {"Name": name, "Driver": "macvlan", "Options": {"parent": "eth0"}}
+    assert "driver 'macvlan' is refused" in refusal(httpx.post(f"{proxy}/v1.41/networks/create", json=body, timeout=10))
+    assert docker_cli("network", "ls", "-q", "--filter", f"name={name}").strip() == ""
+    Policy("/x").check("POST", "/networks/create", b'{"Name": "n", "Driver": "overlay", "Attachable": true}')
