@@ -45,11 +45,7 @@ RUNNING=(worker beat)
 say() { printf '%s\n' "deploy: $*"; }
 die() { printf '%s\n' "deploy: $*" >&2; exit 1; }
 
-undeploy() {  # [--volumes]
-    # What the stack's worker made lives outside the stack: its cloud copies and robot networks go first.
-    local made
-    made=$(docker service ls -q --filter "label=io.bridgeos.cloud=$BRIDGEOS_CLOUD_ID")
-    [[ -z $made ]] || docker service rm $made >/dev/null
+remove_stack() {  # remove the stack's services and wait until its containers and network are gone
     # Always asked, even when no service is listed: a deploy that failed half-way leaves secrets and networks.
     docker stack rm "$STACK" >/dev/null 2>&1 || true
     # Tasks and the network go asynchronously; volumes can be removed only once containers are gone.
@@ -59,6 +55,14 @@ undeploy() {  # [--volumes]
         ((SECONDS < deadline)) || die "stack $STACK still has containers or networks after 60 s"
         sleep 1
     done
+}
+
+undeploy() {  # [--volumes]
+    # What the stack's worker made lives outside the stack: its cloud copies and robot networks go first.
+    local made
+    made=$(docker service ls -q --filter "label=io.bridgeos.cloud=$BRIDGEOS_CLOUD_ID")
+    [[ -z $made ]] || docker service rm $made >/dev/null
+    remove_stack
     made=$(docker network ls -q --filter "label=io.bridgeos.cloud=$BRIDGEOS_CLOUD_ID")
     [[ -z $made ]] || docker network rm $made >/dev/null 2>&1 || say "some robot networks are still in use: $made"
     say "removed stack $STACK"
@@ -231,18 +235,23 @@ deploy() {
     local t=$SECONDS
     # The images are pushed through the stack itself (its registry, its token realm): the first time, it
     # starts from this machine's local images; later deploys push to the stack that is running.
+    local fresh=""
+    docker service ls -q --filter "label=com.docker.stack.namespace=$STACK" | grep -q . || fresh=1
     if ! stack_serving; then
         docker stack deploy --prune -c "$ROOT_DIR/docker/stack.yml" "$STACK" >/dev/null
         say "stack $STACK deployed from local images; waiting for its registry and cloud"
         wait_healthy
         say "serving from local images after $((SECONDS - t)) s"
-        # Nobody uses the stack yet: its switch to the same bytes from the registry need not be paced.
-        # (Only the update config changes back on the next deploy, which replaces no task.)
-        export BRIDGEOS_DAPHNE_UPDATE_DELAY=0s BRIDGEOS_DAPHNE_UPDATE_MONITOR=5s BRIDGEOS_WORKER_UPDATE_DELAY=0s \
-            BRIDGEOS_DAPHNE_UPDATE_PARALLELISM=0
     fi
     local pushing=$SECONDS
     push_images
+    if [[ -n $fresh ]]; then
+        # Nobody uses a stack deployed a minute ago: starting it again from the registry's images (the
+        # same bytes; its volumes, the migrated database and the pushed images, stay) is quicker than
+        # a rolling update paced for serving robots.
+        remove_stack
+        say "stack $STACK removed to start again from its registry's images"
+    fi
     docker stack deploy --prune --with-registry-auth -c "$ROOT_DIR/docker/stack.yml" "$STACK" >/dev/null
     say "stack $STACK deployed from $BRIDGEOS_REGISTRY_HOST (daphne x$DAPHNE_REPLICAS, worker x$WORKER_REPLICAS);" \
         "waiting for it to be healthy"
