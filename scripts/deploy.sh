@@ -14,7 +14,8 @@
 # this host's name and 127.0.0.1; the first names it in image references), BRIDGEOS_CLOUD_ADDRESS
 # (where cloud copies reach the load balancer, default this host's first address),
 # BRIDGEOS_CLOUD_VOLUMES_DIR (host directory of cloud copies' volumes, default .data/deploy/STACK/volumes),
-# BRIDGEOS_STACK_PLACEMENT (a placement constraint for the cloud's services, default any Linux node).
+# BRIDGEOS_STACK_PLACEMENT (a placement constraint for the cloud's services, default any Linux node),
+# BRIDGEOS_DEPLOY_ROS_IMAGES (1: push bridgeos/ros and bridgeos/ros2 too when built here; 0: not).
 set -euo pipefail
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 STACK=${BRIDGEOS_STACK:-bridgeos}
@@ -37,6 +38,8 @@ export BRIDGEOS_CLOUD_VOLUMES_DIR=${BRIDGEOS_CLOUD_VOLUMES_DIR:-$ROOT_DIR/.data/
 export DOCKER_CONFIG=${BRIDGEOS_DEPLOY_DOCKER_CONFIG:-$BRIDGEOS_SECRETS_DIR/docker}
 # Images pushed to the stack's registry (the registry's own image stays local: it cannot pull itself).
 PUSHED=(CLOUD:bridgeos/cloud POSTGRES:bridgeos/postgres REDIS:bridgeos/redis HAPROXY:bridgeos/haproxy)
+# The images of the cloud's per-robot ROS masters and ROS 2 discovery servers, pushed too when built here.
+PUSH_ROS=${BRIDGEOS_DEPLOY_ROS_IMAGES:-1}
 # The serving path must be healthy before the URL is printed; Celery's parts need only be running
 # (the worker's health check pings it through the broker every 30 s, the first time 30 s after start).
 HEALTHY=(postgres redis daphne lb registry docker-proxy)
@@ -117,6 +120,19 @@ pin_images() {  # tag each stack image by its inputs and point the stack at thos
         inputs=$(docker image inspect --format '{{index .Config.Labels "org.bridgeos.inputs"}}' "$image")
         docker tag "$image" "${image%:*}:in-${inputs:0:12}"
         export "BRIDGEOS_${var%%:*}_IMAGE=${image%:*}:in-${inputs:0:12}"
+    done
+}
+
+pin_ros_images() {  # the ROS images cloud copies' masters run from, when this machine has them
+    [[ $PUSH_ROS == 1 ]] || return 0
+    local var image inputs
+    for var in CLOUD_ROS:bridgeos/ros:noetic CLOUD_ROS2:bridgeos/ros2:jazzy; do
+        image=${var#*:}
+        inputs=$(docker image inspect --format '{{index .Config.Labels "org.bridgeos.inputs"}}' "$image" 2>/dev/null) ||
+            { say "$image is not built here: not pushed (docker/build-images.sh ${image#bridgeos/})"; continue; }
+        docker tag "$image" "${image%:*}:in-${inputs:0:12}"
+        export "BRIDGEOS_${var%%:*}_IMAGE=${image%:*}:in-${inputs:0:12}"
+        PUSHED+=("${var%%:*}:${image%:*}")
     done
 }
 
@@ -219,6 +235,7 @@ deploy() {
         die "this host has no address for cloud copies to reach the cloud at: set BRIDGEOS_CLOUD_ADDRESS"
     bash "$ROOT_DIR/docker/build-images.sh" stack
     pin_images
+    pin_ros_images
     mkdir -p "$BRIDGEOS_SECRETS_DIR" "$DOCKER_CONFIG" "$BRIDGEOS_CLOUD_VOLUMES_DIR"
     chmod 700 "$BRIDGEOS_SECRETS_DIR" "$DOCKER_CONFIG"
     # The cloud (uid 10000 in its image) makes one directory per cloud copy's volume in it.
