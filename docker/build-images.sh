@@ -4,7 +4,7 @@
 #   docker/build-images.sh          # the images the tests use: base, ros and ros2
 #   docker/build-images.sh ros      # one image (and, first, what it is built on)
 #   docker/build-images.sh ros2     # ROS 2 Jazzy from the PyPI wheels (cloud copies, discovery servers)
-#   docker/build-images.sh stack    # what docker/stack.yml runs: cloud agent postgres redis haproxy
+#   docker/build-images.sh stack    # what docker/stack.yml runs: cloud agent postgres redis haproxy registry
 #
 # No registry is reachable, so everything starts from a debootstrapped Debian base.
 # Each image carries the label org.bridgeos.inputs = sha256 of what it is made from
@@ -13,11 +13,11 @@
 set -euo pipefail
 
 DOCKER_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
-IMAGES=(base ros ros2 python cloud agent postgres redis haproxy)
+IMAGES=(base ros ros2 python cloud agent postgres redis haproxy registry)
 # Built only when asked (scripts/deploy.sh, the deploy test): CI's services.sh builds base, ros and ros2
 # (ros2 for the Swarm test of a ROS 2 cloud copy: about 3 minutes once, then skipped while unchanged).
 DEFAULT_IMAGES=(base ros ros2)
-STACK_IMAGES=(cloud agent postgres redis haproxy)
+STACK_IMAGES=(cloud agent postgres redis haproxy registry)
 LABEL=org.bridgeos.inputs
 LOG_DIR=${BRIDGEOS_LOG_DIR:-/var/log}
 # The classic builder runs in the daemon itself: no buildx plugin needed on the host.
@@ -184,6 +184,7 @@ debian_service() {  # name, tag
 image_postgres() { debian_service postgres bridgeos/postgres:15; }
 image_redis() { debian_service redis bridgeos/redis:7; }
 image_haproxy() { debian_service haproxy bridgeos/haproxy:2.6; }
+image_registry() { debian_service registry bridgeos/registry:2.8; }
 
 PARENT_python=base
 PARENT_cloud=python
@@ -191,6 +192,7 @@ PARENT_agent=python
 PARENT_postgres=base
 PARENT_redis=base
 PARENT_haproxy=base
+PARENT_registry=base
 
 ensure() {  # image name: its parents first, each once
     local name=$1 parent_var="PARENT_$1"
@@ -211,7 +213,7 @@ if [[ " ${wanted[*]} " == *" stack "* ]]; then
     ensure base
     failed=0
     bash "${BASH_SOURCE[0]}" python cloud agent & chain_python=$!
-    bash "${BASH_SOURCE[0]}" postgres redis haproxy & chain_debian=$!
+    bash "${BASH_SOURCE[0]}" postgres redis haproxy registry & chain_debian=$!
     wait "$chain_python" || failed=1
     wait "$chain_debian" || failed=1
     ((failed == 0)) || exit 1

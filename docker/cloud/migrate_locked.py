@@ -35,6 +35,34 @@ def wait_for_database() -> None:
             time.sleep(1)
 
 
+def adopt_ca() -> None:
+    """Make the stack's CA (BRIDGEOS_STACK_CA_CERT_FILE and _KEY_FILE) the cloud's, if it has none yet.
+
+    scripts/deploy.sh issued the registry's TLS certificate from it before any database existed; robots
+    pinning the cloud's CA then trust the registry too. Under the migration lock, so one container adopts it.
+    """
+    cert_file = os.environ.get("BRIDGEOS_STACK_CA_CERT_FILE")
+    key_file = os.environ.get("BRIDGEOS_STACK_CA_KEY_FILE")
+    if not cert_file or not key_file:
+        return
+    from network.models import Authority
+
+    with open(cert_file) as cert, open(key_file) as key:
+        cert_pem, key_pem = cert.read(), key.read()
+    existing = Authority.objects.filter(name="ca").first()
+    if existing is None:
+        Authority.objects.create(name="ca", cert_pem=cert_pem, key_pem=key_pem)
+        print("migrate: the stack's CA is now the cloud's CA", flush=True)
+    elif existing.cert_pem.strip() != cert_pem.strip():
+        # A database older than the stack's CA keeps its own: replacing it would orphan robots' certificates.
+        print(
+            f"migrate: WARNING: the database holds another cloud CA than {cert_file}; robots pinning it will"
+            " not trust the stack's registry (give them the stack's ca.crt with --ca)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 def main() -> None:
     """Migrate under the lock, then create the operator account if it is missing."""
     os.environ.setdefault("DJANGO_SETTINGS_MODULE", "bridgeos_cloud.settings")
@@ -45,11 +73,13 @@ def main() -> None:
     wait_for_database()
     if connection.vendor != "postgresql":
         call_command("migrate", interactive=False, verbosity=1)
+        adopt_ca()
     else:
         with connection.cursor() as cursor:
             cursor.execute("SELECT pg_advisory_lock(%s)", [MIGRATION_LOCK])
             try:
                 call_command("migrate", interactive=False, verbosity=1)
+                adopt_ca()
             finally:
                 cursor.execute("SELECT pg_advisory_unlock(%s)", [MIGRATION_LOCK])
     if os.environ.get("DJANGO_SUPERUSER_PASSWORD"):

@@ -1,5 +1,8 @@
 """The deployed stack: docker/stack.yml on this machine's Swarm, two daphne replicas behind HAProxy.
 
+The stack runs its own image registry (TLS from the cloud's CA) and pulls its images from it by digest;
+its worker runs cloud copies as Swarm services through the Docker API proxy, never the raw socket.
+
 The stack is built and deployed by the project's own command (scripts/deploy.sh, i.e. `make deploy`)
 under a unique name and a free port, and removed with its volumes afterwards, failed or not. Real
 agents (`bridgeos-agent run --simulate`, half of them from the bridgeos/agent image) connect through
@@ -10,10 +13,13 @@ behave as one cloud, and that killing one (`docker kill`) loses and duplicates n
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import os
 import signal
+import socket
 import sqlite3
+import ssl
 import subprocess
 import time
 import uuid
@@ -100,7 +106,14 @@ class Stack:
     name: str
     port: int
     operator_password: str
+    secrets: Path
+    registry_port: int
     agents: dict[str, Agent] = field(default_factory=dict)
+
+    @property
+    def registry(self) -> str:
+        """The registry as image references name it (deploy.sh's default: this host's name)."""
+        return f"{socket.gethostname()}:{self.registry_port}"
 
     @property
     def url(self) -> str:
@@ -138,7 +151,13 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         **os.environ,
         "BRIDGEOS_STACK": name,
         "BRIDGEOS_HTTP_PORT": str(free_port()),
+        "BRIDGEOS_REGISTRY_PORT": str(free_port()),
         "BRIDGEOS_SECRETS_DIR": str(secrets),
+        # On this node only: engines other tests join to the Swarm for a while can reach neither the
+        # registry under this host's name nor the cloud copies' volume directory.
+        # The ROS images' push (about 15 s) is left out: CI's budget is tight and nothing here runs ROS.
+        "BRIDGEOS_DEPLOY_ROS_IMAGES": "0",
+        "BRIDGEOS_STACK_PLACEMENT": f"node.id == {run('docker', 'info', '--format', '{{.Swarm.NodeID}}').strip()}",
         "DAPHNE_REPLICAS": "2",
         "WORKER_REPLICAS": "1",
         "BRIDGEOS_PROCESS_TTL_S": str(PROCESS_TTL_S),
@@ -147,8 +166,10 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     deployed = None
     try:
         # Builds whichever stack image is missing or stale (bash docker/build-images.sh stack), then deploys.
-        run("bash", str(DEPLOY), env=env, timeout=900)
-        deployed = Stack(name, int(env["BRIDGEOS_HTTP_PORT"]), (secrets / "operator_password").read_text().strip())
+        output = run("bash", str(DEPLOY), env=env, timeout=900)
+        print("\n".join(line for line in output.splitlines() if line.startswith("deploy:")))
+        password = (secrets / "operator_password").read_text().strip()
+        deployed = Stack(name, int(env["BRIDGEOS_HTTP_PORT"]), password, secrets, int(env["BRIDGEOS_REGISTRY_PORT"]))
         yield deployed
     finally:
         for agent in deployed.agents.values() if deployed else []:
@@ -336,3 +357,134 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
     )
     health = httpx.get(f"{stack.url}/api/health", timeout=10)
     assert health.status_code == 200 and json.loads(health.text)["status"] == "ok"
+
+
+# Asked from inside the worker, as a compromised cloud process would: the proxy must refuse it.
+PRIVILEGED_CREATE = """
+import json, urllib.error, urllib.request
+body = json.dumps({"Image": "bridgeos/base:bookworm", "HostConfig": {"Privileged": True}}).encode()
+request = urllib.request.Request("http://docker-proxy:2375/v1.41/containers/create", body,
+                                 {"Content-Type": "application/json"})
+try:
+    urllib.request.urlopen(request, timeout=10)
+    print(200)
+except urllib.error.HTTPError as exc:
+    print(exc.code, json.load(exc)["message"])
+"""
+
+
+def service_spec(service: str) -> dict:
+    return json.loads(run("docker", "service", "inspect", "--format", "{{json .Spec}}", service))
+
+
+def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the_proxy(
+    stack: Stack, tmp_path: Path
+) -> None:
+    # The registry serves TLS verified with the cloud's CA (the one the database holds, which robots pin),
+    # under this host's name and 127.0.0.1, and sends clients to the cloud for tokens.
+    ca = (stack.secrets / "ca.crt").read_text()
+    held = stack.sql("SELECT md5(btrim(cert_pem, E' \\n')) FROM network_authority WHERE name = 'ca'")
+    assert held == [[hashlib.md5(ca.strip().encode()).hexdigest()]], "the cloud adopted the stack's CA"
+    trusted = ssl.create_default_context(cadata=ca)
+    for host in (socket.gethostname(), "127.0.0.1"):
+        answer = httpx.get(f"https://{host}:{stack.registry_port}/v2/", verify=trusted, timeout=10)
+        assert answer.status_code == 401
+        assert (
+            f'realm="http://{socket.gethostname()}:{stack.port}/api/registry/token"'
+            in answer.headers["www-authenticate"]
+        )
+    with pytest.raises(httpx.ConnectError, match="CERTIFICATE_VERIFY_FAILED"):
+        httpx.get(f"https://127.0.0.1:{stack.registry_port}/v2/", timeout=10)
+
+    # Every service but the registry runs an image of the stack's registry, pinned by digest, and the
+    # registry holds it (a token from the cloud, then the manifest by that digest).
+    for service in ("daphne", "worker", "beat", "postgres", "redis", "lb", "docker-proxy"):
+        image = service_spec(f"{stack.name}_{service}")["TaskTemplate"]["ContainerSpec"]["Image"]
+        repository, _, digest = image.partition("@")
+        assert repository.startswith(f"{stack.registry}/bridgeos/") and digest.startswith("sha256:"), image
+        path = repository.removeprefix(f"{stack.registry}/")
+        token = httpx.get(
+            f"{stack.url}/api/registry/token",
+            params={"service": "bridgeos-registry", "scope": f"repository:{path}:pull"},
+            auth=("operator", stack.operator_password),
+            timeout=10,
+        ).json()["token"]
+        manifest = httpx.head(
+            f"https://127.0.0.1:{stack.registry_port}/v2/{path}/manifests/{digest}",
+            headers={
+                "Authorization": f"Bearer {token}",
+                "Accept": "application/vnd.docker.distribution.manifest.v2+json",
+            },
+            verify=trusted,
+            timeout=10,
+        )
+        assert manifest.status_code == 200, f"{service}: {image} not in the registry ({manifest.status_code})"
+
+    # The worker has no Docker socket, only the proxy, and the proxy refuses a privileged container.
+    worker = service_spec(f"{stack.name}_worker")["TaskTemplate"]["ContainerSpec"]
+    assert not [m for m in worker.get("Mounts", []) if "docker.sock" in m["Source"]]
+    env = dict(item.split("=", 1) for item in worker["Env"])
+    assert env["DOCKER_HOST"] == "tcp://docker-proxy:2375" and env["BRIDGEOS_CLOUD_RUNTIME"] == "swarm"
+    refused = stack.exec("worker", "python3", "-c", PRIVILEGED_CREATE)
+    assert refused.startswith("403 POST /containers/create with HostConfig.Privileged"), refused
+
+    # A user's image pushed to the stack's registry runs as a cloud copy: a Swarm service from its digest.
+    began = time.monotonic()
+    client_env = {**os.environ, "DOCKER_CONFIG": str(stack.secrets / "docker")}
+    image = f"{stack.registry}/operator/ticker:1"
+    run("docker", "tag", "bridgeos/base:bookworm", image)
+    run("docker", "push", "-q", image, env=client_env, timeout=120)
+    robot_id = "deploy-cloud"
+    token = stack.exec("daphne", "bridgeos-cloud", "manage", "create_robot", robot_id, "--owner", "operator").strip()
+    (tmp_path / "agent").mkdir()
+    with (tmp_path / "agent.log").open("ab") as log:
+        args = ["run", "--master", f"ws://127.0.0.1:{stack.port}", "--robot", robot_id, "--token", token]
+        args += ["--runtime", "process", "--simulate", "--data-dir", str(tmp_path / "agent")]
+        process = subprocess.Popen(
+            [str(AGENT), *args],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+    stack.agents[robot_id] = Agent(robot_id, process=process)
+    headers = {"Authorization": f"Token {api_token(stack)}"}
+    ticker = {"name": "Tick", "location": "cloud", "ros": False}
+    # sleep ends at once on the SIGTERM the copy's init passes on, so stopping it takes no grace period.
+    ticker["cloud"] = {"image": image, "command": ["sleep", "3600"]}
+    config = {"skill": "Ticker", "skill_id": "ticker", "components": {"tick": ticker}}
+    added = httpx.post(f"{stack.url}/api/robot/{robot_id}/skill/add", json={"config": config}, headers=headers)
+    assert added.status_code in (200, 201), added.text
+    pinned = added.json()["config"]["components"]["tick"]["cloud"]["image"]
+    assert pinned.startswith(f"{image}@sha256:"), pinned
+    wait_until(lambda: stack.robots().get(robot_id, (False,))[0], 30, "the robot connected")
+    started = httpx.post(
+        f"{stack.url}/api/robot/{robot_id}/skill/ticker/start", params={"wait": 10}, headers=headers, timeout=20
+    )
+    assert started.status_code == 200 and started.json()["accepted"], started.text
+    info_url = f"{stack.url}/api/robot/{robot_id}/skill/ticker/component/tick/info"
+    info = wait_until(
+        lambda: (i := httpx.get(info_url, headers=headers, timeout=10).json())["status"] == "running" and i,
+        60,
+        "the cloud copy running",
+    )
+    assert info["container"]["cloud"]["runtime"] == "swarm"
+    print(
+        f"pushed, added, started and running as a Swarm service {time.monotonic() - began:.1f} s after the push began"
+    )
+    services = json.loads(run("docker", "service", "ls", "--format", "{{json .}}", "--filter", f"name=bos-{robot_id}"))
+    spec = service_spec(services["Name"])
+    assert spec["TaskTemplate"]["ContainerSpec"]["Image"] == pinned
+    # ... created by the worker through the proxy, which logs each write it forwards.
+    logs = ["docker", "service", "logs", f"{stack.name}_docker-proxy"]
+    proxy_log = subprocess.run(logs, capture_output=True, text=True, timeout=60, check=True).stderr  # Python logs there
+    assert "POST /services/create" in proxy_log and "refused" in proxy_log
+
+    stopped = httpx.post(
+        f"{stack.url}/api/robot/{robot_id}/skill/ticker/stop", params={"wait": 10}, headers=headers, timeout=20
+    )
+    assert stopped.status_code == 200, stopped.text
+    wait_until(
+        lambda: not run("docker", "service", "ls", "-q", "--filter", f"name=bos-{robot_id}").strip(),
+        60,
+        "the cloud copy's service removed",
+    )
+    print(f"stopped and removed {time.monotonic() - began:.1f} s after the push began")
