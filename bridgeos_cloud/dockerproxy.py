@@ -72,6 +72,11 @@ ALLOWED: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
     ]
 )
 SPEC_CHECKED = re.compile(r"^/services/(create|[^/]+/update)$")
+# Stopping a container is allowed for a cloud copy's task alone: the orchestration stops the task
+# of a removed service at once rather than at Swarm's next pass; the stack's own containers
+# (PostgreSQL, daphne) carry no such label and stay out of reach.
+STOPPABLE = re.compile(r"^/containers/([A-Za-z0-9][A-Za-z0-9_.-]*)/stop$")
+CLOUD_COPY_LABEL = "io.bridgeos.cloud"
 NETWORK_DRIVERS = ("overlay", "bridge")
 
 
@@ -292,7 +297,11 @@ class DockerProxy:
                     return
                 if request.header("upgrade"):
                     raise Refused(f"{request.method} {request.target}: connection upgrades (attach, exec) are refused")
-                self.policy.check(request.method, request.target, request.body)
+                stop = STOPPABLE.match(strip_version(urlsplit(request.target).path))
+                if request.method == "POST" and stop:
+                    await self._check_cloud_copy(stop.group(1))
+                else:
+                    self.policy.check(request.method, request.target, request.body)
             except BadRequest as exc:
                 writer.write(error_response(exc.status, str(exc)))
                 return
@@ -311,6 +320,32 @@ class DockerProxy:
                 await writer.drain()
                 writer.close()
                 await writer.wait_closed()
+
+    async def _check_cloud_copy(self, container: str) -> None:
+        """Raise Refused unless the container is a cloud copy's task (it carries the copy's label)."""
+        try:
+            reader, writer = await asyncio.open_unix_connection(self.socket_path)
+        except OSError as exc:
+            raise Refused(f"POST /containers/{container}/stop: the engine cannot be asked who it is ({exc})") from None
+        try:
+            # HTTP/1.0: the engine answers with a plain body and closes, nothing to de-chunk.
+            writer.write(f"GET /containers/{container}/json HTTP/1.0\r\nHost: docker\r\n\r\n".encode())
+            await writer.drain()
+            answer = await reader.read(MAX_BODY_BYTES)
+        finally:
+            writer.close()
+            with contextlib.suppress(ConnectionError, OSError):
+                await writer.wait_closed()
+        head, _, body = answer.partition(b"\r\n\r\n")
+        try:
+            labels = json.loads(body).get("Config", {}).get("Labels") or {} if b" 200 " in head[:16] else {}
+        except (ValueError, AttributeError):
+            labels = {}
+        if CLOUD_COPY_LABEL not in labels:
+            raise Refused(
+                f"POST /containers/{container}/stop is refused: only a cloud copy's container"
+                f" (labelled {CLOUD_COPY_LABEL}) may be stopped through this proxy"
+            )
 
     async def _forward(self, request: Request, writer: asyncio.StreamWriter) -> None:
         try:

@@ -214,3 +214,20 @@ def test_a_network_on_the_hosts_own_segment_is_refused(proxy: str) -> None:
     assert "driver 'macvlan' is refused" in refusal(httpx.post(f"{proxy}/v1.41/networks/create", json=body, timeout=10))
     assert docker_cli("network", "ls", "-q", "--filter", f"name={name}").strip() == ""
     Policy("/x").check("POST", "/networks/create", b'{"Name": "n", "Driver": "overlay", "Attachable": true}')
+
+
+def test_only_a_cloud_copys_container_may_be_stopped(proxy: str) -> None:
+    plain = f"bridgeos-proxy-plain-{uuid.uuid4().hex[:8]}"
+    copy = f"bridgeos-proxy-copy-{uuid.uuid4().hex[:8]}"
+    docker_cli("run", "-d", "--init", "--name", plain, IMAGE, "sleep", "600")
+    docker_cli("run", "-d", "--init", "--name", copy, "--label", "io.bridgeos.cloud=test", IMAGE, "sleep", "600")
+    try:
+        message = refusal(httpx.post(f"{proxy}/v1.41/containers/{plain}/stop?t=1", timeout=20))
+        assert "only a cloud copy's container" in message
+        assert docker_cli("inspect", "-f", "{{.State.Running}}", plain).strip() == "true"
+        refusal(httpx.post(f"{proxy}/containers/no-such-container/stop", timeout=20))
+        answer = httpx.post(f"{proxy}/v1.41/containers/{copy}/stop?t=1", timeout=20)
+        assert answer.status_code == 204, answer.text
+        assert docker_cli("inspect", "-f", "{{.State.Running}}", copy).strip() == "false"
+    finally:
+        docker_cli("rm", "-f", plain, copy)
