@@ -131,4 +131,10 @@ cat <<MSG
   Press Ctrl-C to stop.
 
 MSG
-wait -n "${pids[@]}"
+status=0
+wait -n "${pids[@]}" || status=$?
+# Ctrl-C reaches every part at once, and one may end before this shell takes the signal: give
+# the INT trap its turn (a clean stop, exit 0) before taking this for a part that died.
+sleep 0.5
+echo "bridgeOS Cloud: a part stopped by itself (status $status); see $LOGS/" >&2
+exit 1

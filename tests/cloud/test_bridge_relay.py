@@ -225,7 +225,10 @@ def test_roslibpy_reaches_the_robots_topics_services_rosapi_and_params_through_t
         chatter.unsubscribe()
         wait_until(lambda: "/chatter" not in robot.engine().subscribed_topics(), what="the robot to unsubscribe")
     finally:
+        # Closed for good before the robot's fixture stops it: the cloud tells a client still
+        # there that the robot went offline (a rosbridge status), which roslibpy logs as an error.
         client.close()
+        wait_until(lambda: not client.is_connected, what="the client to close")
 
 
 def test_a_stalled_viewer_slows_neither_the_robot_nor_a_live_viewer(cloud, robot) -> None:
