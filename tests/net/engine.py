@@ -24,7 +24,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from tests.net.netns import PortBridge, run
+from tests.net.netns import PortBridge, _pid_alive, run
 
 PREFIX = "bose-"
 DATA = Path("/var/lib/bridgeos-engines")
@@ -43,16 +43,6 @@ def available() -> str | None:
     return None
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _unmount_under(path: Path) -> None:
     """Lazily unmount whatever a dead engine left mounted below ``path`` (overlays, netns files, shm)."""
     mounts = Path("/proc/mounts").read_text().splitlines()
@@ -68,7 +58,7 @@ def remove_stale() -> None:
             continue
         for entry in base.iterdir():
             match = re.fullmatch(rf"{PREFIX}([0-9a-f]+)-.*", entry.name)
-            if not match or _alive(int(match.group(1), 16)):
+            if not match or _pid_alive(int(match.group(1), 16)):
                 continue
             pid_file = EXEC / entry.name / "docker.pid"
             with contextlib.suppress(OSError, ValueError):

@@ -233,3 +233,16 @@ def tiny_image(tmp_path_factory) -> str:
     assert done.returncode == 0, done.stderr
     yield name
     subprocess.run(["docker", "rmi", "-f", name], capture_output=True)
+
+
+async def pull_progress(viewer: Any, timeout: float) -> list[dict[str, Any]]:
+    """Collect the pull progress a client's live feed shows for a component until the pull is done."""
+    from bridgeos_agent.protocol import Event
+
+    progress: list[dict[str, Any]] = []
+    while not progress or progress[-1]["done"] < progress[-1]["total"]:
+        frame = await viewer.next(Event.COMPONENT_INFORMATION, timeout=timeout)
+        pull = frame.data["container"].get("pull")
+        if pull:
+            progress.append(pull)
+    return progress

@@ -16,7 +16,7 @@ from benchmarks import _netshape as netshape
 from bridgeos_agent.runtime.images import ImagePuller, RegistryLogin
 from tests.net import engine as engines
 
-from .conftest import make_fleet, tls_registry
+from .conftest import make_fleet, pull_progress, tls_registry
 from .layered import build_layered_image
 from .test_docker_registry import PUSH_PROBE, run
 
@@ -135,12 +135,7 @@ async def test_a_user_pushes_with_docker_and_a_robot_behind_its_link_pulls_and_r
         async with httpx.AsyncClient(base_url=daphne_server.url, headers=headers, timeout=90) as api:
             answer = await api.post(f"/api/robot/{robot}/skill/hello/start", params={"wait": 60})
         assert answer.status_code == 200, answer.text
-        progress = []
-        while not progress or progress[-1]["done"] < progress[-1]["total"]:
-            frame = await viewer.next(Event.COMPONENT_INFORMATION, timeout=60)
-            pull = frame.data["container"].get("pull")
-            if pull:
-                progress.append(pull)
+        progress = await pull_progress(viewer, timeout=60)
         done = [p["done"] for p in progress]
         assert done == sorted(done), f"progress went backwards: {done}"
         manifest = await asyncio.to_thread(

@@ -21,7 +21,7 @@ from bridgeos_agent.runtime.images import DiskFull, ImagePuller, RegistryLogin
 from bridgeos_agent.skillconfig import ComponentResources, LaunchSpec
 from tests.conftest import free_port
 
-from .conftest import make_fleet, serving
+from .conftest import make_fleet, pull_progress, serving
 from .test_docker_registry import PUSH_PROBE, push, run
 
 pytestmark = [pytest.mark.docker, pytest.mark.django_db(transaction=True), pytest.mark.log_errors(PUSH_PROBE)]
@@ -229,12 +229,7 @@ async def test_an_agent_pulls_a_skills_image_as_it_is_added_tells_the_cloud_how_
         async with httpx.AsyncClient(base_url=daphne_server.url, headers=headers, timeout=60) as api:
             answer = await api.post(f"/api/robot/{robot}/skill/pull/start", params={"wait": 30})
         assert answer.status_code == 200, answer.text
-        progress = []
-        while not progress or progress[-1]["done"] < progress[-1]["total"]:
-            frame = await viewer.next(Event.COMPONENT_INFORMATION, timeout=30)
-            pull = frame.data["container"].get("pull")
-            if pull:
-                progress.append(pull)
+        progress = await pull_progress(viewer, timeout=30)
         assert progress[-1]["image"] == image and progress[-1]["total"] > 0
         for _ in range(100):
             component = await sync_to_async(Component.objects.get)(skill__robot_id=robot, component_id="hello")
