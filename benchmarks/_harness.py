@@ -235,15 +235,18 @@ def create_fleet(
     named: bool = False,
     skills: Sequence[dict[str, Any]] = (),
     batch_size: int | None = None,
+    organization: Any = None,
 ) -> list[tuple[str, str]]:
-    """Bulk-create ``count`` robots, each with a token of its own and these Skills; return (id, token) pairs."""
+    """Bulk-create ``count`` robots (in the owner's personal organization unless told), with tokens and Skills."""
     from robots.models import Robot, default_robot_config
     from skills.models import Component, Skill
+    from teams.services import personal_organization
 
     config = default_robot_config()
+    organization = organization or personal_organization(owner)
     rows, tokens = [], []
     for i in range(count):
-        robot = Robot(id=f"{prefix}{i:0{digits}d}", owner=owner, config=config)
+        robot = Robot(id=f"{prefix}{i:0{digits}d}", owner=owner, config=config, organization=organization)
         if named:
             robot.name = f"Bench robot {i}"
         tokens.append((robot.id, robot.issue_token()))

@@ -48,6 +48,7 @@ def fill(database_url: str) -> dict:
     from monitoring import partitions
     from robots.models import Robot, default_robot_config
     from robots.services import issue_api_token
+    from teams.services import personal_organization
 
     with connection.cursor() as cursor:
         cursor.execute(f"CREATE TABLE IF NOT EXISTS {MARKER} (first_day date NOT NULL, points bigint NOT NULL)")
@@ -63,7 +64,13 @@ def fill(database_url: str) -> dict:
         config = default_robot_config()
         robots = []
         for i in range(ROBOTS):
-            robot = Robot(id=f"{PREFIX}{i:03d}", owner=owner, name=f"Points bench robot {i}", config=config)
+            robot = Robot(
+                id=f"{PREFIX}{i:03d}",
+                owner=owner,
+                organization=personal_organization(owner),
+                name=f"Points bench robot {i}",
+                config=config,
+            )
             robot.issue_token()
             robots.append(robot)
         Robot.objects.bulk_create(robots)

@@ -307,13 +307,21 @@ def fleet_of(count: int) -> list[str]:
     from django.utils import timezone
 
     from robots.models import Robot
+    from teams.services import personal_organization
 
     owner, _ = get_user_model().objects.get_or_create(username="bench-metrics")
     ids = [f"bench-metrics-{n:04d}" for n in range(count)]
     existing = set(Robot.objects.filter(id__in=ids).values_list("id", flat=True))
     Robot.objects.bulk_create(
         [
-            Robot(id=robot_id, owner=owner, connected=n % 2 == 0, last_seen=timezone.now(), token_hash="x" * 64)
+            Robot(
+                id=robot_id,
+                owner=owner,
+                organization=personal_organization(owner),
+                connected=n % 2 == 0,
+                last_seen=timezone.now(),
+                token_hash="x" * 64,
+            )
             for n, robot_id in enumerate(ids)
             if robot_id not in existing
         ]

@@ -267,6 +267,13 @@ BENCHMARKS: dict[str, list[Figure]] = {
         _f("list_p99_ms", "robot list p99", "ms", goal=50, goal_source="issue 4"),
         _f("info_p99_ms", "robot info p99", "ms", goal=50, goal_source="issue 4"),
     ],
+    "authz": [
+        _f("api_p99_over_before", "API read p99 with role checks / without", "x", goal=1.1, goal_source="issue 34"),
+        _f("audit_rows_per_s", "audit entries written", "rows/s", better="higher"),
+        _f("audit_verify_rows_per_s", "audit chain verified", "rows/s", better="higher"),
+        _f("role_matrix_cases", "role matrix cases", "", better="higher"),
+        _f("role_matrix_violations", "role matrix violations", "", goal=0, goal_source="issue 34"),
+    ],
     "dashboard": [
         _f("first_render_s", "fleet page first render", "s", goal=1.0, goal_source="issue 9"),
         _f("update_lag_s", "metric to row lag p95", "s", goal=1.0, goal_source="issue 9"),

@@ -331,7 +331,10 @@ class DockerProxy:
             # HTTP/1.0: the engine answers with a plain body and closes, nothing to de-chunk.
             writer.write(f"GET /containers/{container}/json HTTP/1.0\r\nHost: docker\r\n\r\n".encode())
             await writer.drain()
-            answer = await reader.read(MAX_BODY_BYTES)
+            # One read() returns what one segment carried; the inspect body often spans several.
+            answer = b""
+            while len(answer) <= MAX_BODY_BYTES and (chunk := await reader.read(65536)):
+                answer += chunk
         finally:
             writer.close()
             with contextlib.suppress(ConnectionError, OSError):

@@ -79,6 +79,9 @@ INSTALLED_APPS = [
     "network.apps.NetworkConfig",
     "recordings.apps.RecordingsConfig",
     "registry.apps.RegistryConfig",
+    "teams.apps.TeamsConfig",
+    "audit.apps.AuditConfig",
+    "rollouts.apps.RolloutsConfig",
 ]
 
 MIDDLEWARE = [
@@ -94,6 +97,8 @@ MIDDLEWARE = [
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "bridgeos_cloud.csp.ContentSecurityPolicy",
+    # After authentication and every view: it writes who did what, and how it ended.
+    "audit.middleware.AuditTrail",
     # Innermost on purpose: see its docstring.
     "bridgeos_cloud.middleware.SyncChain",
 ]
@@ -225,7 +230,17 @@ CELERY_BROKER_TRANSPORT_OPTIONS = {
 CELERY_TASK_DEFAULT_QUEUE = env_str("CELERY_TASK_DEFAULT_QUEUE", "celery")
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
 CELERY_TIMEZONE = TIME_ZONE
+# Threads applying robots' reports in each daphne (a robot's own frames stay in order).
+BRIDGEOS_ROBOT_DB_THREADS = env_int("BRIDGEOS_ROBOT_DB_THREADS", 4)
+# How long a robot may take from its old version's stop to the release running before it fails its gate.
+BRIDGEOS_ROLLOUT_INSTALL_TIMEOUT_S = env_float("BRIDGEOS_ROLLOUT_INSTALL_TIMEOUT_S", 120.0)
+# How long a reconnected robot's own restart of its Skills (with the stored release) is waited for.
+BRIDGEOS_ROLLOUT_CONVERGE_GRACE_S = env_float("BRIDGEOS_ROLLOUT_CONVERGE_GRACE_S", 3.0)
 CELERY_BEAT_SCHEDULE = {
+    "prune-audit": {
+        "task": "audit.tasks.prune_audit",
+        "schedule": 3600.0,
+    },
     "prune-metrics": {
         "task": "monitoring.tasks.prune_metrics",
         "schedule": 3600.0,
@@ -240,6 +255,12 @@ CELERY_BEAT_SCHEDULE = {
         "task": "skills.tasks.reconcile_cloud",
         "schedule": env_float("BRIDGEOS_CLOUD_RECONCILE_S", 5.0),
         "options": {"expires": env_float("BRIDGEOS_CLOUD_RECONCILE_S", 5.0)},
+    },
+    # Every active rollout moves a step: installs, gates, batches, rollbacks.
+    "advance-rollouts": {
+        "task": "rollouts.tasks.advance_rollouts",
+        "schedule": env_float("BRIDGEOS_ROLLOUT_TICK_S", 1.0),
+        "options": {"expires": env_float("BRIDGEOS_ROLLOUT_TICK_S", 1.0)},
     },
     # Robots of a dead server process go offline even when no live server process is left to sweep.
     "sweep-dead-processes": {
@@ -286,6 +307,8 @@ BRIDGEOS = {
     "METRICS_ALLOW": env_list("BRIDGEOS_METRICS_ALLOW", ["127.0.0.1/32", "::1/128"]),
     "METRICS_TOKEN": env_str("BRIDGEOS_METRICS_TOKEN", ""),
     "METRIC_RETENTION_DAYS": env_float("BRIDGEOS_METRIC_RETENTION_DAYS", 30.0),
+    # Audit entries older than this are deleted (hourly); the chain is anchored at the first one kept.
+    "AUDIT_RETENTION_DAYS": env_float("BRIDGEOS_AUDIT_RETENTION_DAYS", 365.0),
     # Daily metric partitions (PostgreSQL) kept created this many days ahead of today.
     "METRIC_PARTITION_AHEAD_DAYS": env_int("BRIDGEOS_METRIC_PARTITION_AHEAD_DAYS", 7),
     # Per WebSocket connection: frames per second on average, and the burst allowed above it.
@@ -293,6 +316,9 @@ BRIDGEOS = {
     "ROBOT_FRAME_BURST": env_float("BRIDGEOS_ROBOT_FRAME_BURST", 1000.0),
     "CLIENT_FRAMES_PER_S": env_float("BRIDGEOS_CLIENT_FRAMES_PER_S", 50.0),
     "CLIENT_FRAME_BURST": env_float("BRIDGEOS_CLIENT_FRAME_BURST", 200.0),
+    # How long a robot's old token keeps working after the admin's "rotate" action: connected robots are
+    # given the new one at once; one offline all this time is shut out once it ends.
+    "TOKEN_ROTATION_GRACE_S": env_float("BRIDGEOS_TOKEN_ROTATION_GRACE_S", 3600.0),
     # Lifetime of an API token from /api/auth; /api/auth/renew extends it by as much.
     "API_TOKEN_TTL_S": env_float("BRIDGEOS_API_TOKEN_TTL_S", 24 * 3600.0),
     # Bridges (/ws/rosbridge/<robot>/, /ws/foxglove/<robot>/): a browser's ticket lives this long and serves once;

@@ -11,14 +11,16 @@ from channels.db import database_sync_to_async
 from django.conf import settings
 from django.core.exceptions import ValidationError
 
+from audit import services as audit
 from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event
-from bridgeos_cloud.consumers import ProtocolConsumer, validation_message
+from bridgeos_cloud.consumers import CLOSE_AUTH_FAILED, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
 from monitoring import prometheus
 from monitoring.live import LIVE_GROUP
 from robots import access
 from robots import services as robots
+from teams.roles import Right
 
 from . import services
 
@@ -42,6 +44,14 @@ RELAYED = frozenset(
 # Config changes are stored first, so an offline robot receives them when it reconnects.
 STORED_THEN_RELAYED = frozenset({Event.ROBOT_CONFIG_UPDATE, Event.OFFLOADING})
 IGNORED = frozenset({Event.ACK, Event.ERROR_MESSAGE})
+NEEDED = {Right.READ: "viewer", Right.COMMAND: "operator", Right.ADMINISTER: "admin"}
+
+
+def right_for(event: Event) -> Right:
+    """Return the right a client's request needs: settings are an admin's, commands an operator's, reads a viewer's."""
+    if event == Event.ROBOT_CONFIG_UPDATE:
+        return Right.ADMINISTER
+    return Right.COMMAND if event in RELAYED or event in STORED_THEN_RELAYED else Right.READ
 
 
 class ClientConsumer(ProtocolConsumer):
@@ -56,28 +66,58 @@ class ClientConsumer(ProtocolConsumer):
 
     async def connect(self) -> None:
         self.user = None
+        self.actor: access.Actor | None = None
         self.visible: set[str] | None = set()
         self.visible_loaded_at = 0.0
         self.dedup = Dedup(capacity=1000)
         await super().connect()
 
     async def authenticate(self, envelope: Envelope) -> bool:
-        """Accept an API token, or with none the session of a logged-in dashboard."""
-        token = protocol.parse_payload(envelope).token
-        if token is not None:
-            user = await database_sync_to_async(access.authenticate_api_token)(token)
-        else:
-            session_user = self.scope.get("user")
-            user = session_user if session_user is not None and session_user.is_authenticated else None
-        if user is None:
+        """Accept an API token, or with none the session of a logged-in dashboard (in the organization it picked)."""
+        actor = await database_sync_to_async(self.actor_for)(protocol.parse_payload(envelope).token)
+        if actor is None:
             await self.refuse("invalid token or no logged-in session", reply_to=envelope.id)
             return False
-        self.user = user
+        self.actor, self.user = actor, actor.user
+        user = actor.user
         await self.refresh_visible(force=True)
+        if actor.token is not None:
+            # Revoking the token (or its user's membership) closes this connection at once.
+            await self.channel_layer.group_add(access.token_group(actor.token.pk), self.channel_name)
+        # A change of the user's memberships or account reloads the roles loaded above.
+        await self.channel_layer.group_add(access.user_group(user.pk), self.channel_name)
         await self.channel_layer.group_add(LIVE_GROUP, self.channel_name)
         prometheus.LIVE_CLIENTS.inc()
         await self.answer(envelope, Event.AUTHENTICATION_SUCCESS, {"user": user.get_username()[:150]})
         return True
+
+    def actor_for(self, token: str | None) -> access.Actor | None:
+        """Return who this connection acts for, with their roles loaded; None when refused."""
+        if token is not None:
+            found = access.api_token(token)
+            actor = None if found is None else access.token_actor(found)
+        else:
+            user = self.scope.get("user")
+            if user is None or not user.is_authenticated:
+                return None
+            session = self.scope.get("session")
+            actor = access.Actor(user, organization_id=session.get(access.SESSION_ORGANIZATION) if session else None)
+        if actor is not None:
+            actor.roles()
+        return actor
+
+    async def token_revoked(self, message: dict[str, Any]) -> None:
+        """Close the connection of a token that was revoked, expired by its membership's end, or deleted."""
+        await self.close_with(CLOSE_AUTH_FAILED, "token revoked")
+
+    async def membership_changed(self, message: dict[str, Any]) -> None:
+        """Reload the roles and robots after the user's memberships or account changed; close if they may not act."""
+        actor = await database_sync_to_async(access.current_actor)(self.actor)
+        if actor is None:
+            await self.close_with(CLOSE_AUTH_FAILED, "no longer a member")
+            return
+        self.actor, self.user = actor, actor.user
+        await self.refresh_visible(force=True)
 
     async def handle_frame(self, envelope: Envelope) -> None:
         if envelope.event in IGNORED:
@@ -94,6 +134,7 @@ class ClientConsumer(ProtocolConsumer):
         if self.user is not None:
             prometheus.LIVE_CLIENTS.dec()
             await self.channel_layer.group_discard(LIVE_GROUP, self.channel_name)
+            await self.channel_layer.group_discard(access.user_group(self.user.pk), self.channel_name)
 
     # ---------------------------------------------------------------- who may see what
 
@@ -102,7 +143,8 @@ class ClientConsumer(ProtocolConsumer):
         now = time.monotonic()
         if force or now - self.visible_loaded_at > VISIBLE_REFRESH_S:
             self.visible_loaded_at = now
-            self.visible = await database_sync_to_async(access.visible_robot_ids)(self.user)
+            # The actor, not the user: a scoped token or a session's pick sees its one organization's robots.
+            self.visible = await database_sync_to_async(access.visible_robot_ids)(self.actor)
 
     async def sees(self, robot_id: str, *, recheck: bool = False) -> bool:
         """Tell whether the user may see a robot, catching robots added since connecting."""
@@ -126,9 +168,9 @@ class ClientConsumer(ProtocolConsumer):
     async def live_event(self, message: dict[str, Any]) -> None:
         """Pass on a state change of a robot this user may see (of no robot: staff only)."""
         robot_id = message["robot"]
-        if message.get("owner") is not None:
-            # The robot is gone from the database, so its owner is named in the message.
-            allowed = self.visible is None or message["owner"] == self.user.pk
+        if message.get("organization") is not None:
+            # The robot is gone from the database, so its organization is named in the message.
+            allowed = self.visible is None or self.actor.role_in(message["organization"]) is not None
         elif robot_id is None:
             allowed = self.visible is None
         else:
@@ -154,47 +196,67 @@ class ClientConsumer(ProtocolConsumer):
                 "name the robot this request is for", reply_to=envelope.id, field="data.robot", code="invalid_payload"
             )
             return
+        outcome = "ok"
         try:
-            if not await database_sync_to_async(access.can_see)(self.user, robot_id):
+            allowed = await database_sync_to_async(access.may_on_robot)(self.actor, robot_id, right_for(envelope.event))
+            if allowed is None:
                 raise NotFound(f"no robot {robot_id!r}", field="data.robot")
+            if not allowed:
+                outcome = "denied"
+                await self.fail(
+                    f"{envelope.event} needs the {NEEDED[right_for(envelope.event)]} role in the robot's organization",
+                    reply_to=envelope.id,
+                    field="event",
+                    code="forbidden",
+                )
+                return
             if envelope.event in STORED_THEN_RELAYED:
                 await database_sync_to_async(services.store_config_change)(envelope.event, robot_id, payload)
-                await self.relay(envelope, robot_id, stored=True)
+                outcome = await self.relay(envelope, robot_id, stored=True)
             elif envelope.event in RELAYED:
-                await self.relay(envelope, robot_id)
+                outcome = await self.relay(envelope, robot_id)
             else:
                 event, data = await database_sync_to_async(services.answer_from_database)(
                     envelope.event, robot_id, payload
                 )
                 await self.answer(envelope, event, data)
         except NotFound as exc:
+            outcome = "not_found"
             await self.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
         except ValidationError as exc:
+            outcome = "invalid"
             message, field = validation_message(exc)
             await self.fail(message, reply_to=envelope.id, field=field, code="invalid_payload")
         except Exception:
+            outcome = "failed"
             log.exception("client request %s failed", envelope.event)
             await self.fail("internal error", reply_to=envelope.id, code="internal_error")
+        finally:
+            if envelope.event in RELAYED or envelope.event in STORED_THEN_RELAYED:
+                await database_sync_to_async(audit.record_client_command)(
+                    self.actor, envelope.event, robot_id, outcome, self.scope.get("client")
+                )
 
-    async def relay(self, envelope: Envelope, robot_id: str, *, stored: bool = False) -> None:
-        """Send a command to the robot and pass its reply back under the client's id."""
+    async def relay(self, envelope: Envelope, robot_id: str, *, stored: bool = False) -> str:
+        """Send a command to the robot and pass its reply back under the client's id; return the audit outcome."""
         data = {key: value for key, value in envelope.data.items() if key != "robot"}
         try:
             reply = await robots.relay_command(robot_id, envelope.event, data, wait=settings.BRIDGEOS["COMMAND_WAIT_S"])
         except robots.RobotOffline:
             if stored:
                 await self.send_envelope(protocol.ack_frame(envelope.id, now=time.time()))
-                return
+                return "ok"  # stored: the robot gets it when it connects
             await self.fail(
                 f"robot {robot_id} is offline", reply_to=envelope.id, field="data.robot", code="robot_offline"
             )
-            return
+            return "failed"
         except robots.CommandTimeout as exc:
             await self.fail(str(exc), reply_to=envelope.id, code="timeout")
-            return
+            return "failed"
         data = reply.data
         if issubclass(protocol.PAYLOADS[reply.event], protocol.RobotScoped):
             # Client links are not bound to one robot, so say which robot answered.
             data = {**data, "robot": robot_id}
         answer = reply.model_copy(update={"reply_to": envelope.id, "data": data})
         await self.send_envelope(answer)
+        return "failed" if reply.event == Event.ERROR_MESSAGE else "ok"

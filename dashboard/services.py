@@ -9,7 +9,7 @@ from typing import Any
 
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import connection
-from django.db.models import QuerySet
+from django.db.models import Count, QuerySet
 from django.db.models.fields.json import KT
 from django.utils import timezone
 from pydantic import BaseModel
@@ -25,12 +25,17 @@ from monitoring.services import latest_metrics
 from recordings.choices import RosProfile
 from recordings.models import Recording
 from recordings.services import DEFAULT_MAX_BYTES, DEFAULT_MAX_DURATION_S
-from robots.access import visible_robots
+from robots.access import Actor, robots_with, visible_robots
 from robots.models import Robot
 from robots.services import robot_config, update_robot_config
-from skills.models import Component, Skill, SkillTemplate
-from skills.services import component_state, skill_state
+from rollouts.api.serializers import RolloutDetailSerializer
+from rollouts.models import RolloutRobot
+from rollouts.rolling import visible_rollouts
+from skills.models import Component, Skill
+from skills.services import component_state, skill_state, visible_templates
 from skills.state import fleet_state_json
+from teams.models import Organization
+from teams.roles import Right
 
 # Robot-wide series the fleet overview shows (points with no skill and no component):
 # cpu, ram and battery in percent, bandwidth in Mbit/s. The robot page charts every series.
@@ -39,6 +44,9 @@ ROBOT_METRICS = ("cpu", "ram", "bandwidth", "battery")
 LATEST_METRIC_MAX_AGE = timedelta(hours=1)
 
 CONFIG_PARSERS: dict[str, Callable[[Any], BaseModel]] = {"skill": parse_skill_config, "robot": parse_robot_config}
+
+# A rollout's robot statuses, in the order a robot goes through them.
+STATUSES = RolloutRobot.Status.values
 
 LATEST_SQL = """
 SELECT r.id, n.name, m.value, extract(epoch FROM m.ts)
@@ -58,7 +66,7 @@ def fleet_summary(user: AbstractBaseUser) -> list[dict[str, Any]]:
     rows = list(
         robots.order_by("id")
         .annotate(offloading=KT("config__offloading"))
-        .values("id", "name", "status", "connected", "last_seen", "offloading")
+        .values("id", "name", "labels", "status", "connected", "last_seen", "offloading")
     )
     skills: dict[str, list[dict[str, Any]]] = {}
     by_pk: dict[int, dict[str, Any]] = {}
@@ -121,9 +129,46 @@ def robot_state(user: AbstractBaseUser, robot_id: str) -> dict[str, Any] | None:
     return state
 
 
+def robot_rights(actor: Actor, robot_id: str) -> dict[str, bool]:
+    """Return what a request may do on a robot, so its page shows only those buttons (the API refuses the rest)."""
+    organization_id = visible_robots(actor).filter(id=robot_id).values_list("organization_id", flat=True).first()
+    if organization_id is None:
+        return {"command": False, "develop": False, "administer": False}
+    return {
+        "command": actor.may(organization_id, Right.COMMAND),
+        "develop": actor.may(organization_id, Right.DEVELOP),
+        "administer": actor.may(organization_id, Right.ADMINISTER),
+    }
+
+
 def robot_choices(user: AbstractBaseUser) -> QuerySet[Robot]:
     """Return the ids and names of the robots a user may pick in a form."""
     return visible_robots(user).order_by("id").only("id", "name")
+
+
+def robots_to_develop(actor: Actor) -> QuerySet[Robot]:
+    """Return the robots a request may add Skills to (a developer's right), for the catalog's forms."""
+    return robots_with(actor, Right.DEVELOP).order_by("id").only("id", "name")
+
+
+def template_organizations(actor: Actor) -> list[Organization]:
+    """Return the organizations a request may keep templates in, the picked one first."""
+    reached = actor.organization_ids()
+    # Staff reach every organization; they keep templates in their own ones (and the cloud's catalog).
+    ids = [o for o in (list(actor.roles()) if reached is None else reached) if actor.may(o, Right.DEVELOP)]
+    found = list(Organization.objects.filter(id__in=ids).order_by("slug"))
+    return sorted(found, key=lambda o: o.id != actor.organization_id)
+
+
+def namespaces(actor: Actor) -> list[str]:
+    """Return the registry namespaces (organization slugs) a request reaches, the picked or personal one first."""
+    reached = actor.organization_ids()
+    ids = list(actor.roles()) if reached is None else reached
+    found = Organization.objects.filter(id__in=ids).order_by("slug").values_list("id", "slug", "personal_of_id")
+    rows = list(found)
+    # The picked organization's first, else the user's own: the page's push example uses it.
+    rows.sort(key=lambda row: (row[0] != actor.organization_id, row[2] != actor.user.pk))
+    return [slug for _, slug, _ in rows]
 
 
 def skill_and_component_ids(user: AbstractBaseUser) -> tuple[list[str], list[str]]:
@@ -134,10 +179,10 @@ def skill_and_component_ids(user: AbstractBaseUser) -> tuple[list[str], list[str
     return sorted(skill_ids), sorted(component_ids)
 
 
-def catalog() -> list[dict[str, Any]]:
-    """Return the Skill templates with the components each brings and where they may run."""
+def catalog(actor: Actor) -> list[dict[str, Any]]:
+    """Return the Skill templates a request sees with the components each brings and where they may run."""
     templates = []
-    for template in SkillTemplate.objects.order_by("name"):
+    for template in visible_templates(actor).order_by("name", "pk"):
         components = [
             {"component_id": cid, "name": c.get("name") or cid, "location": c.get("location", "robot")}
             for cid, c in template.config.get("components", {}).items()
@@ -146,6 +191,7 @@ def catalog() -> list[dict[str, Any]]:
             {
                 "id": template.pk,
                 "name": template.name,
+                "organization": template.organization.slug if template.organization else None,
                 "description": template.description,
                 "tags": template.tags,
                 "skill_id": template.config.get("skill_id", ""),
@@ -222,3 +268,46 @@ def recording_limits() -> dict[str, Any]:
         "max_mib": DEFAULT_MAX_BYTES // (1024 * 1024),
         "max_duration_s": int(DEFAULT_MAX_DURATION_S),
     }
+
+
+ROLLOUTS_PER_PAGE = 100
+
+
+def rollout_list(actor: Actor, before: int | None = None) -> tuple[list[dict[str, Any]], int | None]:
+    """Return the newest rollouts a request reaches (older than ``before``), each with its robots counted by status.
+
+    Also return the id to ask for the next, older page from (None: this is the last).
+    """
+    rollouts = visible_rollouts(actor).order_by("-id")
+    if before is not None:
+        rollouts = rollouts.filter(id__lt=before)
+    found = list(rollouts[: ROLLOUTS_PER_PAGE + 1])
+    older = found[ROLLOUTS_PER_PAGE - 1].id if len(found) > ROLLOUTS_PER_PAGE else None
+    found = found[:ROLLOUTS_PER_PAGE]
+    counted: dict[int, dict[str, int]] = {rollout.id: {} for rollout in found}
+    members = (
+        RolloutRobot.objects.filter(rollout_id__in=counted)
+        .order_by()
+        .values_list("rollout_id", "status")
+        .annotate(robots=Count("id"))
+    )
+    for rollout_id, status, robots in members:
+        counted[rollout_id][status] = robots
+    rows = [
+        {
+            "rollout": rollout,
+            # In the statuses' own order, the way a robot goes through them.
+            "counts": [(status, counted[rollout.id][status]) for status in STATUSES if status in counted[rollout.id]],
+            "robots": sum(counted[rollout.id].values()),
+        }
+        for rollout in found
+    ]
+    return rows, older
+
+
+def rollout_detail(actor: Actor, rollout_id: int) -> tuple[dict[str, Any], bool] | None:
+    """Return a rollout as the Robot API reads it, and whether the request may steer it; None if out of reach."""
+    rollout = visible_rollouts(actor).filter(pk=rollout_id).first()
+    if rollout is None:
+        return None
+    return dict(RolloutDetailSerializer(rollout).data), actor.may(rollout.organization_id, Right.DEVELOP)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from django.urls import path
 
-from . import views
+from . import teamviews, views
 
 app_name = "dashboard"
 
@@ -14,6 +14,14 @@ urlpatterns = [
     path("skills/", views.skills, name="skills"),
     path("images/", views.images, name="images"),
     path("events/", views.events, name="events"),
+    path("rollouts/", views.rollouts, name="rollouts"),
+    path("rollouts/<int:rollout_id>/", views.rollout, name="rollout"),
+    path("organization", teamviews.pick_organization, name="pick-organization"),
+    path("organizations/", teamviews.organizations, name="organizations"),
+    path("organizations/<str:slug>/", teamviews.organization, name="organization"),
+    path("organizations/<str:slug>/members/<str:username>", teamviews.member, name="member"),
+    path("tokens/", teamviews.api_tokens, name="tokens"),
+    path("tokens/<int:token_id>/revoke", teamviews.revoke_api_token, name="revoke-token"),
     path("validate/skill-config", views.validate_config, {"kind": "skill"}, name="validate-skill-config"),
     path("validate/robot-config", views.validate_config, {"kind": "robot"}, name="validate-robot-config"),
 ]

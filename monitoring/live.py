@@ -144,13 +144,13 @@ def get_live_feed() -> LiveFeed:
     return loop_object("live feed", _started_feed)
 
 
-async def publish(robot_id: str | None, frame: dict[str, Any], *, owner_id: int | None = None) -> None:
-    """Send a state event of a robot to the live group (no robot: for staff only; an owner: for them too)."""
+async def publish(robot_id: str | None, frame: dict[str, Any], *, organization_id: int | None = None) -> None:
+    """Send a state event of a robot to the live group (no robot: staff's, or an organization's members' too)."""
     layer = get_channel_layer()
     if layer is not None:
         message: dict[str, Any] = {"type": "live.event", "robot": robot_id, "frame": frame}
-        if owner_id is not None:
-            message["owner"] = owner_id
+        if organization_id is not None:
+            message["organization"] = organization_id
         await layer.group_send(LIVE_GROUP, message)
 
 
@@ -165,16 +165,16 @@ def publish_on_commit(robot_id: str, frame: dict[str, Any], *, using: str | None
     transaction.on_commit(send, using=using, robust=True)
 
 
-def publish_log_event_on_commit(event: Event, *, owner_id: int | None = None) -> None:
+def publish_log_event_on_commit(event: Event, *, organization_id: int | None = None) -> None:
     """Push an event-log entry to the dashboards that may see it, once its transaction commits.
 
-    An entry about a robot that is gone (``robot_deleted``) names it in its data; ``owner_id``
-    lets its owner hear of it although the robot no longer says whose it was.
+    An entry about a robot that is gone (``robot_deleted``) names it in its data; ``organization_id``
+    lets its organization hear of it although the robot no longer says whose it was.
     """
     robot_id, frame = log_event_frame(event)
 
     def send() -> None:
-        layer_sync(publish)(robot_id, frame, owner_id=owner_id)
+        layer_sync(publish)(robot_id, frame, organization_id=organization_id)
 
     transaction.on_commit(send, using=event._state.db, robust=True)
 

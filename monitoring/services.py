@@ -38,7 +38,7 @@ def record_event(
     component: str = "",
     data: dict[str, Any] | None = None,
     ts: datetime | None = None,
-    owner_id: int | None = None,
+    organization_id: int | None = None,
 ) -> Event:
     """Append one entry to the event log (at ``ts``, by default now) and push it to dashboards on commit."""
     # Robots report these texts: one with a NUL byte must be logged, not fail the frame that carried it.
@@ -53,7 +53,7 @@ def record_event(
         message=storable(message),
         data=storable(data or {}),
     )
-    publish_log_event_on_commit(event, owner_id=owner_id)
+    publish_log_event_on_commit(event, organization_id=organization_id)
     return event
 
 

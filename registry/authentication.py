@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from rest_framework.exceptions import AuthenticationFailed, Throttled
@@ -14,11 +15,25 @@ from robots.services import LoginBlocked, login_robot
 REALM = "bridgeOS registry"
 
 
+@dataclass(frozen=True)
+class RobotIdentity:
+    """The ``request.user`` of a robot asking for a registry token: authenticated, never staff."""
+
+    robot_id: str
+    is_authenticated: bool = True
+    is_active: bool = True
+    is_staff: bool = False
+    pk: None = None
+
+    def get_username(self) -> str:
+        return f"robot:{self.robot_id}"
+
+
 class RegistryAuthentication(PasswordAuthentication):
     """Tell the credential by its token's prefix: `bat_` an API token, `brt_` a robot's token, else a password.
 
-    A robot authenticates as its owner (``request.user``) with itself as ``request.auth``, so the
-    grant rules can hold it to its owner's pulls.
+    A robot authenticates as itself (``request.auth``), so the grant rules hold it to its
+    organization's pulls.
     """
 
     www_authenticate_realm = REALM
@@ -40,5 +55,5 @@ class RegistryAuthentication(PasswordAuthentication):
                 raise Throttled(wait=exc.retry_s, detail="Too many failed logins; try again later.") from None
             if robot is None:
                 raise AuthenticationFailed("Invalid robot id/token.")
-            return robot.owner, robot
+            return RobotIdentity(robot.id), robot
         return super().authenticate_credentials(userid, password, request)

@@ -3,10 +3,11 @@
 Every launch spec's image that names the cloud's own registry (``BRIDGEOS_REGISTRY_HOST``) is
 resolved through that registry to the digest its tag points at now, and stored as
 ``host/repository:tag@sha256:…`` (Docker pulls and runs the digest; the tag stays for people
-to read). The Skill's owner must be allowed to pull it, by the same grant rules as the token
-server; a tag that does not exist, an image the owner may not pull, or a registry that does
-not answer refuses the Skill with an error naming the component and the image. Images of other
-registries and local images (``bridgeos/ros:noetic``) are kept as written.
+to read). The Skill's robot (or, for a release, its organization's robots) must be allowed to
+pull it, by the same grant rules as the token server; a tag that does not exist, an image the
+owner may not pull, or a registry that does not answer refuses the Skill with an error naming
+the component and the image. Images of other registries and local images
+(``bridgeos/ros:noetic``) are kept as written.
 """
 
 from __future__ import annotations
@@ -19,13 +20,14 @@ from typing import Any
 
 import httpx
 from django.conf import settings
-from django.contrib.auth.models import AbstractBaseUser
 from django.core.exceptions import ValidationError
 
 from bridgeos_agent.imagerefs import split_reference
+from robots.models import Robot
+from teams.models import Organization
 
 from . import tokens
-from .services import principal_of, signing_key
+from .services import organization_principal, robot_principal, signing_key
 
 __all__ = ["pin_images", "registry_url"]
 
@@ -50,11 +52,18 @@ def registry_url(host: str) -> str:
     return f"{'http' if loopback else 'https'}://{host}"
 
 
-def pin_images(config: dict[str, Any], owner: AbstractBaseUser) -> dict[str, Any]:
-    """Return the config with its images of the cloud's registry pinned by digest; ValidationError if one cannot be."""
+def pin_images(config: dict[str, Any], owner: Robot | Organization) -> dict[str, Any]:
+    """Return the config with its images of the cloud's registry pinned by digest; ValidationError if one cannot be.
+
+    ``owner`` is the robot that runs it, or the organization whose robots will (a release's).
+    """
     host = settings.BRIDGEOS["REGISTRY_HOST"]
     if not host:
         return config
+    if isinstance(owner, Robot):
+        principal, puller = robot_principal(owner), f"robot {owner.id}'s organization"
+    else:
+        principal, puller = organization_principal(owner), "organization"
     pinned = copy.deepcopy(config)
     problems: list[str] = []
     resolved: dict[str, str | ValueError] = {}  # an image named twice is asked about once
@@ -72,7 +81,7 @@ def pin_images(config: dict[str, Any], owner: AbstractBaseUser) -> dict[str, Any
                     continue
                 if image not in resolved:
                     try:
-                        resolved[image] = _resolve(client, owner, host, repository, reference, image)
+                        resolved[image] = _resolve(client, principal, puller, host, repository, reference, image)
                     except ValueError as exc:
                         resolved[image] = exc
                 outcome = resolved[image]
@@ -86,15 +95,20 @@ def pin_images(config: dict[str, Any], owner: AbstractBaseUser) -> dict[str, Any
 
 
 def _resolve(
-    client: httpx.Client, owner: AbstractBaseUser, host: str, repository: str, reference: str, image: str
+    client: httpx.Client,
+    principal: tokens.Principal,
+    puller: str,
+    host: str,
+    repository: str,
+    reference: str,
+    image: str,
 ) -> str:
     """Return ``image`` pinned to the digest its reference names now; ValueError says why it cannot be."""
-    principal = principal_of(owner)
     scope = tokens.Scope("repository", repository, ("pull",))
     if "pull" not in tokens.granted(principal, scope):
         raise ValueError(
-            f"{image!r}: the Skill's owner {principal.username!r} may not pull {repository!r} "
-            f"(a user pulls {principal.username}/...)"
+            f"{image!r}: {puller} {principal.username!r} may not pull {repository!r} "
+            f"(its robots pull {principal.username}/...)"
         )
     conf = settings.BRIDGEOS
     claims = tokens.token_claims(

@@ -10,12 +10,15 @@ from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric import ec
 from django.conf import settings
-from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
 
+from audit import services as audit
 from bridgeos_cloud.env import ConfigError, kept_secret
 from network import pki
+from robots.access import Who, as_actor
 from robots.models import Robot
+from teams.models import Organization
+from teams.roles import Role
 
 from . import notifications, tokens
 from .models import RegistryTag
@@ -37,14 +40,34 @@ def signing_key() -> ec.EllipticCurvePrivateKey:
         raise ConfigError(f"{where} is not an unencrypted PEM EC private key (P-256) to sign registry tokens") from None
 
 
-def principal_of(user: AbstractBaseUser, robot: Robot | None = None) -> tokens.Principal:
-    """Describe a user, or a robot acting with its owner's rights, for the grant rules."""
+def principal_of(who: Who, robot: Robot | None = None) -> tokens.Principal:
+    """Describe a request's user with their roles in each organization, or a robot, for the grant rules.
+
+    A robot pulls from its own organization's namespace and nowhere else (staff's robots too).
+    """
+    if robot is not None:
+        return robot_principal(robot)
+    actor = as_actor(who)
+    user = actor.user
+    slugs = dict(Organization.objects.filter(id__in=actor.roles()).values_list("id", "slug"))
+    namespaces = tuple((slugs[org], role) for org in slugs if (role := actor.role_in(org)) is not None)
     return tokens.Principal(
         username=user.get_username(),
-        is_staff=bool(user.is_staff),
+        is_staff=actor.everywhere,
         is_active=bool(user.is_active),
-        robot=robot.id if robot is not None else None,
+        namespaces=namespaces,
     )
+
+
+def robot_principal(robot: Robot) -> tokens.Principal:
+    """Describe a robot, or a cloud copy of its Skill, pulling its organization's images."""
+    slug = Organization.objects.values_list("slug", flat=True).get(id=robot.organization_id)
+    return tokens.Principal(username=slug, robot=robot.id, namespaces=((slug, str(Role.VIEWER)),))
+
+
+def organization_principal(organization: Organization) -> tokens.Principal:
+    """Describe an organization pulling its own images as its robots do (a release is pinned by what they may pull)."""
+    return tokens.Principal(username=organization.slug, namespaces=((organization.slug, str(Role.VIEWER)),))
 
 
 def parse_scopes(texts: list[str]) -> list[tokens.Scope]:
@@ -55,15 +78,13 @@ def parse_scopes(texts: list[str]) -> list[tokens.Scope]:
     return [tokens.parse_scope(part) for part in parts]
 
 
-def issue_token(
-    user: AbstractBaseUser, scope_texts: list[str], *, robot: Robot | None = None, service: str = ""
-) -> dict[str, Any]:
+def issue_token(who: Who, scope_texts: list[str], *, robot: Robot | None = None, service: str = "") -> dict[str, Any]:
     """Return Distribution's token answer for the scopes asked; raise ScopeError for a malformed one.
 
     No refresh_token: docker would redeem it with a POST this realm does not serve.
     """
     scopes = parse_scopes(scope_texts)
-    principal = principal_of(user, robot)
+    principal = principal_of(who, robot)
     conf = settings.BRIDGEOS
     now = datetime.now(UTC)
     claims = tokens.token_claims(
@@ -100,14 +121,19 @@ def record_pushes(pushes: list[notifications.TagPush]) -> int:
                     "pushed_at": push.at,
                 },
             )
+            # After the commit: an entry only for a push that stuck, and never the chain's lock while tags are locked.
+            transaction.on_commit(
+                functools.partial(audit.record_registry_push, push.repository, push.tag, push.digest, push.actor)
+            )
     return len(pushes)
 
 
-def repositories(user: AbstractBaseUser, namespace: str | None = None) -> list[dict[str, Any]]:
-    """List the repositories a user may pull, with their tags and digests (staff: every namespace)."""
+def repositories(who: Who, namespace: str | None = None) -> list[dict[str, Any]]:
+    """List the repositories a request may pull, with their tags and digests (staff: every namespace)."""
     tags = RegistryTag.objects.all()
-    if not user.is_staff:
-        tags = tags.filter(namespace=user.get_username())
+    principal = principal_of(who)
+    if not principal.is_staff:
+        tags = tags.filter(namespace__in=[slug for slug, _ in principal.namespaces or ()])
     if namespace:
         tags = tags.filter(namespace=namespace)
     listed: dict[str, dict[str, Any]] = {}

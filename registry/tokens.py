@@ -37,6 +37,9 @@ _TYPE = re.compile(r"^[a-z0-9]+(?:\([a-z0-9]+\))?$")
 _ACTION = re.compile(r"^(?:[a-z]+|\*)$")
 MAX_NAME = 255
 OWNER_ACTIONS = frozenset({"pull", "push"})
+READER_ACTIONS = frozenset({"pull"})
+# Members push to their organization's namespace from the developer role up; every member pulls.
+PUSHING_ROLES = frozenset({"developer", "admin"})
 STAFF_ACTIONS = frozenset({"pull", "push", "delete"})
 ROBOT_ACTIONS = frozenset({"pull"})
 
@@ -56,12 +59,23 @@ class Scope:
 
 @dataclass(frozen=True)
 class Principal:
-    """Who asks for a token: a user, or a robot acting with its owner's rights (``robot`` is its id)."""
+    """Who asks for a token: a user, or a robot acting for its organization (``robot`` is its id).
+
+    ``namespaces`` maps each namespace (an organization's slug) to the principal's role there;
+    None stands for a user in their personal namespace alone, named as they are.
+    """
 
     username: str
     is_staff: bool = False
     is_active: bool = True
     robot: str | None = None
+    namespaces: tuple[tuple[str, str], ...] | None = None
+
+    def role_in(self, namespace: str) -> str | None:
+        """Return the principal's role in a namespace, or None."""
+        if self.namespaces is None:
+            return "admin" if namespace == self.username else None
+        return dict(self.namespaces).get(namespace)
 
     @property
     def subject(self) -> str:
@@ -96,10 +110,11 @@ def granted(principal: Principal, scope: Scope) -> tuple[str, ...]:
         allowed = frozenset({"*"}) if principal.is_staff and not principal.robot else frozenset()
     elif scope.type == "repository":
         namespace, _, rest = scope.name.partition("/")
+        role = principal.role_in(namespace) if rest else None
         if principal.is_staff:
             allowed = STAFF_ACTIONS
-        elif rest and namespace == principal.username:
-            allowed = OWNER_ACTIONS
+        elif role is not None:
+            allowed = OWNER_ACTIONS if role in PUSHING_ROLES else READER_ACTIONS
         else:
             allowed = frozenset()
         if principal.robot:

@@ -1,26 +1,80 @@
-"""Admin of robots: tokens are shown once on creation and can be rotated."""
+"""Admin of robots: tokens are shown once on creation and can be rotated; labels are edited, searched and filtered."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from django.conf import settings
 from django.contrib import admin, messages
+from django.core.exceptions import ValidationError
+from django.db import connection
 from django.db.models import QuerySet
 from django.http import HttpRequest
 
 from monitoring.services import record_event
 
 from . import services
+from .labels import selector_q
 from .models import ApiToken, Robot
+
+
+def label_pairs(limit: int = 100) -> list[tuple[str, str]]:
+    """Return the distinct labels robots carry (key, value), in order, at most ``limit``."""
+    if connection.vendor != "postgresql":
+        found = {pair for labels in Robot.objects.values_list("labels", flat=True) for pair in labels.items()}
+        return sorted(found)[:limit]
+    with connection.cursor() as cursor:
+        cursor.execute(
+            "SELECT DISTINCT e.key, e.value FROM robots_robot, jsonb_each_text(labels) e ORDER BY 1, 2 LIMIT %s",
+            [limit],
+        )
+        return [(key, value) for key, value in cursor.fetchall()]
+
+
+class LabelFilter(admin.SimpleListFilter):
+    """Filter robots by one of the labels robots carry (key=value)."""
+
+    title = "label"
+    parameter_name = "label"
+
+    def lookups(self, request: HttpRequest, model_admin: admin.ModelAdmin) -> list[tuple[str, str]]:
+        pairs = [f"{key}={value}" for key, value in label_pairs(limit=100)]
+        return [(pair, pair) for pair in pairs]
+
+    def queryset(self, request: HttpRequest, queryset: QuerySet[Robot]) -> QuerySet[Robot]:
+        if not self.value():
+            return queryset
+        try:
+            return queryset.filter(selector_q(self.value()))
+        except ValidationError:
+            return queryset.none()
 
 
 @admin.register(Robot)
 class RobotAdmin(admin.ModelAdmin):
-    list_display = ["id", "name", "owner", "status", "connected", "last_seen"]
-    list_filter = ["status", "connected"]
-    search_fields = ["id", "name", "owner__username"]
+    list_display = ["id", "name", "organization", "owner", "status", "connected", "last_seen", "labels_text"]
+    list_filter = ["status", "connected", "organization", LabelFilter]
+    # A search with '=' is a selector (site=lab,!retired); else the text is looked for in the labels too.
+    search_fields = ["id", "name", "owner__username", "organization__slug", "labels"]
+    search_help_text = "Id, name, owner, organization or label text; a selector such as site=lab,model!=x."
+    autocomplete_fields = ["organization"]
     readonly_fields = ["connected", "last_seen", "created_at"]
     actions = ["rotate_tokens"]
+
+    @admin.display(description="labels")
+    def labels_text(self, robot: Robot) -> str:
+        return ", ".join(f"{key}={value}" for key, value in sorted(robot.labels.items()))
+
+    def get_search_results(
+        self, request: HttpRequest, queryset: QuerySet[Robot], search_term: str
+    ) -> tuple[QuerySet[Robot], bool]:
+        if "=" in search_term:
+            try:
+                return queryset.filter(selector_q(search_term)), False
+            except ValidationError as exc:
+                messages.error(request, "; ".join(exc.messages))
+                return queryset.none(), False
+        return super().get_search_results(request, queryset, search_term)
 
     def get_readonly_fields(self, request: HttpRequest, obj: Robot | None = None) -> list[str]:
         # The id is the robot's identity on the wire; changing it would orphan the agent.
@@ -39,20 +93,31 @@ class RobotAdmin(admin.ModelAdmin):
         if token:
             messages.warning(request, f"Token of robot {obj.id} (copy it now, it is shown only once): {token}")
 
-    @admin.action(description="Rotate the token of the selected robots")
+    @admin.action(description="Rotate the token of the selected robots (connected ones re-key live)")
     def rotate_tokens(self, request: HttpRequest, queryset: QuerySet[Robot]) -> None:
-        for robot in queryset:
-            token = services.rotate_token(robot)
-            messages.warning(request, f"New token of robot {robot.id} (shown only once): {token}")
+        grace_s = settings.BRIDGEOS["TOKEN_ROTATION_GRACE_S"]
+        rotated = services.rotate_tokens(queryset, grace_s=grace_s)
+        for each in rotated:
+            messages.warning(request, f"New token of robot {each.robot.id} (shown only once): {each.token}")
+        if grace_s <= 0:
+            messages.info(request, "The old tokens, and the connections made with them, ended now.")
+            return
+        live = sum(each.sent_live for each in rotated)
+        messages.info(
+            request,
+            f"{live} of {len(rotated)} robot(s) were connected and were given their new token live; the old tokens "
+            f"work for {grace_s:g} s more: hand the others theirs before then.",
+        )
 
 
 @admin.register(ApiToken)
 class ApiTokenAdmin(admin.ModelAdmin):
     """API tokens can be reviewed and revoked (deleted), never read: only their hash is kept."""
 
-    list_display = ["user", "created_at", "expires_at"]
-    search_fields = ["user__username"]
-    readonly_fields = ["user", "created_at", "expires_at"]
+    list_display = ["user", "name", "organization", "role", "created_at", "expires_at"]
+    list_filter = ["organization"]
+    search_fields = ["user__username", "name", "organization__slug"]
+    readonly_fields = ["user", "name", "organization", "role", "created_at", "expires_at"]
 
     def has_add_permission(self, request: HttpRequest) -> bool:
         return False

@@ -31,6 +31,7 @@ from channels.generic.websocket import AsyncWebsocketConsumer
 from channels.layers import get_channel_layer
 from django.conf import settings
 
+from audit import services as audit
 from bridgeos_agent import protocol
 from bridgeos_agent.bridges.relay import FrameAssembler, frame_parts
 from bridgeos_agent.protocol import BlobWindow, Event
@@ -128,6 +129,9 @@ class BridgeConsumer(AsyncWebsocketConsumer):
             return
         token, ticket = self.credentials()
         access = await database_sync_to_async(open_bridge)(self.robot_id, token=token, ticket=ticket)
+        await database_sync_to_async(audit.record_bridge_open)(
+            self.kind, self.robot_id, access.user_id if access else None, self.scope.get("client")
+        )
         if access is None:
             # Unknown robot, someone else's, bad or spent credentials: the same 403 for all.
             await self.close()

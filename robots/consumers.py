@@ -9,11 +9,11 @@ from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from channels.db import database_sync_to_async
 from django.conf import settings
 from django.core.exceptions import ValidationError
 
 from bridgeos_agent import protocol
+from bridgeos_agent.labels import label_problems
 from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event, Reliable
 from bridgeos_cloud.batching import Batcher
@@ -30,6 +30,7 @@ from skills.cloud.volumes import CloudVolumes, QuotaExceeded
 
 from . import dedup, services
 from .bridges import RobotBridges, deliver, register_local
+from .dbthreads import sync
 from .dedup import applied_ids
 from .presence import get_presence
 
@@ -88,6 +89,7 @@ class RobotConsumer(ProtocolConsumer):
         self.dedup = Dedup(capacity=dedup.WINDOW)
         self.reliable = Reliable()
         self.requests: OrderedDict[str, tuple[str, float]] = OrderedDict()
+        self.rekeys: set[str] = set()  # ids of robot_rekey frames the robot has not acked yet
         self.retransmit_timer: asyncio.TimerHandle | None = None
         self.volumes: CloudVolumes | None = None
         self.volume_scanner: asyncio.Future | None = None
@@ -143,10 +145,14 @@ class RobotConsumer(ProtocolConsumer):
             await self.forward_reply(envelope)
         if event == Event.ACK:
             self.reliable.on_ack(envelope.reply_to)
+            if envelope.reply_to in self.rekeys:
+                self.rekeys.discard(envelope.reply_to)
+                await sync(services.record_rekeyed)(self.robot_id)
             return
         if event == Event.ERROR_MESSAGE:
             # The robot refused a frame: sending it again would be refused again.
             self.reliable.on_ack(envelope.reply_to)
+            self.rekeys.discard(envelope.reply_to)
         if envelope.reply_to is not None and envelope.reply_to in self.chunk_requests:
             future = self.chunk_requests[envelope.reply_to]
             if not future.done():
@@ -206,6 +212,10 @@ class RobotConsumer(ProtocolConsumer):
     async def authenticate(self, envelope: Envelope) -> bool:
         """Check the robot's id and token, mark it connected and send it its config."""
         credentials = protocol.parse_payload(envelope)
+        problems = label_problems(credentials.labels or {})
+        if problems:
+            await self.refuse(f"invalid labels: {'; '.join(problems)}", reply_to=envelope.id)
+            return False
         address = (self.scope.get("client") or ["?"])[0]
         presence = get_presence(self.channel_name)
         if presence is not None:
@@ -213,7 +223,13 @@ class RobotConsumer(ProtocolConsumer):
             await presence.joined()
         ros2 = None if credentials.ros2 is None else credentials.ros2.model_dump(mode="json")
         login = services.Login(
-            credentials.robot, credentials.token, address, self.channel_name, credentials.ros_master, ros2
+            credentials.robot,
+            credentials.token,
+            address,
+            self.channel_name,
+            credentials.ros_master,
+            ros2,
+            credentials.labels or None,
         )
         connected, reports = await login_queue().submit(login)
         if connected.blocked_s:
@@ -304,6 +320,12 @@ class RobotConsumer(ProtocolConsumer):
         """Send a frame the cloud pushes to the robot (e.g. its cloud copies' status), until acked."""
         await self.send_reliably(protocol.decode(message["frame"]))
 
+    async def robot_rekey(self, message: dict[str, Any]) -> None:
+        """Give the robot its new token (rotate_token with a grace), resent until it acks, which is logged."""
+        envelope = protocol.decode(message["frame"])
+        self.rekeys.add(envelope.id)
+        await self.send_reliably(envelope)
+
     async def forward_reply(self, envelope: Envelope) -> None:
         """Hand the robot's answer to whoever relayed the command."""
         reply_channel, _ = self.requests.pop(envelope.reply_to)
@@ -366,10 +388,6 @@ def handles(*events: Event) -> Callable:
         return function
 
     return register
-
-
-def sync(function: Callable[..., Any]) -> Callable[..., Awaitable[Any]]:
-    return database_sync_to_async(function)
 
 
 # Each handler applies one event and returns whether to ack it now (metrics ack after commit).

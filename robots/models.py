@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import secrets
+from datetime import datetime
 from typing import Any
 
 from django.conf import settings
@@ -17,6 +18,7 @@ from bridgeos_agent.skillconfig import SLUG_PATTERN
 from bridgeos_cloud.validation import validated_config
 
 from .choices import RobotStatus
+from .labels import validate_labels
 from .signals import config_checked
 
 id_validator = RegexValidator(
@@ -40,7 +42,11 @@ class Robot(models.Model):
 
     id = models.CharField(primary_key=True, max_length=64, validators=[id_validator])
     name = models.CharField(max_length=200, blank=True)
-    owner = models.ForeignKey(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="robots")
+    organization = models.ForeignKey("teams.Organization", on_delete=models.CASCADE, related_name="robots")
+    # Who added the robot; the robot belongs to its organization and outlives them.
+    owner = models.ForeignKey(
+        settings.AUTH_USER_MODEL, on_delete=models.SET_NULL, null=True, blank=True, related_name="robots"
+    )
     status = models.CharField(max_length=16, choices=RobotStatus.choices, default=RobotStatus.IDLE)
     connected = models.BooleanField(default=False)
     last_seen = models.DateTimeField(null=True, blank=True)
@@ -51,15 +57,21 @@ class Robot(models.Model):
     # The robot's ROS 2 graph as its agent reported it at login (protocol.Ros2GraphInfo), with the
     # "cloud_discovery_server" its cloud copies use ("host:port"); None: no ROS 2 there.
     ros2 = models.JSONField(null=True, blank=True, editable=False)
+    # Operator's key=value tags (robots.labels rules); selectors name groups of robots by them.
+    labels = models.JSONField(default=dict, blank=True, help_text='key: value labels, e.g. {"site": "lab"}.')
     config = models.JSONField(
         default=default_robot_config, help_text="Resources, heuristic, threshold, offloading mode, subnets."
     )
     token_hash = models.CharField(max_length=64, editable=False)
+    # The token a rotation replaced, still good until ``previous_token_until`` so a fleet re-keys without a drop.
+    previous_token_hash = models.CharField(max_length=64, blank=True, editable=False)
+    previous_token_until = models.DateTimeField(null=True, blank=True, editable=False)
     created_at = models.DateTimeField(default=timezone.now, editable=False)
 
     class Meta:
         ordering = ["id"]
-        indexes = [models.Index(fields=["owner", "id"])]
+        indexes = [models.Index(fields=["organization", "id"], name="robot_organization_id")]
+        # A GIN index on labels (serving a selector's `@>`) is added on PostgreSQL by migration 0009.
 
     def __str__(self) -> str:
         return self.name or self.id
@@ -70,38 +82,63 @@ class Robot(models.Model):
         super().save(*args, **kwargs)
 
     def clean(self) -> None:
+        # An emptied admin field arrives as None: it means no labels.
+        self.labels = validate_labels({} if self.labels is None else self.labels)
         self.config = validated_config(parse_robot_config, self.config)
         # The apps above this one (the network's subnets) check their parts of the config.
         config_checked.send(sender=Robot, robot_id=self.id, config=self.config)
 
-    def issue_token(self) -> str:
-        """Replace the robot's token and return the new one; only its hash is kept."""
+    def issue_token(self, *, grace_until: datetime | None = None) -> str:
+        """Replace the robot's token and return the new one; the old one stays good until ``grace_until``."""
         token = TOKEN_PREFIX + secrets.token_urlsafe(32)
+        if grace_until is not None and self.token_hash:
+            self.previous_token_hash, self.previous_token_until = self.token_hash, grace_until
+        else:
+            self.previous_token_hash, self.previous_token_until = "", None
         self.token_hash = hash_token(token)
         return token
 
     def check_token(self, token: str) -> bool:
-        """Tell whether a presented token is this robot's, in constant time."""
-        return bool(self.token_hash) and hmac.compare_digest(self.token_hash, hash_token(token))
+        """Tell whether a presented token is this robot's, or its previous one within its grace, in constant time."""
+        return token_matches(self.token_hash, self.previous_token_hash, self.previous_token_until, token)
+
+
+def token_matches(current: str, previous: str, previous_until: datetime | None, token: str) -> bool:
+    """Tell whether a token hashes to a robot's current hash, or its previous one before its grace ends."""
+    presented = hash_token(token)
+    ok = bool(current) and hmac.compare_digest(current, presented)
+    if previous and previous_until is not None and previous_until > timezone.now():
+        ok = hmac.compare_digest(previous, presented) or ok
+    return ok
 
 
 class ApiToken(models.Model):
-    """A user's API token from /api/auth: stored hashed, valid until it expires."""
+    """A user's API token: stored hashed, valid until it expires.
+
+    A token made from a login (/api/auth) acts with the user's own roles in each of their
+    organizations; a scoped token names one organization and a role at most the user's there.
+    """
 
     user = models.ForeignKey(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="api_tokens")
+    name = models.CharField(max_length=100, blank=True)
+    organization = models.ForeignKey(
+        "teams.Organization", on_delete=models.CASCADE, null=True, blank=True, related_name="api_tokens"
+    )
+    role = models.CharField(max_length=16, blank=True)
     key_hash = models.CharField(max_length=64, unique=True, editable=False)
     created_at = models.DateTimeField(default=timezone.now, editable=False)
-    expires_at = models.DateTimeField()
+    expires_at = models.DateTimeField(null=True, blank=True, help_text="None: until revoked.")
 
     class Meta:
         indexes = [models.Index(fields=["expires_at"])]
 
     def __str__(self) -> str:
-        return f"token of {self.user} until {self.expires_at:%Y-%m-%d %H:%M}"
+        until = "revoked" if self.expires_at is None else f"{self.expires_at:%Y-%m-%d %H:%M}"
+        return f"token {self.name or self.pk} of {self.user} until {until}"
 
     @property
     def expired(self) -> bool:
-        return self.expires_at <= timezone.now()
+        return self.expires_at is not None and self.expires_at <= timezone.now()
 
 
 class BridgeTicket(models.Model):

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import asyncio
-import hmac
 import json
 import secrets
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, Literal
 
 from asgiref.sync import sync_to_async
 from channels.layers import get_channel_layer
@@ -28,18 +28,27 @@ from monitoring import prometheus
 from monitoring.choices import Level
 from monitoring.live import publish_all_on_commit, publish_on_commit
 from monitoring.services import record_event, record_events
+from teams.models import Organization
+from teams.services import personal_organization
 
 from .access import API_TOKEN_PREFIX, BRIDGE_TICKET_PREFIX
 from .choices import RobotStatus
-from .models import ApiToken, BridgeTicket, Robot, hash_token
+from .models import ApiToken, BridgeTicket, Robot, hash_token, token_matches
 from .signals import cloud_relays_wanted, credentials_rotated, ros2_discovery_wanted, ros_master_wanted
 
 
 def create_robot(
-    robot_id: str, owner: AbstractBaseUser, *, name: str = "", config: dict[str, Any] | None = None
+    robot_id: str,
+    owner: AbstractBaseUser,
+    *,
+    name: str = "",
+    config: dict[str, Any] | None = None,
+    organization: Organization | None = None,
+    labels: dict[str, str] | None = None,
 ) -> tuple[Robot, str]:
-    """Create a robot and return it with its token, which is shown this once."""
-    robot = Robot(id=robot_id, owner=owner, name=name)
+    """Create a robot in an organization (default: the owner's personal one); return it with its token, shown once."""
+    organization = organization or personal_organization(owner)
+    robot = Robot(id=robot_id, owner=owner, name=name, organization=organization, labels=labels or {})
     if config is not None:
         robot.config = config
     token = robot.issue_token()
@@ -50,16 +59,53 @@ def create_robot(
     return robot, token
 
 
-def rotate_token(robot: Robot) -> str:
-    """Give a robot a new token, invalidating the old one and any connection made with it."""
-    token = robot.issue_token()
+def rotate_token(robot: Robot, *, grace_s: float = 0) -> str:
+    """Give a robot a new token that works at once; the old one works ``grace_s`` seconds more.
+
+    Without a grace the old token, and any connection made with it, end now (a leaked token);
+    with one, a connected robot stays connected and is given the new token over its connection
+    (``robot_rekey``); a robot offline meanwhile needs it handed over before the grace ends.
+    """
+    return _rotate(robot, grace_s)[0]
+
+
+@dataclass(frozen=True)
+class Rotated:
+    """A robot whose token was rotated: its new token, and whether it was sent to the robot's live connection."""
+
+    robot: Robot
+    token: str
+    sent_live: bool
+
+
+def rotate_tokens(robots: Iterable[Robot], *, grace_s: float) -> list[Rotated]:
+    """Rotate the tokens of a fleet with a grace, each robot in its own transaction (see ``rotate_token``)."""
+    return [Rotated(robot, *_rotate(robot, grace_s)) for robot in robots]
+
+
+def _rotate(robot: Robot, grace_s: float) -> tuple[str, bool]:
+    """Rotate a robot's token; return it and whether it goes to the robot's live connection."""
+    grace_until = timezone.now() + timedelta(seconds=grace_s) if grace_s > 0 else None
+    token = robot.issue_token(grace_until=grace_until)
     with transaction.atomic():
         channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot.id)
-        robot.save(update_fields=["token_hash"])
-        record_event(f"Token of robot {robot.id} rotated", robot_id=robot.id, kind="robot_token_rotated")
-        credentials_rotated.send(sender=Robot, robot=robot)
-        _revoke_on_commit(channel)
-    return token
+        robot.save(update_fields=["token_hash", "previous_token_hash", "previous_token_until"])
+        if grace_until is None:
+            message = f"Token of robot {robot.id} rotated"
+        else:
+            message = f"Token of robot {robot.id} rotated; the old one works until {grace_until:%Y-%m-%d %H:%M:%S} UTC"
+        record_event(
+            message,
+            robot_id=robot.id,
+            kind="robot_token_rotated",
+            data={"grace_s": grace_s, "sent_live": bool(channel and grace_until)},
+        )
+        if grace_until is None:
+            credentials_rotated.send(sender=Robot, robot=robot)
+            _revoke_on_commit(channel)
+        else:
+            _rekey_on_commit(channel, token)
+    return token, bool(channel and grace_until)
 
 
 def _revoke_on_commit(channel: str) -> None:
@@ -67,6 +113,22 @@ def _revoke_on_commit(channel: str) -> None:
     if channel:
         send = layer_sync(get_channel_layer().send)
         transaction.on_commit(lambda: send(channel, {"type": "robot.revoked"}), robust=True)
+
+
+def _rekey_on_commit(channel: str, token: str) -> None:
+    """Give a robot's live connection its new token once the rotation commits (resent until the robot acks)."""
+    if channel:
+        send = layer_sync(get_channel_layer().send)
+        frame = protocol.encode(protocol.make(Event.ROBOT_REKEY, {"token": token}, now=time.time()))
+        transaction.on_commit(lambda: send(channel, {"type": "robot.rekey", "frame": frame}), robust=True)
+
+
+def record_rekeyed(robot_id: str) -> None:
+    """Log that a robot acknowledged its new token: it logs in with it from now on."""
+    with transaction.atomic():
+        record_event(
+            f"Robot {robot_id} took its new token over its connection", robot_id=robot_id, kind="robot_rekeyed"
+        )
 
 
 # --------------------------------------------------------------------------- connections
@@ -119,6 +181,8 @@ class Login:
     ros_master: str | None = None
     # The robot's ROS 2 graph (protocol.Ros2GraphInfo as JSON data), when its agent runs ROS 2.
     ros2: dict[str, Any] | None = None
+    # Labels its agent asks for (already valid): applied only while the robot has none.
+    labels: dict[str, str] | None = None
 
 
 @dataclass
@@ -147,13 +211,15 @@ def connect_robots(logins: list[Login]) -> list[Connected]:
     for outcome, retry in zip(outcomes, retries, strict=True):
         outcome.blocked_s = retry
     candidates = [i for i, retry in enumerate(retries) if not retry]
-    hashes = dict(Robot.objects.filter(id__in=[logins[i].robot_id for i in candidates]).values_list("id", "token_hash"))
+    rows = Robot.objects.filter(id__in=[logins[i].robot_id for i in candidates]).values_list(
+        "id", "token_hash", "previous_token_hash", "previous_token_until"
+    )
+    hashes = {robot_id: (current, previous, until) for robot_id, current, previous, until in rows}
     proven = []
     for i in candidates:
-        stored = hashes.get(logins[i].robot_id, "")
         # Hashed even for an unknown robot, so a wrong id costs the same time as a wrong token.
-        presented = hash_token(logins[i].token)
-        if stored and hmac.compare_digest(stored, presented):
+        current, previous, until = hashes.get(logins[i].robot_id, ("", "", None))
+        if token_matches(current, previous, until, logins[i].token):
             proven.append(i)
     good = set(proven)
     bruteforce.attempted_many("robot", [(logins[i].robot_id, logins[i].address, i in good) for i in candidates])
@@ -197,6 +263,17 @@ def _mark_all_connected(logins: list[Login], outcomes: list[Connected]) -> None:
             events.append(
                 {"message": f"Robot {robot.id} connected", "robot_id": robot.id, "kind": Event.CONNECTION_ESTABLISHED}
             )
+            # Labels from the agent only at first registration: an operator's later labels win over its flags.
+            if login.labels and not robot.labels:
+                robot.labels = login.labels
+                events.append(
+                    {
+                        "message": f"Robot {robot.id} registered its labels",
+                        "robot_id": robot.id,
+                        "kind": "robot_labels_registered",
+                        "data": {"labels": robot.labels},
+                    }
+                )
             frames.append((robot.id, connection_frame(Event.CONNECTION_ESTABLISHED, robot.id)))
         _update_connected(changed, now)
         record_events(events)
@@ -209,21 +286,30 @@ def _update_connected(robots: list[Robot], now: datetime) -> None:
         return
     if connection.vendor != "postgresql":
         # The embedded SQLite has no column list on VALUES; it serves one small fleet anyway.
-        Robot.objects.bulk_update(robots, ["connected", "channel", "last_seen", "status", "ros_master", "ros2"])
+        Robot.objects.bulk_update(
+            robots, ["connected", "channel", "last_seen", "status", "ros_master", "ros2", "labels"]
+        )
         return
     table = connection.ops.quote_name(Robot._meta.db_table)
-    rows = ", ".join(["(%s, %s, %s, %s::jsonb)"] * len(robots))
-    # Only the table name and placeholders are formatted in; every value is a query parameter.
+    rows = ", ".join(["(%s, %s, %s, %s::jsonb, %s::jsonb)"] * len(robots))
+    # Only the table name and placeholders are formatted in; every value is a query parameter. Labels
+    # go in as written (the rows are locked), "{}" when none, which is what an unlabelled robot holds.
     params: list[Any] = [
         value
         for robot in robots
-        for value in (robot.id, robot.channel, robot.ros_master, None if robot.ros2 is None else json.dumps(robot.ros2))
+        for value in (
+            robot.id,
+            robot.channel,
+            robot.ros_master,
+            None if robot.ros2 is None else json.dumps(robot.ros2),
+            json.dumps(robot.labels),
+        )
     ]
     with connection.cursor() as cursor:
         cursor.execute(
             f"UPDATE {table} SET connected = TRUE, last_seen = %s, status = %s, channel = v.channel,"
-            f" ros_master = v.ros_master, ros2 = v.ros2 FROM (VALUES {rows}) AS v(id, channel, ros_master, ros2)"
-            f" WHERE {table}.id = v.id",
+            f" ros_master = v.ros_master, ros2 = v.ros2, labels = v.labels"
+            f" FROM (VALUES {rows}) AS v(id, channel, ros_master, ros2, labels) WHERE {table}.id = v.id",
             [now, RobotStatus.RUNNING, *params],
         )
 
@@ -401,11 +487,25 @@ async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any],
     return reply
 
 
-def issue_api_token(user: AbstractBaseUser) -> tuple[str, ApiToken]:
-    """Create an API token for a user and return its key (shown only now) and the token."""
+def issue_api_token(
+    user: AbstractBaseUser,
+    *,
+    name: str = "",
+    organization: Organization | None = None,
+    role: str = "",
+    expires_at: datetime | Literal["default"] | None = "default",
+) -> tuple[str, ApiToken]:
+    """Create an API token for a user and return its key (shown only now) and the token.
+
+    A login's token (no organization) lasts API_TOKEN_TTL_S and acts with the user's roles; a
+    scoped one is held to one organization and a role, until ``expires_at`` (None: until revoked).
+    """
     key = API_TOKEN_PREFIX + secrets.token_urlsafe(32)
-    lifetime = timedelta(seconds=settings.BRIDGEOS["API_TOKEN_TTL_S"])
-    token = ApiToken.objects.create(user=user, key_hash=hash_token(key), expires_at=timezone.now() + lifetime)
+    if expires_at == "default":
+        expires_at = timezone.now() + timedelta(seconds=settings.BRIDGEOS["API_TOKEN_TTL_S"])
+    token = ApiToken.objects.create(
+        user=user, key_hash=hash_token(key), expires_at=expires_at, name=name, organization=organization, role=role
+    )
     return key, token
 
 
@@ -422,7 +522,9 @@ def issue_bridge_ticket(user: AbstractBaseUser, robot: Robot) -> tuple[str, date
 
 
 def renew_api_token(token: ApiToken) -> ApiToken:
-    """Extend a token's validity by its full lifetime from now."""
+    """Extend a login token's validity by its full lifetime from now (a scoped token keeps its own expiry)."""
+    if token.organization_id is not None:
+        return token
     token.expires_at = timezone.now() + timedelta(seconds=settings.BRIDGEOS["API_TOKEN_TTL_S"])
     token.save(update_fields=["expires_at"])
     return token
@@ -433,15 +535,25 @@ def robot_config(robot_id: str) -> dict[str, Any]:
     return Robot.objects.values_list("config", flat=True).get(id=robot_id)
 
 
-def update_robot(robot: Robot, *, name: str | None = None, config: dict[str, Any] | None = None) -> Robot:
-    """Rename a robot or replace its config (validated as a whole)."""
+def update_robot(
+    robot: Robot,
+    *,
+    name: str | None = None,
+    config: dict[str, Any] | None = None,
+    labels: dict[str, str] | None = None,
+) -> Robot:
+    """Rename a robot, replace its config (validated as a whole) or replace all its labels."""
     if name is not None:
         robot.name = name
     if config is not None:
         robot.config = config
+    if labels is not None:
+        robot.labels = labels
     with transaction.atomic():
-        robot.save(update_fields=["name", "config"])
-        record_event(f"Robot {robot.id} updated", robot_id=robot.id, kind="robot_updated")
+        # save() validates the config and the labels before writing: a bad one changes nothing.
+        robot.save(update_fields=["name", "config", "labels"])
+        data = {"labels": robot.labels} if labels is not None else None
+        record_event(f"Robot {robot.id} updated", robot_id=robot.id, kind="robot_updated", data=data)
     return robot
 
 
@@ -451,10 +563,15 @@ def delete_robot(robot: Robot) -> None:
     with transaction.atomic():
         channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot_id)
         _revoke_on_commit(channel)
-        owner_id = robot.owner_id
+        organization_id = robot.organization_id
         robot.delete()
-        # Pushed live to its owner and staff: open dashboards drop the robot at once.
-        record_event(f"Robot {robot_id} deleted", kind="robot_deleted", data={"robot": robot_id}, owner_id=owner_id)
+        # Pushed live to its organization and staff: open dashboards drop the robot at once.
+        record_event(
+            f"Robot {robot_id} deleted",
+            kind="robot_deleted",
+            data={"robot": robot_id},
+            organization_id=organization_id,
+        )
 
 
 def write_robot_families(lines: list[str]) -> None:

@@ -17,6 +17,8 @@ import time
 import urllib.request
 from pathlib import Path
 
+from bridgeos_agent.tokenfile import write_token_file
+
 ROOT = Path(__file__).resolve().parent.parent
 BIN = ROOT / ".venv" / "bin"
 
@@ -96,7 +98,12 @@ def main() -> int:
     domain_base = int(os.environ.get("BRIDGEOS_DEMO_ROS_DOMAIN", "100"))
     for number, (robot, metrics_address) in enumerate(zip(fleet["robots"], targets, strict=True)):
         log = (data_root / f"{robot['id']}.log").open("ab")
-        env = {**os.environ, "BRIDGEOS_TOKEN": robot["token"]}  # through the env: not visible in `ps`
+        # Through a token file (mode 600), not visible in `ps`; a robot re-keyed live keeps its new
+        # token there, so an agent that restarts logs in with it.
+        token_file = data_root / robot["id"] / "token"
+        token_file.parent.mkdir(parents=True, exist_ok=True)
+        write_token_file(token_file, robot["token"])
+        env = {k: v for k, v in os.environ.items() if k != "BRIDGEOS_TOKEN"} | {"BRIDGEOS_TOKEN_FILE": str(token_file)}
         # Each demo robot's ROS 2 graph: a domain of its own, kept on this host (they all share it).
         env.setdefault("ROS_DOMAIN_ID", str((domain_base + number) % 233))
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

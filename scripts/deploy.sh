@@ -6,8 +6,13 @@
 #   scripts/deploy.sh down            # `make undeploy`: remove the stack, keep its volumes
 #   scripts/deploy.sh down --volumes  # ... and delete its PostgreSQL and Redis volumes too
 #
-# Environment: BRIDGEOS_STACK (stack name, default bridgeos), BRIDGEOS_HTTP_PORT (the load balancer's
-# host port, default 8080), DAPHNE_REPLICAS (2), WORKER_REPLICAS (1), BRIDGEOS_SECRETS_DIR (default
+# Environment: BRIDGEOS_STACK (stack name, default bridgeos), BRIDGEOS_HTTPS_PORT (the load balancer's
+# TLS port, default 8443), BRIDGEOS_HTTP_PORT (its plain HTTP port, which redirects there, default 8080),
+# BRIDGEOS_DEPLOY_NAMES (the names and addresses browsers and robots reach the stack by, comma-separated,
+# default this host's name, BRIDGEOS_CLOUD_ADDRESS, localhost and 127.0.0.1; the first is the one printed),
+# BRIDGEOS_DEPLOY_TLS_CERT and BRIDGEOS_DEPLOY_TLS_KEY (PEM files: the TLS certificate chain and key the
+# load balancer serves; without them, one is issued from the cloud's CA for BRIDGEOS_DEPLOY_NAMES),
+# DAPHNE_REPLICAS (2), WORKER_REPLICAS (1), BRIDGEOS_SECRETS_DIR (default
 # .data/deploy/STACK/secrets), BRIDGEOS_DEPLOY_WAIT_S (how long to wait for health, default 300),
 # BRIDGEOS_REGISTRY_PORT (the registry's host port, default 5443: `make run`'s registry keeps 5000),
 # BRIDGEOS_REGISTRY_NAMES (names and addresses its TLS certificate carries, comma-separated, default
@@ -19,7 +24,13 @@
 set -euo pipefail
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 STACK=${BRIDGEOS_STACK:-bridgeos}
+export BRIDGEOS_STACK=$STACK
+# Plain HTTP on the first port is redirected to TLS on the second; robots and browsers use the second.
 export BRIDGEOS_HTTP_PORT=${BRIDGEOS_HTTP_PORT:-8080}
+export BRIDGEOS_HTTPS_PORT=${BRIDGEOS_HTTPS_PORT:-8443}
+# The operator's certificate chain and key for the TLS port (PEM files); without them the cloud's CA issues one.
+TLS_CERT=${BRIDGEOS_DEPLOY_TLS_CERT:-}
+TLS_KEY=${BRIDGEOS_DEPLOY_TLS_KEY:-}
 export BRIDGEOS_SECRETS_DIR=${BRIDGEOS_SECRETS_DIR:-$ROOT_DIR/.data/deploy/$STACK/secrets}
 export DAPHNE_REPLICAS=${DAPHNE_REPLICAS:-2}
 export WORKER_REPLICAS=${WORKER_REPLICAS:-1}
@@ -30,6 +41,12 @@ IFS=, read -r -a REGISTRY_NAME_LIST <<<"$REGISTRY_NAMES"
 export BRIDGEOS_REGISTRY_HOST="${REGISTRY_NAME_LIST[0]}:$BRIDGEOS_REGISTRY_PORT"
 first_address() { hostname -I 2>/dev/null | awk '{print $1}'; }
 export BRIDGEOS_CLOUD_ADDRESS=${BRIDGEOS_CLOUD_ADDRESS:-$(first_address)}
+# What browsers and robots call the stack: its certificate, allowed hosts and CSRF origins carry these names.
+# Not every address of `hostname -I`: Docker's bridges are among them and come and go, which would issue a new
+# certificate (and restart the load balancer) on the next deploy.
+DEPLOY_NAMES=${BRIDGEOS_DEPLOY_NAMES:-$(hostname),$BRIDGEOS_CLOUD_ADDRESS,localhost,127.0.0.1}
+# Each name once, in the order given.
+IFS=, read -r -a DEPLOY_NAME_LIST <<<"$(tr ',' '\n' <<<"$DEPLOY_NAMES" | sed 's/^ *//; s/ *$//' | awk 'NF && !seen[$0]++' | paste -sd, -)"
 # Labels the cloud copies, ROS masters and robot networks the stack's worker makes; the default (from the
 # database's address, the same in every stack) would let two stacks on one Swarm take each other's for strays.
 export BRIDGEOS_CLOUD_ID=${BRIDGEOS_CLOUD_ID:-$STACK}
@@ -105,9 +122,12 @@ replicas_ready() {  # service [running]: every wanted task healthy (or, with "ru
     [[ $running -ge $want ]]
 }
 
-lb_answers() {
-    (exec 3<>"/dev/tcp/127.0.0.1/$BRIDGEOS_HTTP_PORT" &&
-        printf 'GET /api/health HTTP/1.0\r\nHost: localhost\r\n\r\n' >&3 && head -1 <&3 | grep -q ' 200 ') 2>/dev/null
+lb_answers() {  # the cloud answers through the load balancer's TLS port (verified when its CA is the cloud's)
+    local verify=(--cacert "$BRIDGEOS_SECRETS_DIR/ca.crt")
+    [[ -z $TLS_CERT ]] || verify=(--insecure)  # liveness only: robots verify it themselves
+    local name=${DEPLOY_NAME_LIST[0]}
+    curl -fsS -o /dev/null --max-time 5 "${verify[@]}" --resolve "$name:$BRIDGEOS_HTTPS_PORT:127.0.0.1" \
+        "https://$name:$BRIDGEOS_HTTPS_PORT/api/health" 2>/dev/null
 }
 
 pin_images() {  # tag each stack image by its inputs and point the stack at those tags
@@ -143,21 +163,47 @@ in_cloud_image() {  # command...: run in a throwaway cloud container with the se
         -e BRIDGEOS_REGISTRY_KEY_FILE=/run/secrets/registry_key "$BRIDGEOS_CLOUD_IMAGE" "$@"
 }
 
-registry_files() {  # the CA, the registry's certificate and token key, and its config.yml (each once)
-    in_cloud_image python3 stack_pki.py /run/secrets "${REGISTRY_NAME_LIST[@]}" registry
+tls_files() {  # the CA, the registry's certificate and token key, the lb's PEM; its config.yml (each once)
+    rm -f "$BRIDGEOS_SECRETS_DIR/lb_given.crt" "$BRIDGEOS_SECRETS_DIR/lb_given.key"
+    if [[ -n $TLS_CERT$TLS_KEY ]]; then
+        [[ -n $TLS_CERT && -n $TLS_KEY ]] ||
+            die "give both BRIDGEOS_DEPLOY_TLS_CERT and BRIDGEOS_DEPLOY_TLS_KEY, or neither (the cloud's CA issues one)"
+        [[ -r $TLS_CERT ]] || die "BRIDGEOS_DEPLOY_TLS_CERT=$TLS_CERT: no such readable file"
+        [[ -r $TLS_KEY ]] || die "BRIDGEOS_DEPLOY_TLS_KEY=$TLS_KEY: no such readable file"
+        (umask 077 && cp "$TLS_CERT" "$BRIDGEOS_SECRETS_DIR/lb_given.crt" && cp "$TLS_KEY" "$BRIDGEOS_SECRETS_DIR/lb_given.key")
+    fi
+    local names="${DEPLOY_NAME_LIST[*]}"
+    CA_FINGERPRINT=$(in_cloud_image python3 stack_pki.py /run/secrets --lb-names "${names// /,}" \
+        "${REGISTRY_NAME_LIST[@]}" registry) || die "making the stack's certificates failed"
+    rm -f "$BRIDGEOS_SECRETS_DIR/lb_given.crt" "$BRIDGEOS_SECRETS_DIR/lb_given.key"
+    export BRIDGEOS_LB_PEM_HASH; BRIDGEOS_LB_PEM_HASH=$(sha256sum "$BRIDGEOS_SECRETS_DIR/lb.pem" | cut -c1-12)
+    local realm="https://${DEPLOY_NAME_LIST[0]}:$BRIDGEOS_HTTPS_PORT/api/registry/token"
+    if [[ -s $BRIDGEOS_SECRETS_DIR/config.yml ]] && ! grep -qF "realm: \"$realm\"" "$BRIDGEOS_SECRETS_DIR/config.yml"; then
+        die "the registry's config.yml names another token realm than $realm: to change it, run" \
+            "scripts/deploy.sh down, delete $BRIDGEOS_SECRETS_DIR/config.yml, and deploy again"
+    fi
     # Written once: its http secret must stay what the running registry has (Swarm secrets are immutable).
     [[ -s $BRIDGEOS_SECRETS_DIR/config.yml ]] ||
         in_cloud_image python3 manage.py registry_config \
-            --realm "http://${REGISTRY_NAME_LIST[0]}:$BRIDGEOS_HTTP_PORT/api/registry/token" \
+            --realm "$realm" \
             --listen 0.0.0.0:5000 --storage /var/lib/docker-registry --out /run/secrets \
             --tls-cert /run/secrets/registry_tls.crt --tls-key /run/secrets/registry_tls.key \
             --notify http://daphne:8000/api/registry/events >/dev/null
 }
 
+registry_doors() {  # print each NAME:PORT the registry answers at with a certificate from the cloud's CA
+    local name
+    for name in "${REGISTRY_NAME_LIST[@]}"; do echo "$name:$BRIDGEOS_REGISTRY_PORT"; done
+    # Behind the load balancer (/v2/) too, when its certificate is the CA's (an operator's is trusted as such).
+    if [[ -z $TLS_CERT ]]; then
+        for name in "${DEPLOY_NAME_LIST[@]}"; do [[ $name == *:* ]] || echo "$name:$BRIDGEOS_HTTPS_PORT"; done
+    fi
+}
+
 trust_registry() {  # this engine trusts the registry's certificate through certs.d (robots: see the docs)
-    local name dir
-    for name in "${REGISTRY_NAME_LIST[@]}"; do
-        dir=/etc/docker/certs.d/$name:$BRIDGEOS_REGISTRY_PORT
+    local door dir
+    for door in $(registry_doors); do
+        dir=/etc/docker/certs.d/$door
         if ! { mkdir -p "$dir" && cp "$BRIDGEOS_SECRETS_DIR/ca.crt" "$dir/ca.crt"; } 2>/dev/null; then
             die "cannot write $dir/ca.crt (run as root, or copy $BRIDGEOS_SECRETS_DIR/ca.crt there yourself)"
         fi
@@ -165,9 +211,9 @@ trust_registry() {  # this engine trusts the registry's certificate through cert
 }
 
 untrust_registry() {  # forget what trust_registry installed, if it is still this stack's CA
-    local name dir
-    for name in "${REGISTRY_NAME_LIST[@]}"; do
-        dir=/etc/docker/certs.d/$name:$BRIDGEOS_REGISTRY_PORT
+    local door dir
+    for door in $(registry_doors); do
+        dir=/etc/docker/certs.d/$door
         if [[ -f $BRIDGEOS_SECRETS_DIR/ca.crt ]] && cmp -s "$dir/ca.crt" "$BRIDGEOS_SECRETS_DIR/ca.crt"; then
             rm -f "$dir/ca.crt" && rmdir "$dir" 2>/dev/null || true
         fi
@@ -244,11 +290,19 @@ deploy() {
     write_secret secret_key random_token
     write_secret pki_key fernet_key
     write_secret operator_password random_token
-    registry_files
+    tls_files
     trust_registry
     export BRIDGEOS_REGISTRY_NODE; BRIDGEOS_REGISTRY_NODE=$(docker info --format '{{.Swarm.NodeID}}')
-    local names="${REGISTRY_NAME_LIST[*]}"
-    export ALLOWED_HOSTS=${ALLOWED_HOSTS:-127.0.0.1,localhost,daphne,$BRIDGEOS_CLOUD_ADDRESS,${names// /,}}
+    local names="${REGISTRY_NAME_LIST[*]}" name hosts="" origins=""
+    for name in "${DEPLOY_NAME_LIST[@]}"; do
+        [[ $name != *:* ]] || name="[$name]"  # an IPv6 address, as Host headers and URLs carry it
+        hosts+=",$name"
+        origins+=",https://$name:$BRIDGEOS_HTTPS_PORT"
+        [[ $BRIDGEOS_HTTPS_PORT != 443 ]] || origins+=",https://$name"
+    done
+    # Loopback too, whatever the names: the lb's health checks and this script ask by it.
+    export ALLOWED_HOSTS=${ALLOWED_HOSTS:-127.0.0.1,localhost,daphne,$BRIDGEOS_CLOUD_ADDRESS,${names// /,}$hosts}
+    export CSRF_TRUSTED_ORIGINS=${CSRF_TRUSTED_ORIGINS:-${origins#,}}
     local t=$SECONDS
     # The images are pushed through the stack itself (its registry, its token realm): the first time, it
     # starts from this machine's local images; later deploys push to the stack that is running.
@@ -276,9 +330,19 @@ deploy() {
     local back; back=$(rolled_back)
     [[ -z $back ]] || die "Swarm rolled back ${back% } (its new tasks failed: docker service ps --no-trunc ${STACK}_${back%% *})"
     say "healthy after $((SECONDS - t)) s"
-    echo "bridgeOS Cloud: http://127.0.0.1:$BRIDGEOS_HTTP_PORT/   (robots: ws://HOST:$BRIDGEOS_HTTP_PORT)"
-    echo "Image registry: $BRIDGEOS_REGISTRY_HOST (TLS from the cloud's CA; docker login with a user's password or API token)"
-    echo "Its CA, for robots' engines (/etc/docker/certs.d/$BRIDGEOS_REGISTRY_HOST/ca.crt) and bridgeos-agent --ca:"
+    local public="${DEPLOY_NAME_LIST[0]}:$BRIDGEOS_HTTPS_PORT"
+    [[ ${DEPLOY_NAME_LIST[0]} != *:* ]] || public="[${DEPLOY_NAME_LIST[0]}]:$BRIDGEOS_HTTPS_PORT"
+    echo "bridgeOS Cloud: https://$public/   (plain http://…:$BRIDGEOS_HTTP_PORT/ redirects there)"
+    if [[ -n $TLS_CERT ]]; then
+        echo "TLS: the certificate of $TLS_CERT; robots verify it with the system's CAs, or --ca with the CA that issued it"
+        echo "Robots: bridgeos-agent run --master wss://$public --robot ID --token TOKEN"
+    else
+        echo "TLS: a certificate from the cloud's CA for ${DEPLOY_NAME_LIST[*]}"
+        echo "Robots: bridgeos-agent run --master wss://$public --ca $BRIDGEOS_SECRETS_DIR/ca.crt --robot ID --token TOKEN"
+    fi
+    echo "Image registry: $BRIDGEOS_REGISTRY_HOST, and https://$public/v2/ (TLS from the cloud's CA; docker login with a user's password or API token)"
+    echo "The cloud's CA ($BRIDGEOS_SECRETS_DIR/ca.crt), SHA-256 fingerprint $CA_FINGERPRINT,"
+    echo "for robots' engines (/etc/docker/certs.d/$BRIDGEOS_REGISTRY_HOST/ca.crt) and bridgeos-agent --ca:"
     cat "$BRIDGEOS_SECRETS_DIR/ca.crt"
     echo "Operator login: operator / $(cat "$BRIDGEOS_SECRETS_DIR/operator_password")"
 }

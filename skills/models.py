@@ -73,7 +73,11 @@ class Component(models.Model):
 class SkillTemplate(models.Model):
     """A Skill config in the catalog, ready to be added to any robot."""
 
-    name = models.CharField(max_length=200, unique=True)
+    # None: the cloud's own catalog, which every organization reads and staff keep.
+    organization = models.ForeignKey(
+        "teams.Organization", on_delete=models.CASCADE, null=True, blank=True, related_name="templates"
+    )
+    name = models.CharField(max_length=200)
     description = models.TextField(blank=True)
     config = models.JSONField()
     tags = models.JSONField(default=list, blank=True)
@@ -81,6 +85,12 @@ class SkillTemplate(models.Model):
 
     class Meta:
         ordering = ["name"]
+        constraints = [
+            models.UniqueConstraint(fields=["organization", "name"], name="template_name_per_organization"),
+            models.UniqueConstraint(
+                fields=["name"], condition=models.Q(organization=None), name="template_name_in_catalog"
+            ),
+        ]
 
     def __str__(self) -> str:
         return self.name

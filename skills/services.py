@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 from django.core.exceptions import ValidationError
 from django.db import transaction
+from django.db.models import Q, QuerySet
 from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName, Event, Location, SkillStatusName
@@ -18,8 +19,10 @@ from monitoring.choices import Level, Source
 from monitoring.live import publish_on_commit
 from monitoring.services import record_event, storable
 from registry.pinning import pin_images
+from robots.access import Actor
 from robots.models import Robot
 from robots.services import client_frame, push_to_robot
+from teams.models import Organization
 
 from .choices import COMPONENT_STATUS_CHOICES
 from .cloud import orchestration
@@ -32,7 +35,7 @@ if TYPE_CHECKING:
 
 def add_skill(robot: Robot, config: dict[str, Any]) -> Skill:
     """Add a Skill and its components to a robot, all or nothing."""
-    normalised = pin_images(validated_config(parse_skill_config, config), robot.owner)
+    normalised = pin_images(validated_config(parse_skill_config, config), robot)
     skill_id = normalised["skill_id"]
     with transaction.atomic():
         if Skill.objects.filter(robot=robot, skill_id=skill_id).exists():
@@ -53,6 +56,30 @@ def add_skill(robot: Robot, config: dict[str, Any]) -> Skill:
             lambda: push_to_robot(robot.id, Event.SKILL_CONFIG, {"skill": skill_id, "config": normalised}), robust=True
         )
     return skill
+
+
+def set_skill_config(skill: Skill, config: dict[str, Any]) -> None:
+    """Replace a stopped or stopping Skill's config (a release installed or rolled back) and tell the robot."""
+    normalised = validated_config(parse_skill_config, config)
+    skill.config, skill.name = normalised, normalised["skill"]
+    skill.save(update_fields=["config", "name", "updated_at"])
+    wanted = normalised["components"]
+    skill.components.exclude(component_id__in=list(wanted)).delete()
+    known = set(skill.components.values_list("component_id", flat=True))
+    Component.objects.bulk_create(
+        Component(skill=skill, component_id=cid, location=c["location"], resources=c.get("resources", {}))
+        for cid, c in wanted.items()
+        if cid not in known
+    )
+    for component in skill.components.all():
+        spec = wanted[component.component_id]
+        if component.location != spec["location"] or component.resources != spec.get("resources", {}):
+            component.location, component.resources = spec["location"], spec.get("resources", {})
+            component.save(update_fields=["location", "resources", "updated_at"])
+    robot_id, skill_id = skill.robot_id, skill.skill_id
+    transaction.on_commit(
+        lambda: push_to_robot(robot_id, Event.SKILL_CONFIG, {"skill": skill_id, "config": normalised}), robust=True
+    )
 
 
 def add_skill_from_template(robot: Robot, template: SkillTemplate) -> Skill:
@@ -131,7 +158,7 @@ def report_component_status(
             kind=Event.COMPONENT_STATUS,
             skill=skill_id,
             component=component_id,
-            data={"message": message} if message else None,
+            data={"status": status, "message": message} if message else {"status": status},
         )
         data = {"skill": skill_id, "component": component_id, "status": status}
         if location:
@@ -333,10 +360,19 @@ def remove_skill(skill: Skill) -> bool:
 
 
 def create_template(
-    *, name: str, config: dict[str, Any], description: str = "", tags: list[str] | None = None
+    *,
+    name: str,
+    config: dict[str, Any],
+    description: str = "",
+    tags: list[str] | None = None,
+    organization: Organization | None = None,
 ) -> SkillTemplate:
-    """Add a Skill config to the catalog."""
-    return SkillTemplate.objects.create(name=name, config=config, description=description, tags=tags or [])
+    """Add a Skill config to an organization's templates, or to the cloud's catalog (no organization)."""
+    if SkillTemplate.objects.filter(organization=organization, name=name).exists():
+        raise ValidationError({"name": ["A template with this name exists already."]})
+    return SkillTemplate.objects.create(
+        name=name, config=config, description=description, tags=tags or [], organization=organization
+    )
 
 
 def write_cloud_copy_families(lines: list[str]) -> None:
@@ -357,3 +393,10 @@ def write_cloud_copy_families(lines: list[str]) -> None:
         "Restarts of cloud copies since each was last started on request (crash-loop signal).",
     )
     lines.append(f"bridgeos_cloud_copy_restarts {float(restarts)!r}")
+
+
+def visible_templates(actor: Actor) -> QuerySet[SkillTemplate]:
+    """Return the cloud's catalog and the templates of the organizations a request reaches."""
+    ids = actor.organization_ids()
+    templates = SkillTemplate.objects.select_related("organization")
+    return templates if ids is None else templates.filter(Q(organization=None) | Q(organization_id__in=ids))

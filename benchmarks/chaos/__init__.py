@@ -62,6 +62,8 @@ def summary(outcomes: list[Outcome]) -> dict:
         "fuzz_server_errors": _total(outcomes, "fuzz_server_errors"),
         "cross_tenant_attempts": _total(outcomes, "cross_tenant_attempts"),
         "cross_tenant_allowed": _total(outcomes, "cross_tenant_allowed"),
+        "cross_role_attempts": _total(outcomes, "cross_role_attempts"),
+        "cross_role_allowed": _total(outcomes, "cross_role_allowed"),
         "scenarios": len(outcomes),
         "scenarios_passed": sum(o.passed for o in outcomes),
     }

@@ -229,6 +229,7 @@ def prepare(robots: int) -> tuple[list[tuple[str, str]], str]:
     from monitoring.models import Metric
     from robots.models import Robot, default_robot_config
     from robots.services import issue_api_token
+    from teams.services import personal_organization
 
     with connection.cursor() as cursor:
         # Straight SQL: a cascade through the ORM would walk every old metric row.
@@ -238,7 +239,9 @@ def prepare(robots: int) -> tuple[list[tuple[str, str]], str]:
     config = default_robot_config()
     rows, tokens = [], []
     for i in range(robots):
-        robot = Robot(id=f"{ROBOT_PREFIX}{i:05d}", owner=operator, config=config)
+        robot = Robot(
+            id=f"{ROBOT_PREFIX}{i:05d}", owner=operator, organization=personal_organization(operator), config=config
+        )
         tokens.append((robot.id, robot.issue_token()))
         rows.append(robot)
     Robot.objects.bulk_create(rows, batch_size=1000)

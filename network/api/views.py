@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 from django.http import HttpResponse
-from django.shortcuts import get_object_or_404
 from drf_spectacular.utils import OpenApiResponse, extend_schema
 from rest_framework.authentication import SessionAuthentication
 from rest_framework.exceptions import AuthenticationFailed, NotFound, Throttled
@@ -18,6 +17,7 @@ from robots import access
 from robots import services as robots
 from robots.authentication import ApiTokenAuthentication
 from robots.models import TOKEN_PREFIX, Robot
+from teams.roles import Right
 
 from .. import services
 
@@ -38,7 +38,7 @@ def robot_from_token(request: Request, robot_id: str) -> Robot | None:
 
 
 class RobotVpnView(APIView):
-    """A robot's OpenVPN profile (certificate and key inline): for the robot (its token), its owner or staff."""
+    """A robot's OpenVPN profile (certificate and key inline): for the robot (its token), its admins or staff."""
 
     authentication_classes = [ApiTokenAuthentication, SessionAuthentication]
     permission_classes: list[Any] = []
@@ -49,7 +49,7 @@ class RobotVpnView(APIView):
         if self.robot is None:
             super().initial(request, *args, **kwargs)
             if not request.user or not request.user.is_authenticated:
-                raise AuthenticationFailed("Send the robot's token, or an API token of its owner.")
+                raise AuthenticationFailed("Send the robot's token, or an API token of an admin of its organization.")
         else:
             self.format_kwarg = self.get_format_suffix(**kwargs)
             request.accepted_renderer, request.accepted_media_type = self.perform_content_negotiation(request)
@@ -67,7 +67,8 @@ class RobotVpnView(APIView):
         if self.robot is not None:
             robot, who = self.robot, f"robot {robot_id}"
         else:
-            robot = get_object_or_404(access.visible_robots(request.user), id=robot_id)
+            # The profile holds the robot's VPN key: an admin's, like the robot's token.
+            robot = access.robot_for(access.actor_of(request), robot_id, Right.ADMINISTER)
             who = f"user {request.user.get_username()}"
         try:
             profile = services.client_profile(robot)

@@ -18,6 +18,7 @@ from rest_framework.views import APIView
 from robots import services as robots
 from robots.api.commands import wait_seconds
 from robots.api.views import WAIT, robot_of
+from teams.roles import Right
 
 from .. import services
 from ..models import Recording
@@ -47,9 +48,9 @@ REFUSALS = {
 }
 
 
-def recording_of(request: Request, robot_id: str, recording_id: str) -> Recording:
-    """Return a recording of one of the user's robots (named by its 32 hex digits); anyone else's is a 404."""
-    robot = robot_of(request, robot_id)
+def recording_of(request: Request, robot_id: str, recording_id: str, right: Right = Right.READ) -> Recording:
+    """Return a recording (named by its 32 hex digits) of a robot the request holds a right on; else 404 (403)."""
+    robot = robot_of(request, robot_id, right)
     try:
         key = UUID(hex=recording_id)
     except ValueError:
@@ -89,7 +90,7 @@ class RecordingListView(APIView):
         request=RecordingStartSerializer, parameters=[WAIT], responses={201: RecordingSerializer, **REFUSALS}
     )
     def post(self, request: Request, robot_id: str) -> Response:
-        robot = robot_of(request, robot_id)
+        robot = robot_of(request, robot_id, Right.COMMAND)
         form = RecordingStartSerializer(data=request.data)
         form.is_valid(raise_exception=True)
         wait = wait_seconds(request)
@@ -110,7 +111,7 @@ class RecordingDetailView(APIView):
 
     @extend_schema(responses={204: OpenApiResponse(description="Deleted"), **REFUSALS})
     def delete(self, request: Request, robot_id: str, recording_id: str) -> Response:
-        recording = recording_of(request, robot_id, recording_id)
+        recording = recording_of(request, robot_id, recording_id, Right.COMMAND)
         on_robot(lambda: services.delete_recording(recording), robot_id)
         return Response(status=status.HTTP_204_NO_CONTENT)
 
@@ -120,7 +121,7 @@ class RecordingStopView(APIView):
 
     @extend_schema(request=None, parameters=[WAIT], responses={200: RecordingSerializer, **REFUSALS})
     def post(self, request: Request, robot_id: str, recording_id: str) -> Response:
-        recording = recording_of(request, robot_id, recording_id)
+        recording = recording_of(request, robot_id, recording_id, Right.COMMAND)
         wait = wait_seconds(request)
         stopped = on_robot(lambda: services.stop_recording(recording, wait=wait), robot_id)
         if isinstance(stopped, Response):

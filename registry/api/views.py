@@ -12,6 +12,7 @@ from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
+from robots.access import actor_of
 from robots.models import Robot
 
 from .. import notifications, services, tokens
@@ -49,7 +50,7 @@ class TokenView(APIView):
         robot = request.auth if isinstance(request.auth, Robot) else None
         try:
             answer = services.issue_token(
-                request.user,
+                actor_of(request),
                 query.validated_data.get("scope", []),
                 robot=robot,
                 service=query.validated_data.get("service", ""),
@@ -90,9 +91,9 @@ class RepositoriesView(APIView):
     permission_classes = [IsAuthenticated]
 
     @extend_schema(
-        parameters=[OpenApiParameter("namespace", str, description="Only this namespace (a username).")],
+        parameters=[OpenApiParameter("namespace", str, description="Only this namespace (an organization's slug).")],
         responses={200: OpenApiResponse(description="[{repository, namespace, tags: [{tag, digest, size, ...}]}]")},
     )
     def get(self, request: Request) -> Response:
         namespace = request.query_params.get("namespace") or None
-        return Response(services.repositories(request.user, namespace))
+        return Response(services.repositories(actor_of(request), namespace))

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 
 from django.contrib.auth import get_user_model
 from django.core.exceptions import ValidationError as DjangoValidationError
 from django.db.models import QuerySet
 from django.http import Http404, HttpResponse
-from django.shortcuts import get_object_or_404
 from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import status
 from rest_framework.authentication import SessionAuthentication
@@ -22,9 +22,13 @@ from rest_framework.views import APIView
 from bridgeos_agent.protocol import Event
 from monitoring.services import record_event
 from skills.state import fleet_fields_json, fleet_state_json
+from teams.models import Organization
+from teams.roles import Right
+from teams.services import personal_organization
 
 from .. import access, services
 from ..authentication import ApiTokenAuthentication, PasswordAuthentication
+from ..labels import selector_q
 from ..models import ApiToken, Robot
 from .commands import relay, relay_to_fleet, wait_seconds
 from .serializers import (
@@ -37,6 +41,7 @@ from .serializers import (
     RobotCreatedSerializer,
     RobotCreateSerializer,
     RobotSerializer,
+    RobotTokenRotateSerializer,
     RobotTokenSerializer,
     RobotUpdateSerializer,
 )
@@ -58,7 +63,7 @@ def django_errors(exc: DjangoValidationError) -> ValidationError:
 
 def state_of(request: Request, robot_id: str) -> dict:
     """Return the state of one of the user's robots, or 404, as every robot route renders it."""
-    found = json.loads(fleet_state_json(access.visible_robots(request.user).filter(id=robot_id)))
+    found = json.loads(fleet_state_json(access.visible_robots(access.actor_of(request)).filter(id=robot_id)))
     if not found:
         raise Http404(f"No robot {robot_id!r}.")
     return found[0]
@@ -91,9 +96,30 @@ def fleet_page(request: Request, robots: QuerySet[Robot], query: dict) -> HttpRe
     return HttpResponse(f'{head}, "results": {text}}}', content_type="application/json")
 
 
-def robot_of(request: Request, robot_id: str) -> Robot:
-    """Return one of the user's robots; another user's robot is a 404, as if it did not exist."""
-    return get_object_or_404(access.visible_robots(request.user), id=robot_id)
+def robot_of(request: Request, robot_id: str, right: Right = Right.READ) -> Robot:
+    """Return a robot the request holds a right on; another organization's is a 404, as if it did not exist."""
+    return access.robot_for(access.actor_of(request), robot_id, right)
+
+
+def target_organization(request: Request, slug: str | None, owner: Any) -> Organization:
+    """Return the organization a new robot goes to, where the request must be an admin; 400/403 when not.
+
+    Named, it must be one the request reaches (another's is as unknown as a missing one); not
+    named, it is the scoped token's or the session's, else the owner's personal organization.
+    """
+    actor = access.actor_of(request)
+    if slug is not None:
+        ids = actor.organization_ids()
+        found = Organization.objects.filter(slug=slug)
+        organization = (found if ids is None else found.filter(id__in=ids)).first()
+        if organization is None:
+            raise ValidationError({"organization": ["No such organization of yours."]})
+    elif actor.organization_id is not None:
+        organization = Organization.objects.get(id=actor.organization_id)
+    else:
+        organization = personal_organization(owner)
+    access.require(actor, organization.id, Right.ADMINISTER)
+    return organization
 
 
 class AuthView(APIView):
@@ -142,10 +168,11 @@ class RobotListView(APIView):
         ],
         responses={200: RobotSerializer(many=True)},
         description="Without `limit`/`offset` the answer is the array of every robot; with either, a page: "
-        "`{count, next, previous, results}`. `fields` keeps only those fields of each robot.",
+        "`{count, next, previous, results}`. `fields` keeps only those fields of each robot; `selector` keeps only "
+        "the robots whose labels match it (400 naming `selector` when it is malformed).",
     )
     def get(self, request: Request) -> HttpResponse:
-        robots = access.visible_robots(request.user)
+        robots = access.visible_robots(access.actor_of(request))
         connected = request.query_params.get("connected")
         if connected is not None:
             if connected not in ("true", "false"):
@@ -154,6 +181,8 @@ class RobotListView(APIView):
         form = FleetQuerySerializer(data=request.query_params)
         form.is_valid(raise_exception=True)
         query = form.validated_data
+        if "selector" in query:
+            robots = robots.filter(selector_q(query["selector"]))
         if "limit" not in query and "offset" not in query:
             if "fields" in query:
                 return HttpResponse(fleet_fields_json(robots, query["fields"]), content_type="application/json")
@@ -171,6 +200,7 @@ class RobotListView(APIView):
             owner = get_user_model().objects.filter(username=form.validated_data["owner"]).first()
             if owner is None:
                 raise ValidationError({"owner": ["No such user."]})
+        organization = target_organization(request, form.validated_data.get("organization"), owner)
         if Robot.objects.filter(id=form.validated_data["id"]).exists():
             raise ValidationError({"id": ["A robot with this id exists already."]})
         try:
@@ -179,6 +209,8 @@ class RobotListView(APIView):
                 owner,
                 name=form.validated_data["name"],
                 config=form.validated_data.get("config"),
+                organization=organization,
+                labels=form.validated_data.get("labels"),
             )
         except DjangoValidationError as exc:
             raise django_errors(exc) from None
@@ -186,15 +218,15 @@ class RobotListView(APIView):
 
 
 class RobotDetailView(APIView):
-    """Read, rename or reconfigure, or delete one robot."""
+    """Read, rename, reconfigure or relabel, or delete one robot."""
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str) -> HttpResponse:
-        return json_state(request, access.visible_robots(request.user).filter(id=robot_id), one=True)
+        return json_state(request, access.visible_robots(access.actor_of(request)).filter(id=robot_id), one=True)
 
     @extend_schema(request=RobotUpdateSerializer, responses={200: RobotSerializer, 400: OpenApiResponse()})
     def patch(self, request: Request, robot_id: str) -> Response:
-        robot = robot_of(request, robot_id)
+        robot = robot_of(request, robot_id, Right.ADMINISTER)
         form = RobotUpdateSerializer(data=request.data)
         form.is_valid(raise_exception=True)
         try:
@@ -205,7 +237,7 @@ class RobotDetailView(APIView):
 
     @extend_schema(responses={204: OpenApiResponse(description="Deleted"), 404: OpenApiResponse()})
     def delete(self, request: Request, robot_id: str) -> Response:
-        services.delete_robot(robot_of(request, robot_id))
+        services.delete_robot(robot_of(request, robot_id, Right.ADMINISTER))
         return Response(status=status.HTTP_204_NO_CONTENT)
 
 
@@ -214,15 +246,22 @@ class RobotInfoView(APIView):
 
     @extend_schema(responses={200: RobotSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str) -> HttpResponse:
-        return json_state(request, access.visible_robots(request.user).filter(id=robot_id), one=True)
+        return json_state(request, access.visible_robots(access.actor_of(request)).filter(id=robot_id), one=True)
 
 
 class RobotTokenView(APIView):
-    """Rotate a robot's token: the old one stops working at once."""
+    """Rotate a robot's token: the new one works at once; the old one for `grace_s` seconds (default: not at all)."""
 
-    @extend_schema(request=None, responses={200: RobotTokenSerializer, 404: OpenApiResponse()})
+    @extend_schema(
+        request=RobotTokenRotateSerializer,
+        responses={200: RobotTokenSerializer, 403: OpenApiResponse(), 404: OpenApiResponse()},
+    )
     def post(self, request: Request, robot_id: str) -> Response:
-        return Response({"token": services.rotate_token(robot_of(request, robot_id))})
+        robot = robot_of(request, robot_id, Right.ADMINISTER)
+        form = RobotTokenRotateSerializer(data=request.data)
+        form.is_valid(raise_exception=True)
+        token = services.rotate_token(robot, grace_s=form.validated_data["grace_s"])
+        return Response({"token": token, "old_token_valid_until": robot.previous_token_until})
 
 
 class BridgeTicketView(APIView):
@@ -230,7 +269,7 @@ class BridgeTicketView(APIView):
 
     @extend_schema(request=None, responses={200: BridgeTicketSerializer, 404: OpenApiResponse()})
     def post(self, request: Request, robot_id: str) -> Response:
-        robot = robot_of(request, robot_id)
+        robot = robot_of(request, robot_id, Right.COMMAND)
         ticket, expires_at = services.issue_bridge_ticket(request.user, robot)
         base = request.build_absolute_uri("/").replace("http", "ws", 1).rstrip("/")
         return Response(
@@ -250,17 +289,21 @@ class RobotCommandView(APIView):
 
     @extend_schema(request=None, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str) -> Response:
-        robot = robot_of(request, robot_id)
+        robot = robot_of(request, robot_id, Right.COMMAND)
         return relay(robot.id, self.event, {}, wait_seconds(request))
 
 
 class FleetCommandView(APIView):
-    """Relay start, stop or shutdown to every connected robot you may see."""
+    """Relay start, stop or shutdown to every connected robot you may command."""
 
     event = Event.ROBOT_START  # each route sets its own
 
     @extend_schema(request=None, parameters=[WAIT], responses={200: FleetCommandSerializer})
     def post(self, request: Request) -> Response:
         wait = wait_seconds(request)
-        robot_ids = list(access.visible_robots(request.user).filter(connected=True).values_list("id", flat=True))
+        robot_ids = list(
+            access.robots_with(access.actor_of(request), Right.COMMAND)
+            .filter(connected=True)
+            .values_list("id", flat=True)
+        )
         return relay_to_fleet(robot_ids, self.event, wait)

@@ -79,10 +79,24 @@ class ComponentMigrateSerializer(serializers.Serializer):
 
 
 class SkillTemplateSerializer(serializers.ModelSerializer):
+    organization = serializers.CharField(
+        source="organization.slug",
+        required=False,
+        allow_null=True,
+        max_length=64,
+        help_text="Slug of the organization it belongs to (you must be a developer there); "
+        "null: the cloud's catalog, which staff keep.",
+    )
+
     class Meta:
         model = SkillTemplate
-        fields = ["id", "name", "description", "tags", "config", "created_at"]
+        fields = ["id", "organization", "name", "description", "tags", "config", "created_at"]
         read_only_fields = ["id", "created_at"]
+
+    def get_validators(self) -> list:
+        # A name is unique within its organization; the view checks that after the caller's rights,
+        # so a name taken in another organization is never told.
+        return []
 
 
 class VolumeUsageSerializer(serializers.Serializer):

@@ -3,20 +3,22 @@
 from __future__ import annotations
 
 from django.core.exceptions import ValidationError as DjangoValidationError
+from django.db.models import QuerySet
 from django.http import Http404, HttpResponse
 from django.shortcuts import get_object_or_404
 from drf_spectacular.utils import OpenApiResponse, extend_schema
 from rest_framework import status
-from rest_framework.exceptions import ValidationError
-from rest_framework.permissions import IsAdminUser, IsAuthenticated
+from rest_framework.exceptions import PermissionDenied, ValidationError
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from bridgeos_agent.protocol import Event
-from robots.access import visible_robots
+from robots.access import actor_of, require, visible_robots
 from robots.api.commands import relay, wait_seconds
 from robots.api.views import COMMAND_RESPONSES, WAIT, django_errors, robot_of
+from teams.models import Organization
+from teams.roles import Right
 
 from .. import services, state
 from ..cloud.volumes import volume_quota, volume_usage
@@ -34,15 +36,17 @@ from .serializers import (
 )
 
 
-def skill_of(request: Request, robot_id: str, skill_id: str) -> Skill:
-    """Return a skill of one of the user's robots, or 404."""
-    robot = robot_of(request, robot_id)
+def skill_of(request: Request, robot_id: str, skill_id: str, right: Right = Right.READ) -> Skill:
+    """Return a skill of a robot the request holds a right on, or 404 (403 when its role falls short)."""
+    robot = robot_of(request, robot_id, right)
     return get_object_or_404(Skill.objects.prefetch_related("components"), robot=robot, skill_id=skill_id)
 
 
-def component_of(request: Request, robot_id: str, skill_id: str, component_id: str) -> Component:
-    """Return a component of a skill of one of the user's robots, or 404."""
-    skill = skill_of(request, robot_id, skill_id)
+def component_of(
+    request: Request, robot_id: str, skill_id: str, component_id: str, right: Right = Right.READ
+) -> Component:
+    """Return a component of a skill of a robot the request holds a right on, or 404 (403)."""
+    skill = skill_of(request, robot_id, skill_id, right)
     return get_object_or_404(Component.objects.select_related("skill"), skill=skill, component_id=component_id)
 
 
@@ -57,9 +61,13 @@ class SkillAddView(APIView):
 
     @extend_schema(request=SkillAddSerializer, responses={201: SkillDetailSerializer, 400: OpenApiResponse()})
     def post(self, request: Request, robot_id: str) -> Response:
-        robot = robot_of(request, robot_id)
+        robot = robot_of(request, robot_id, Right.DEVELOP)
         data = validated(SkillAddSerializer, request)
-        config = data["template"].config if "template" in data else data["config"]
+        template = data.get("template")
+        if template is not None and template.organization_id not in (None, robot.organization_id):
+            # Another organization's template is as unknown here as one that does not exist.
+            raise ValidationError({"template": [f'Invalid pk "{template.pk}" - object does not exist.']})
+        config = template.config if template is not None else data["config"]
         if not isinstance(config, dict):
             raise ValidationError({"config": ["A Skill config is a JSON object."]})
         try:
@@ -77,6 +85,7 @@ class SkillRemoveView(APIView):
         responses={204: OpenApiResponse(description="Removed"), 404: OpenApiResponse(), 409: OpenApiResponse()},
     )
     def post(self, request: Request, robot_id: str) -> Response:
+        robot_of(request, robot_id, Right.DEVELOP)
         skill = skill_of(request, robot_id, validated(SkillRemoveSerializer, request)["skill"])
         if not services.remove_skill(skill):
             return Response(
@@ -101,7 +110,7 @@ class SkillInfoView(APIView):
 
     @extend_schema(responses={200: SkillDetailSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str, skill_id: str) -> HttpResponse:
-        text = state.skill_state_json(visible_robots(request.user), robot_id, skill_id)
+        text = state.skill_state_json(visible_robots(actor_of(request)), robot_id, skill_id)
         if text is None:
             raise Http404("No such skill.")
         return HttpResponse(text, content_type="application/json")
@@ -112,7 +121,7 @@ class SkillStartView(APIView):
 
     @extend_schema(request=None, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str, skill_id: str) -> Response:
-        skill = skill_of(request, robot_id, skill_id)
+        skill = skill_of(request, robot_id, skill_id, Right.COMMAND)
         return relay(robot_id, Event.SKILL_START, services.start_order(skill), wait_seconds(request))
 
 
@@ -121,7 +130,7 @@ class SkillStopView(APIView):
 
     @extend_schema(request=None, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str, skill_id: str) -> Response:
-        skill = skill_of(request, robot_id, skill_id)
+        skill = skill_of(request, robot_id, skill_id, Right.COMMAND)
         return relay(robot_id, Event.SKILL_STOP, {"skill": skill.skill_id}, wait_seconds(request))
 
 
@@ -130,7 +139,7 @@ class ComponentInfoView(APIView):
 
     @extend_schema(responses={200: ComponentDetailSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> HttpResponse:
-        text = state.component_state_json(visible_robots(request.user), robot_id, skill_id, component_id)
+        text = state.component_state_json(visible_robots(actor_of(request)), robot_id, skill_id, component_id)
         if text is None:
             raise Http404("No such component.")
         return HttpResponse(text, content_type="application/json")
@@ -141,7 +150,7 @@ class ComponentStartView(APIView):
 
     @extend_schema(request=ComponentStartSerializer, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
-        component = component_of(request, robot_id, skill_id, component_id)
+        component = component_of(request, robot_id, skill_id, component_id, Right.COMMAND)
         location = validated(ComponentStartSerializer, request)["location"]
         try:
             services.check_location(component, location)
@@ -156,7 +165,7 @@ class ComponentStopView(APIView):
 
     @extend_schema(request=ComponentStopSerializer, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
-        component_of(request, robot_id, skill_id, component_id)
+        component_of(request, robot_id, skill_id, component_id, Right.COMMAND)
         data = {"skill": skill_id, "component": component_id, **validated(ComponentStopSerializer, request)}
         return relay(robot_id, Event.COMPONENT_STOP, data, wait_seconds(request))
 
@@ -166,7 +175,7 @@ class ComponentMigrateView(APIView):
 
     @extend_schema(request=ComponentMigrateSerializer, parameters=[WAIT], responses=COMMAND_RESPONSES)
     def post(self, request: Request, robot_id: str, skill_id: str, component_id: str) -> Response:
-        component = component_of(request, robot_id, skill_id, component_id)
+        component = component_of(request, robot_id, skill_id, component_id, Right.COMMAND)
         try:
             target = services.migration_target(
                 component, validated(ComponentMigrateSerializer, request).get("location")
@@ -177,38 +186,63 @@ class ComponentMigrateView(APIView):
         return relay(robot_id, Event.COMPONENT_MIGRATE, data, wait_seconds(request))
 
 
-class SkillTemplateListView(APIView):
-    """The Skill catalog: list templates, or upload a config as a new one (staff)."""
+def visible_templates(request: Request) -> QuerySet[SkillTemplate]:
+    """Return the cloud's catalog and the templates of the organizations a request reaches."""
+    return services.visible_templates(actor_of(request))
 
-    def get_permissions(self) -> list:
-        return [IsAuthenticated()] if self.request.method == "GET" else [IsAdminUser()]
+
+def may_keep(request: Request, organization_id: int | None) -> None:
+    """Raise a 403 unless the request may change templates there: a developer's right, the catalog staff's."""
+    if organization_id is None:
+        if not (request.user.is_staff and actor_of(request).everywhere):
+            raise PermissionDenied("Only staff keep the cloud's catalog; name an organization of yours.")
+    else:
+        require(actor_of(request), organization_id, Right.DEVELOP)
+
+
+class SkillTemplateListView(APIView):
+    """Skill templates: the cloud's catalog and your organizations'; list them, or upload a config as a new one."""
 
     @extend_schema(responses={200: SkillTemplateSerializer(many=True)})
     def get(self, request: Request) -> Response:
-        return Response(SkillTemplateSerializer(SkillTemplate.objects.order_by("name"), many=True).data)
+        return Response(SkillTemplateSerializer(visible_templates(request).order_by("name"), many=True).data)
 
-    @extend_schema(request=SkillTemplateSerializer, responses={201: SkillTemplateSerializer, 400: OpenApiResponse()})
+    @extend_schema(
+        request=SkillTemplateSerializer,
+        responses={201: SkillTemplateSerializer, 400: OpenApiResponse(), 403: OpenApiResponse()},
+    )
     def post(self, request: Request) -> Response:
         form = SkillTemplateSerializer(data=request.data)
         form.is_valid(raise_exception=True)
+        data = dict(form.validated_data)
+        slug = (data.pop("organization", None) or {}).get("slug")
+        organization = None
+        if slug is not None:
+            ids = actor_of(request).organization_ids()
+            found = Organization.objects.filter(slug=slug)
+            organization = (found if ids is None else found.filter(id__in=ids)).first()
+            if organization is None:
+                raise ValidationError({"organization": ["No such organization of yours."]})
+        may_keep(request, organization.id if organization else None)
         try:
-            template = services.create_template(**form.validated_data)
+            template = services.create_template(**data, organization=organization)
         except DjangoValidationError as exc:
             raise django_errors(exc) from None
         return Response(SkillTemplateSerializer(template).data, status=status.HTTP_201_CREATED)
 
 
 class SkillTemplateDetailView(APIView):
-    """One catalog template; staff may delete it."""
-
-    def get_permissions(self) -> list:
-        return [IsAuthenticated()] if self.request.method == "GET" else [IsAdminUser()]
+    """One template; a developer of its organization (staff, for the catalog) may delete it."""
 
     @extend_schema(responses={200: SkillTemplateSerializer, 404: OpenApiResponse()})
     def get(self, request: Request, template_id: int) -> Response:
-        return Response(SkillTemplateSerializer(get_object_or_404(SkillTemplate, pk=template_id)).data)
+        return Response(SkillTemplateSerializer(get_object_or_404(visible_templates(request), pk=template_id)).data)
 
-    @extend_schema(responses={204: OpenApiResponse(description="Deleted"), 404: OpenApiResponse()})
+    @extend_schema(
+        responses={204: OpenApiResponse(description="Deleted"), 403: OpenApiResponse(), 404: OpenApiResponse()}
+    )
     def delete(self, request: Request, template_id: int) -> Response:
-        get_object_or_404(SkillTemplate, pk=template_id).delete()
+        template = get_object_or_404(visible_templates(request), pk=template_id)
+        may_keep(request, template.organization_id)
+        template.delete()
         return Response(status=status.HTTP_204_NO_CONTENT)

@@ -209,7 +209,7 @@ def _registry_auth(component_id: str, image: str, robot: Robot) -> str:
             " (the Skill was stored without being added through the API): add the Skill again"
         )
     try:
-        return registry_auth(image, robot.owner)
+        return registry_auth(image, robot)
     except PullRefused as exc:
         raise LaunchFailed(f"component {component_id}: {exc}") from None
 

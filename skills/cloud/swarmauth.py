@@ -3,7 +3,7 @@
 Swarm keeps the ``X-Registry-Auth`` of a service's create or update request with the service and
 hands it to the node that runs each task; that node pulls the pinned ``repo@sha256:…`` with it.
 The cloud puts a token there that it mints itself with the registry app's signing key: pull
-only, for the one repository of the image, with the Skill owner's rights (Docker's AuthConfig
+only, for the one repository of the image, with the rights of the robot's organization (Docker's AuthConfig
 ``registrytoken``: the node sends it as a bearer token and never calls the realm, which it may
 not even reach). It lasts ``BRIDGEOS_REGISTRY_SWARM_TOKEN_S`` from the create or update; every
 restart of a copy is an update that carries a fresh one. The Engine API never shows it back
@@ -28,7 +28,8 @@ from docker.api import APIClient
 
 from bridgeos_agent.imagerefs import split_reference
 from registry import tokens
-from registry.services import principal_of, signing_key
+from registry.services import principal_of, robot_principal, signing_key
+from robots.models import Robot
 
 __all__ = ["PullRefused", "create_service", "encode_auth", "registry_auth", "update_service"]
 
@@ -36,7 +37,7 @@ AUTH_HEADER = "X-Registry-Auth"
 
 
 class PullRefused(ValueError):
-    """The Skill's owner may not pull the image the cloud copy would run."""
+    """The robot's organization may not pull the image the cloud copy would run."""
 
 
 def encode_auth(token: str, server: str) -> str:
@@ -45,8 +46,8 @@ def encode_auth(token: str, server: str) -> str:
     return base64.urlsafe_b64encode(document).decode()
 
 
-def registry_auth(image: str, owner: AbstractBaseUser, *, now: datetime | None = None) -> str:
-    """Return the X-Registry-Auth for pulling ``image`` as ``owner``; empty when it is not of the cloud's registry.
+def registry_auth(image: str, who: Robot | AbstractBaseUser, *, now: datetime | None = None) -> str:
+    """Return the X-Registry-Auth for pulling ``image`` for a robot's organization (or a user); empty when not ours.
 
     Images of other registries and local images get none from the cloud, as before: a token of
     this cloud means nothing to another registry.
@@ -56,10 +57,11 @@ def registry_auth(image: str, owner: AbstractBaseUser, *, now: datetime | None =
     registry, repository, _ = split_reference(image)
     if not host or registry != host:
         return ""
-    principal = principal_of(owner)
+    principal = robot_principal(who) if isinstance(who, Robot) else principal_of(who)
     scope = tokens.Scope("repository", repository, ("pull",))
     if "pull" not in tokens.granted(principal, scope):
-        raise PullRefused(f"the Skill's owner {principal.username!r} may not pull {repository!r} (image {image!r})")
+        whose = f"robot {who.id}'s organization" if isinstance(who, Robot) else "user"
+        raise PullRefused(f"the {whose} {principal.username!r} may not pull {repository!r} (image {image!r})")
     claims = tokens.token_claims(
         principal,
         [scope],

@@ -5,10 +5,13 @@
 // sending metrics four times a second cost a few dozen cell writes per frame.
 
 import { get, seg } from "./api.js";
+import { labelChips, labelText } from "./labels.js";
 import { startLive } from "./live.js";
 import {
   ROBOT_METRICS,
+  debounce,
   el,
+  errorText,
   fmtAgo,
   fmtMetric,
   fmtTime,
@@ -32,6 +35,7 @@ const emptyNote = document.getElementById("fleet-empty");
 const noMatch = document.getElementById("fleet-no-match");
 const filterInput = document.getElementById("fleet-filter");
 const stateSelect = document.getElementById("fleet-state");
+const filterResult = document.getElementById("fleet-filter-result");
 
 const robots = new Map(); // id -> robot model
 const dirty = new Set();
@@ -43,6 +47,9 @@ let lastMetricSort = 0;
 let rendered = { first: 0, last: -1 };
 let rowHeight = 0;
 let sort = { key: "id", dir: 1 };
+// A search with '=' is a label selector, evaluated by the cloud: the ids it matched (null: not a selector).
+let selected = null;
+let selectorAsked = "";
 
 // --------------------------------------------------------------------------- the model
 
@@ -50,6 +57,7 @@ function normalise(raw, previous) {
   return {
     id: raw.id,
     name: raw.name || "",
+    labels: raw.labels ?? previous?.labels ?? {},
     connected: Boolean(raw.connected),
     status: raw.status,
     lastSeen: isoSeconds(raw.last_seen),
@@ -224,7 +232,9 @@ function recomputeOrder() {
   for (const robot of robots.values()) {
     if (state === "online" && !robot.connected) continue;
     if (state === "offline" && robot.connected) continue;
-    if (text && !robot.id.includes(text) && !robot.name.toLowerCase().includes(text)) continue;
+    if (selected) {
+      if (!selected.has(robot.id)) continue;
+    } else if (text && !robot.id.includes(text) && !robot.name.toLowerCase().includes(text)) continue;
     order.push(robot);
   }
   order.sort((a, b) => {
@@ -253,6 +263,7 @@ function meterCell(cls) {
 function buildRow(id) {
   const link = el("a", { href: `/robots/${seg(id)}/`, class: "robot-link" }, id);
   const name = el("span", { class: "sub" });
+  const labels = el("span", { class: "labels" });
   const conn = el("span", { class: "badge" });
   const status = el("span", { class: "sub" });
   const metrics = Object.fromEntries(METRIC_NAMES.map((n) => [n, meterCell(`c-${n}`)]));
@@ -265,7 +276,7 @@ function buildRow(id) {
   const tr = el(
     "tr",
     { dataset: { robot: id } },
-    el("th", { scope: "row", class: "c-robot" }, link, name),
+    el("th", { scope: "row", class: "c-robot" }, link, name, labels),
     el("td", { class: "c-conn" }, conn, status),
     ...METRIC_NAMES.map((n) => metrics[n].td),
     el("td", { class: "c-mode" }, mode),
@@ -273,7 +284,7 @@ function buildRow(id) {
     comps,
     seen,
   );
-  const entry = { tr, cells: { name, conn, status, metrics, mode, skills, onRobot, onCloud, comps, seen } };
+  const entry = { tr, cells: { name, labels, conn, status, metrics, mode, skills, onRobot, onCloud, comps, seen } };
   rows.set(id, entry);
   return entry;
 }
@@ -281,6 +292,12 @@ function buildRow(id) {
 function updateRow(entry, robot, now) {
   const c = entry.cells;
   setText(c.name, robot.name);
+  const text = labelText(robot.labels);
+  if (c.labels.dataset.text !== text) {
+    c.labels.dataset.text = text;
+    c.labels.title = text;
+    c.labels.replaceChildren(...labelChips(robot.labels, "span"));
+  }
   setText(c.conn, robot.connected ? "online" : "offline");
   setClass(c.conn, "online", robot.connected);
   setClass(c.conn, "offline", !robot.connected);
@@ -438,8 +455,34 @@ function controls() {
     orderDirty = true;
     schedule();
   };
+  const askCloud = debounce(async () => {
+    const text = filterInput.value.trim();
+    selectorAsked = text;
+    const answer = await get(`/api/robot?fields=id&selector=${encodeURIComponent(text)}`);
+    if (selectorAsked !== text) return; // typed on since
+    if (answer.ok) {
+      selected = new Set(answer.data.map((robot) => robot.id));
+      filterResult.className = "result";
+      setText(filterResult, `Label selector: ${selected.size} robot(s) match.`);
+    } else {
+      selected = new Set();
+      filterResult.className = "result error";
+      setText(filterResult, errorText(answer.data, answer.status));
+    }
+    refilter();
+  }, 250);
+  const reselect = () => {
+    if (filterInput.value.includes("=")) {
+      askCloud();
+      return;
+    }
+    selected = null;
+    selectorAsked = "";
+    setText(filterResult, "");
+    refilter();
+  };
   filterInput.form.addEventListener("submit", (event) => event.preventDefault());
-  filterInput.addEventListener("input", refilter);
+  filterInput.addEventListener("input", reselect);
   stateSelect.addEventListener("change", refilter);
   const rewindow = () => {
     const { first, last } = visibleRange();

@@ -18,6 +18,7 @@ const WAIT_S = 10; // how long the API waits for the robot's answer to a start o
 const RUNNING = new Set(["starting", "recording"]);
 const ENDED = new Set(["finished", "failed"]);
 
+const rights = pageData("robot-rights");
 const form = document.getElementById("recording-form");
 const result = document.getElementById("recording-result");
 const title = document.getElementById("recordings-title");
@@ -90,6 +91,7 @@ const what = (recording) => `the recording of ${recording.topics.join(", ")}`;
 const What = (recording) => `The recording of ${recording.topics.join(", ")}`;
 
 function actions(recording) {
+  if (!rights.command) return []; // a viewer downloads; stopping and deleting are an operator's
   if (RUNNING.has(recording.status)) {
     const stop = el("button", { type: "button", class: "small secondary", "aria-label": `Stop ${what(recording)}` }, "Stop");
     stop.addEventListener("click", () => stopRecording(stop, recording));

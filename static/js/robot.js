@@ -30,6 +30,8 @@ const HISTORY_BUCKET_S = 5;
 const COMMAND_WAIT_S = 5;
 
 let robot = pageData("robot-data");
+// What the request's role allows on this robot: the page shows only those buttons; the API refuses the rest.
+const rights = pageData("robot-rights");
 const robotId = robot.id;
 const base = `/api/robot/${seg(robotId)}`;
 const live = startLive();
@@ -145,7 +147,12 @@ function renderSkill(skill) {
       "div",
       { class: "skill-head" },
       el("h3", { id: `skill-${sid}` }, skill.name || sid, el("code", {}, sid), status),
-      el("div", { class: "actions", role: "group", "aria-label": `Commands for skill ${sid}` }, start, stop, remove),
+      el(
+        "div",
+        { class: "actions", role: "group", "aria-label": `Commands for skill ${sid}` },
+        rights.command ? [start, stop] : [],
+        rights.develop ? remove : [],
+      ),
     ),
     el(
       "div",
@@ -209,7 +216,7 @@ function renderComponent(sid, component) {
     el(
       "td",
       { class: "commands" },
-      el("div", { class: "actions" }, el("span", { class: "start-at" }, start, where), stop, migrate),
+      rights.command ? el("div", { class: "actions" }, el("span", { class: "start-at" }, start, where), stop, migrate) : [],
       outcome,
     ),
   );

@@ -131,7 +131,10 @@ document.getElementById("upload-save")?.addEventListener("submit", async (event)
   const node = form.querySelector(".result");
   if (!checked) return;
   const tags = form.elements.tags.value.split(",").map((t) => t.trim()).filter(Boolean);
+  const organization = form.elements.organization.value;
   const answer = await post("/api/templates", {
+    // Empty: the cloud's catalog, which only staff keep.
+    ...(organization ? { organization } : {}),
     name: form.elements.name.value.trim(),
     description: form.elements.description.value.trim(),
     tags,

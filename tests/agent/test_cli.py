@@ -80,7 +80,7 @@ def test_validate_missing_file_fails_clearly(tmp_path: Path, capsys: pytest.Capt
 @pytest.fixture
 def clean_env(monkeypatch: pytest.MonkeyPatch) -> pytest.MonkeyPatch:
     """Remove the agent's environment variables."""
-    for name in ("BRIDGEOS_MASTER", "BRIDGEOS_ROBOT", "BRIDGEOS_TOKEN"):
+    for name in ("BRIDGEOS_MASTER", "BRIDGEOS_ROBOT", "BRIDGEOS_TOKEN", "BRIDGEOS_TOKEN_FILE"):
         monkeypatch.delenv(name, raising=False)
     return monkeypatch
 
@@ -92,6 +92,27 @@ def test_run_without_master_names_the_missing_options(
     err = capsys.readouterr().err
     assert "--master (or BRIDGEOS_MASTER)" in err
     assert "--token (or BRIDGEOS_TOKEN)" in err
+
+
+def test_run_refuses_a_token_file_it_cannot_read(
+    clean_env: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    missing = tmp_path / "robot.token"
+    assert main(["run", "--master", "ws://127.0.0.1:8000", "--robot", "r1", "--token-file", str(missing)]) == 2
+    assert f"--token-file cannot read {missing}" in capsys.readouterr().err
+
+
+def test_the_token_file_gives_the_token_when_none_is_given(clean_env: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from bridgeos_agent.agent import settings_from_args
+    from bridgeos_agent.cli import _check_connection_args, build_parser
+
+    (tmp_path / "robot.token").write_text("brt_from-file\n")
+    clean_env.setenv("BRIDGEOS_TOKEN_FILE", str(tmp_path / "robot.token"))
+    parser = build_parser()
+    args = parser.parse_args(["run", "--master", "ws://127.0.0.1:8000", "--robot", "r1"])
+    _check_connection_args(parser, args)
+    settings = settings_from_args(args)
+    assert (settings.token, settings.token_file) == ("brt_from-file", tmp_path / "robot.token")
 
 
 @pytest.mark.parametrize("url", ["http://host:8000", "ws://", "ws://host:99999", "host:8000"])

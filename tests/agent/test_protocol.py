@@ -134,6 +134,8 @@ SAMPLES: dict[Event, dict[str, Any]] = {
     Event.RECORDING_STOP: {"recording": "0" * 32},
     Event.RECORDING_CHUNK: {"recording": "0" * 32, "seq": 0, "data": "iU1DQVAw"},
     Event.RECORDING_STATUS: {"recording": "0" * 32, "status": "finished", "messages": 3, "bytes": 90, "chunks": 1},
+    Event.UPDATE_HOLD: {"skill": "people-detection", "component": "detector", "seconds": 600.0, "reason": "busy"},
+    Event.ROBOT_REKEY: {"token": "brt_new-token"},
     Event.OFFLOADING_DECISION: {
         "skill": "people-detector",
         "component": "detector",
@@ -179,9 +181,9 @@ def test_samples_cover_every_event_and_table() -> None:
     assert set(SAMPLES) == set(Event) == set(PAYLOADS) == set(DIRECTIONS)
     # Table 3.3's 31 events, ack, the three of Skill volume sync, the manager's decision log and the
     # cloud copies' Components API relay (request and reply), the event log's live entries, the three
-    # of the bridges (a rosbridge/Foxglove client relayed over the robot's link) and the four of MCAP
-    # recordings.
-    assert len(Event) == 46
+    # of the bridges (a rosbridge/Foxglove client relayed over the robot's link), the four of MCAP
+    # recordings, a connected robot's new token and a component's hold on its robot's updates.
+    assert len(Event) == 48
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
     # Requests are named *_get, but for the relayed Components API call, which may POST.
     requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {Event.COMPONENTS_API}

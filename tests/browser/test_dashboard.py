@@ -15,6 +15,7 @@ from monitoring.services import record_event
 from robots.models import Robot, default_robot_config
 from skills.models import Component, Skill
 from skills.services import create_template, report_offloading_decision
+from teams.services import personal_organization
 
 from .conftest import AGENT_SKILL, SKILL, make_robot, make_user, start_skill, wait_until
 
@@ -106,7 +107,7 @@ def test_the_fleet_page_renders_only_the_rows_on_screen(browser):
     config = default_robot_config()
     robots = []
     for i in range(300):
-        robot = Robot(id=f"fleet-{i:04d}", owner=ops, config=config)
+        robot = Robot(id=f"fleet-{i:04d}", owner=ops, organization=personal_organization(ops), config=config)
         robot.issue_token()
         robots.append(robot)
     Robot.objects.bulk_create(robots)

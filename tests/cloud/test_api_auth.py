@@ -18,8 +18,10 @@ from recordings.choices import RecordingStatus
 from recordings.models import Recording
 from robots.models import ApiToken, BridgeTicket, Robot, hash_token
 from robots.services import issue_api_token
+from rollouts.models import Release, Rollout
 from skills.models import Component, Skill, SkillTemplate
 from skills.services import create_template
+from teams.services import personal_organization
 
 from .apiutil import SKILL, client, robot_of, sample_skill_config, user_with_token
 
@@ -29,6 +31,7 @@ ROBOT = "/api/robot/{robot_id}"
 SKILL_PATH = ROBOT + "/skill/{skill_id}"
 COMPONENT = SKILL_PATH + "/component/{component_id}"
 RECORDING = ROBOT + "/recordings/{recording_id}"
+ORG = "/api/organizations/{slug}"
 REFUSED = {401, 403, 404}
 
 
@@ -109,6 +112,36 @@ ROUTES = [
     Route("POST", "/api/database/query", 200, 200, 200, body={"kind": "metrics"}, lists=True),
     Route("GET", "/api/events", 200, 200, 200, lists=True),
     Route("GET", "/api/health", 200, 200, 200, anonymous=200),
+    # alice's personal organization; bob is no member of it, so to him it does not exist.
+    Route("GET", "/api/organizations", 200, 200, 200, lists=False),
+    Route("POST", "/api/organizations", 201, 201, 201, body={"slug": "{role}-team"}),
+    Route("GET", ORG, 200, 404, 200),
+    Route("GET", ORG + "/members", 200, 404, 200),
+    Route("POST", ORG + "/members", 201, 404, 400, body={"username": "bob", "role": "viewer"}),
+    Route("PATCH", ORG + "/members/{username}", 200, 404, 200, body={"role": "admin"}),
+    Route("DELETE", ORG + "/members/{username}", 400, 404, 400),
+    Route("GET", ORG + "/tokens", 200, 404, 200),
+    Route("GET", "/api/tokens", 200, 200, 200),
+    Route("POST", "/api/tokens", 201, 400, 201, body={"name": "ci", "organization": "alice", "role": "viewer"}),
+    Route("DELETE", "/api/tokens/{token_id}", 404, 404, 404),
+    # Each caller reads the entries of the organizations they administer (tests/audit shows which).
+    Route("GET", "/api/audit", 200, 200, 200),
+    # Releases of alice's organization: the sample's images are not pinned (no registry here), so a
+    # new one is refused for that; to bob her organization does not exist.
+    Route("GET", "/api/releases", 200, 200, 200),
+    Route("POST", "/api/releases", 400, 404, 400, body={"organization": "alice", "config": "{new_config}"}),
+    Route("GET", "/api/releases/{release_id}", 200, 404, 200),
+    # A rollout of alice's release to a group of none of her robots is refused for its selector; to
+    # bob the release does not exist. alice's one rollout is over: steering it is a conflict.
+    Route("GET", "/api/rollouts", 200, 200, 200),
+    Route("POST", "/api/rollouts", 400, 400, 400, body={"release": "{release_id}", "selector": "site=nowhere"}),
+    Route("GET", "/api/rollouts/{rollout_id}", 200, 404, 200),
+    Route("POST", "/api/rollouts/{rollout_id}/pause", 409, 404, 409),
+    Route("POST", "/api/rollouts/{rollout_id}/resume", 409, 404, 409),
+    Route("POST", "/api/rollouts/{rollout_id}/abort", 409, 404, 409),
+    Route("GET", ROBOT + "/hold", 200, 404, 200),
+    Route("POST", ROBOT + "/hold", 200, 404, 200, body={"seconds": 60}),
+    Route("DELETE", ROBOT + "/hold", 204, 404, 204),
 ]
 
 
@@ -121,6 +154,8 @@ class World:
     robot_token: str
     template_id: int
     recordings: dict[str, str]  # robot id -> its finished recording's id
+    release_id: int  # a release of alice's organization
+    rollout_id: int  # a finished rollout of that release
 
 
 @pytest.fixture
@@ -145,7 +180,13 @@ def world(daphne_server) -> World:
         ).id.hex
         for robot_id in ("alice-bot", "alice-spare", "bob-bot")
     }
-    return World(daphne_server, tokens, robot_token, template.pk, recordings)
+    release = Release.objects.create(
+        organization=personal_organization(users["owner"]), skill_id="people-counting", number=1, config={}
+    )
+    rollout = Rollout.objects.create(
+        organization=release.organization, release=release, selector="site=lab", state=Rollout.State.ROLLED_BACK
+    )
+    return World(daphne_server, tokens, robot_token, template.pk, recordings, release.pk, rollout.pk)
 
 
 def fill(value: Any, ids: dict[str, Any]) -> Any:
@@ -168,6 +209,12 @@ def call(world: World, route: Route, role: str, token: str | None, robot_id: str
         "recording_id": world.recordings[robot_id],
         "role": role,
         "new_config": new_template_config(),
+        # alice's personal organization, alice herself in it, and a token nobody has.
+        "slug": "alice",
+        "username": "alice",
+        "token_id": 999999,
+        "release_id": world.release_id,
+        "rollout_id": world.rollout_id,
     }
     with client(world.server, token) as http:
         return http.request(route.method, fill(route.path, ids), json=fill(route.body, ids))

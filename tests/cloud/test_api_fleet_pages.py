@@ -38,6 +38,8 @@ def test_without_parameters_the_fleet_is_todays_bare_array_of_full_robots(fleet)
         "id",
         "name",
         "owner",
+        "organization",
+        "labels",
         "status",
         "connected",
         "last_seen",

@@ -193,7 +193,9 @@ def test_robot_info_shows_its_skills_and_components(http):
     assert set(info) == {
         "id",
         "name",
+        "organization",
         "owner",
+        "labels",
         "status",
         "connected",
         "last_seen",

@@ -14,6 +14,7 @@ from websockets.asyncio.client import connect
 
 from monitoring.models import Event as LogEvent
 from robots.models import Robot, default_robot_config
+from teams.services import personal_organization
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.asyncio]
 
@@ -26,10 +27,11 @@ ALL_CONNECTED_WITHIN_S = 30.0
 @sync_to_async
 def make_fleet(count: int) -> list[tuple[str, str]]:
     owner = get_user_model().objects.create_user("storm-owner")
+    organization = personal_organization(owner)
     config = default_robot_config()
     rows, tokens = [], []
     for i in range(count):
-        robot = Robot(id=f"storm-{i:04d}", owner=owner, config=config)
+        robot = Robot(id=f"storm-{i:04d}", owner=owner, organization=organization, config=config)
         tokens.append((robot.id, robot.issue_token()))
         rows.append(robot)
     Robot.objects.bulk_create(rows)

@@ -4,10 +4,20 @@ from __future__ import annotations
 
 import threading
 
+import pytest
+from asgiref.sync import SyncToAsync
 from channels.layers import get_channel_layer
 
 from bridgeos_cloud import layersync
 from bridgeos_cloud.layersync import layer_sync
+
+
+@pytest.fixture(autouse=True)
+def outside_daphne():
+    """Run as a Celery worker's thread does: asgiref never clears the loop an earlier test's sync code ran for."""
+    for name in ("main_event_loop", "main_event_loop_pid"):
+        if hasattr(SyncToAsync.threadlocal, name):
+            delattr(SyncToAsync.threadlocal, name)
 
 
 def test_sync_calls_outside_a_loop_share_one_kept_loop_and_reach_redis():

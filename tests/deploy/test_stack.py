@@ -3,10 +3,9 @@
 The stack runs its own image registry (TLS from the cloud's CA) and pulls its images from it by digest;
 its worker runs cloud copies as Swarm services through the Docker API proxy, never the raw socket.
 
-The stack is built and deployed by the project's own command (scripts/deploy.sh, i.e. `make deploy`)
-under a unique name and a free port, and removed with its volumes afterwards, failed or not. Real
-agents (`bridgeos-agent run --simulate`, half of them from the bridgeos/agent image) connect through
-the load balancer; the test then checks, through the same door an operator uses, that the replicas
+The stack (tests/deploy/deployed.py) is deployed once by `make deploy`'s script for every test here.
+Real agents (`bridgeos-agent run --simulate --ca`, over `wss://`, half of them from the bridgeos/agent
+image) connect through the load balancer; the test then checks, through the same door an operator uses, that the replicas
 behave as one cloud, and that killing one (`docker kill`) loses and duplicates nothing.
 """
 
@@ -16,15 +15,11 @@ import asyncio
 import hashlib
 import json
 import os
-import signal
 import socket
 import sqlite3
 import ssl
 import subprocess
 import time
-import uuid
-from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
@@ -32,155 +27,20 @@ import pytest
 
 from bridgeos_agent.link import Link
 from bridgeos_agent.protocol import Event
-from tests.conftest import ROOT, free_port
+from tests.deploy.deployed import (
+    AGENT,
+    PROCESS_HEARTBEAT_S,
+    PROCESS_TTL_S,
+    Agent,
+    Stack,
+    api_token,
+    run,
+    wait_until,
+)
 
 pytestmark = [pytest.mark.docker, pytest.mark.slow, pytest.mark.timeout(900)]
 
-DEPLOY = ROOT / "scripts" / "deploy.sh"
-AGENT = ROOT / ".venv" / "bin" / "bridgeos-agent"
 ROBOTS = 4
-# Short, so the test sees a dead replica's robots expire soon; the stack's default is 10 s.
-PROCESS_TTL_S = 6.0
-PROCESS_HEARTBEAT_S = 1.0
-
-
-def run(*command: str, timeout: float = 60, env: dict[str, str] | None = None) -> str:
-    """Run a command, return its stdout, and fail the test with its output if it fails."""
-    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=env)
-    if done.returncode:
-        pytest.fail(f"{' '.join(command)} exited {done.returncode}:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
-    return done.stdout
-
-
-def swarm_active() -> bool:
-    try:
-        state = subprocess.run(
-            ["docker", "info", "--format", "{{.Swarm.LocalNodeState}}"], capture_output=True, text=True, timeout=20
-        )
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return state.stdout.strip() == "active"
-
-
-@dataclass
-class Agent:
-    """One simulated robot's agent: a process from the venv, or a bridgeos/agent container."""
-
-    robot_id: str
-    process: subprocess.Popen | None = None
-    container: str = ""
-
-    def freeze(self) -> None:
-        """Stop the agent dead, sockets open, as a hung robot would be."""
-        if self.container:
-            run("docker", "pause", self.container)
-        else:
-            assert self.process is not None
-            self.process.send_signal(signal.SIGSTOP)
-
-    def thaw(self) -> None:
-        if self.container:
-            run("docker", "unpause", self.container)
-        else:
-            assert self.process is not None
-            self.process.send_signal(signal.SIGCONT)
-
-    def stop(self) -> None:
-        """Stop the agent for good, frozen or not."""
-        if self.container:
-            subprocess.run(["docker", "rm", "-f", self.container], capture_output=True, timeout=60, check=False)
-            return
-        assert self.process is not None
-        self.process.send_signal(signal.SIGCONT)  # a frozen agent would not see SIGTERM
-        self.process.terminate()
-        try:
-            self.process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-
-
-@dataclass
-class Stack:
-    """A deployed stack: its name, the load balancer's port, and ways into its containers."""
-
-    name: str
-    port: int
-    operator_password: str
-    secrets: Path
-    registry_port: int
-    agents: dict[str, Agent] = field(default_factory=dict)
-
-    @property
-    def registry(self) -> str:
-        """The registry as image references name it (deploy.sh's default: this host's name)."""
-        return f"{socket.gethostname()}:{self.registry_port}"
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def containers(self, service: str) -> list[str]:
-        """Return the ids of the service's running containers."""
-        label = f"label=com.docker.swarm.service.name={self.name}_{service}"
-        return run("docker", "ps", "-q", "--filter", label).split()
-
-    def exec(self, service: str, *command: str) -> str:
-        """Run a command in one of the service's containers."""
-        return run("docker", "exec", self.containers(service)[0], *command, timeout=120)
-
-    def sql(self, query: str) -> list[list[str]]:
-        """Query the stack's PostgreSQL (inside its container, as the postgres user) and return rows."""
-        out = self.exec("postgres", "psql", "-U", "postgres", "-d", "bridgeos", "-tAF", "\t", "-c", query)
-        return [line.split("\t") for line in out.splitlines() if line]
-
-    def robots(self) -> dict[str, tuple[bool, str]]:
-        """Return {robot id: (connected, the server process holding it)} from the database."""
-        rows = self.sql("SELECT id, connected, channel FROM robots_robot ORDER BY id")
-        # channels-redis names a consumer's channel `<process prefix>!<suffix>` (robots.presence.process_of).
-        return {rid: (connected == "t", channel.partition("!")[0]) for rid, connected, channel in rows}
-
-
-@pytest.fixture(scope="module")
-def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    """Deploy the stack with `scripts/deploy.sh` and remove it, volumes included, whatever happens."""
-    if not swarm_active():
-        pytest.skip("needs dockerd in an active Swarm: scripts/services.sh swarm")
-    name = f"bdt{uuid.uuid4().hex[:8]}"
-    secrets = tmp_path_factory.mktemp("secrets")
-    env = {
-        **os.environ,
-        "BRIDGEOS_STACK": name,
-        "BRIDGEOS_HTTP_PORT": str(free_port()),
-        "BRIDGEOS_REGISTRY_PORT": str(free_port()),
-        "BRIDGEOS_SECRETS_DIR": str(secrets),
-        # On this node only: engines other tests join to the Swarm for a while can reach neither the
-        # registry under this host's name nor the cloud copies' volume directory.
-        # The ROS images' push (about 15 s) is left out: CI's budget is tight and nothing here runs ROS.
-        "BRIDGEOS_DEPLOY_ROS_IMAGES": "0",
-        "BRIDGEOS_STACK_PLACEMENT": f"node.id == {run('docker', 'info', '--format', '{{.Swarm.NodeID}}').strip()}",
-        "DAPHNE_REPLICAS": "2",
-        "WORKER_REPLICAS": "1",
-        "BRIDGEOS_PROCESS_TTL_S": str(PROCESS_TTL_S),
-        "BRIDGEOS_PROCESS_HEARTBEAT_S": str(PROCESS_HEARTBEAT_S),
-    }
-    deployed = None
-    try:
-        # Builds whichever stack image is missing or stale (bash docker/build-images.sh stack), then deploys.
-        output = run("bash", str(DEPLOY), env=env, timeout=900)
-        print("\n".join(line for line in output.splitlines() if line.startswith("deploy:")))
-        password = (secrets / "operator_password").read_text().strip()
-        deployed = Stack(name, int(env["BRIDGEOS_HTTP_PORT"]), password, secrets, int(env["BRIDGEOS_REGISTRY_PORT"]))
-        yield deployed
-    finally:
-        for agent in deployed.agents.values() if deployed else []:
-            agent.stop()
-        subprocess.run(["bash", str(DEPLOY), "down", "--volumes"], env=env, timeout=180, check=False)
-
-
-def api_token(stack: Stack) -> str:
-    answer = httpx.post(f"{stack.url}/api/auth", auth=("operator", stack.operator_password), timeout=10)
-    assert answer.status_code == 200, answer.text
-    return answer.json()["token"]
 
 
 def start_agents(stack: Stack, tmp_path: Path) -> dict[str, Path]:
@@ -194,8 +54,12 @@ def start_agents(stack: Stack, tmp_path: Path) -> dict[str, Path]:
         token = stack.exec("daphne", "bridgeos-cloud", "manage", "create_robot", robot_id, "--owner", "operator")
         data_dir = tmp_path / robot_id
         data_dir.mkdir()
-        args = ["run", "--master", f"ws://127.0.0.1:{stack.port}", "--robot", robot_id, "--token", token.strip()]
-        args += ["--runtime", "process", "--simulate"]
+        # The CA `make deploy` printed, as a robot owner copies it next to the agent.
+        ca = data_dir / "ca.crt"
+        ca.write_text((stack.secrets / "ca.crt").read_text())
+        ca.chmod(0o644)
+        args = ["run", "--master", stack.wss, "--robot", robot_id, "--token", token.strip()]
+        args += ["--runtime", "process", "--simulate", "--ca", "/data/ca.crt" if n % 2 else str(ca)]
         if n % 2:
             data_dir.chmod(0o777)  # the image's agent runs as its own unprivileged user
             container = run(
@@ -213,16 +77,6 @@ def start_agents(stack: Stack, tmp_path: Path) -> dict[str, Path]:
     return data_dirs
 
 
-def wait_until(predicate, timeout: float, what: str, every: float = 0.5):
-    """Poll until the predicate returns something truthy; return it, or fail saying what never happened."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := predicate():
-            return value
-        time.sleep(every)
-    pytest.fail(f"{what} within {timeout:g} s")
-
-
 def outbox_through(data_dir: Path) -> int:
     """Return the sequence number of the last frame an agent put in its outbox (acked frames leave it)."""
     with sqlite3.connect(f"file:{data_dir / 'outbox.sqlite3'}?mode=ro", uri=True, timeout=5) as db:
@@ -238,7 +92,7 @@ def owed_up_to(data_dir: Path, seq: int) -> int:
 
 async def live_robots(stack: Stack, token: str, seconds: float) -> tuple[set[str], str]:
     """Watch /ws/client/ through the load balancer; return the robots whose metrics arrived, and the replica."""
-    link = Link(f"ws://127.0.0.1:{stack.port}/ws/client/")
+    link = Link(f"{stack.wss}/ws/client/", ssl_context=stack.tls)
     await link.connect(Event.AUTHENTICATION_CLIENT, {"token": token})
     replica = link.ws.response.headers.get("X-Bridgeos-Replica", "")
     seen: set[str] = set()
@@ -261,9 +115,13 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
     assert len(daphnes) == 2, "the stack runs two daphne replicas"
     data_dirs = start_agents(stack, tmp_path)
 
+    def fleet() -> dict[str, tuple[bool, str]]:
+        """This test's robots (other tests' share the stack)."""
+        return {rid: state for rid, state in stack.robots().items() if rid in data_dirs}
+
     # Robots spread over both replicas (the least-connections balance), each held by exactly one.
     robots = wait_until(
-        lambda: (r := stack.robots()) and all(c for c, _ in r.values()) and len(r) == ROBOTS and r,
+        lambda: (r := fleet()) and all(c for c, _ in r.values()) and len(r) == ROBOTS and r,
         60,
         "every robot connected through the load balancer",
     )
@@ -276,7 +134,7 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
     for robot_id in robots:
         served_by: set[str] = set()
         for _ in range(20):
-            answer = httpx.post(f"{stack.url}/api/robot/{robot_id}/start", headers=headers, timeout=15)
+            answer = stack.http.post(f"{stack.url}/api/robot/{robot_id}/start", headers=headers)
             assert answer.status_code == 200, answer.text
             assert answer.json()["accepted"] is True, answer.json()
             served_by.add(answer.headers["X-Bridgeos-Replica"])
@@ -301,7 +159,7 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
 
     def settled() -> tuple[dict[str, tuple[bool, str]], str] | None:
         """The state once the victim's live robots moved and its frozen robot went offline, else None."""
-        now = stack.robots()
+        now = fleet()
         dead = {robots[rid][1] for rid, (connected, process) in now.items() if connected and process != robots[rid][1]}
         if len(dead) != 1:
             return None
@@ -326,7 +184,7 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
     for robot_id in frozen.values():
         stack.agents[robot_id].thaw()
     wait_until(
-        lambda: all(c and p != dead_process for c, p in stack.robots().values()),
+        lambda: all(c and p != dead_process for c, p in fleet().values()),
         60,
         "every robot connected again to a live replica",
     )
@@ -355,7 +213,7 @@ def test_two_replicas_behind_the_load_balancer_act_as_one_cloud(stack: Stack, tm
         90,
         "Swarm replaced the killed replica",
     )
-    health = httpx.get(f"{stack.url}/api/health", timeout=10)
+    health = stack.http.get(f"{stack.url}/api/health")
     assert health.status_code == 200 and json.loads(health.text)["status"] == "ok"
 
 
@@ -390,7 +248,7 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
         answer = httpx.get(f"https://{host}:{stack.registry_port}/v2/", verify=trusted, timeout=10)
         assert answer.status_code == 401
         assert (
-            f'realm="http://{socket.gethostname()}:{stack.port}/api/registry/token"'
+            f'realm="https://{socket.gethostname()}:{stack.port}/api/registry/token"'
             in answer.headers["www-authenticate"]
         )
     with pytest.raises(httpx.ConnectError, match="CERTIFICATE_VERIFY_FAILED"):
@@ -403,11 +261,10 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
         repository, _, digest = image.partition("@")
         assert repository.startswith(f"{stack.registry}/bridgeos/") and digest.startswith("sha256:"), image
         path = repository.removeprefix(f"{stack.registry}/")
-        token = httpx.get(
+        token = stack.http.get(
             f"{stack.url}/api/registry/token",
             params={"service": "bridgeos-registry", "scope": f"repository:{path}:pull"},
             auth=("operator", stack.operator_password),
-            timeout=10,
         ).json()["token"]
         manifest = httpx.head(
             f"https://127.0.0.1:{stack.registry_port}/v2/{path}/manifests/{digest}",
@@ -438,7 +295,8 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
     token = stack.exec("daphne", "bridgeos-cloud", "manage", "create_robot", robot_id, "--owner", "operator").strip()
     (tmp_path / "agent").mkdir()
     with (tmp_path / "agent.log").open("ab") as log:
-        args = ["run", "--master", f"ws://127.0.0.1:{stack.port}", "--robot", robot_id, "--token", token]
+        args = ["run", "--master", stack.wss, "--ca", str(stack.secrets / "ca.crt"), "--robot", robot_id]
+        args += ["--token", token]
         args += ["--runtime", "process", "--simulate", "--data-dir", str(tmp_path / "agent")]
         process = subprocess.Popen(
             [str(AGENT), *args],
@@ -451,18 +309,18 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
     # sleep ends at once on the SIGTERM the copy's init passes on, so stopping it takes no grace period.
     ticker["cloud"] = {"image": image, "command": ["sleep", "3600"]}
     config = {"skill": "Ticker", "skill_id": "ticker", "components": {"tick": ticker}}
-    added = httpx.post(f"{stack.url}/api/robot/{robot_id}/skill/add", json={"config": config}, headers=headers)
+    added = stack.http.post(f"{stack.url}/api/robot/{robot_id}/skill/add", json={"config": config}, headers=headers)
     assert added.status_code in (200, 201), added.text
     pinned = added.json()["config"]["components"]["tick"]["cloud"]["image"]
     assert pinned.startswith(f"{image}@sha256:"), pinned
     wait_until(lambda: stack.robots().get(robot_id, (False,))[0], 30, "the robot connected")
-    started = httpx.post(
+    started = stack.http.post(
         f"{stack.url}/api/robot/{robot_id}/skill/ticker/start", params={"wait": 10}, headers=headers, timeout=20
     )
     assert started.status_code == 200 and started.json()["accepted"], started.text
     info_url = f"{stack.url}/api/robot/{robot_id}/skill/ticker/component/tick/info"
     info = wait_until(
-        lambda: (i := httpx.get(info_url, headers=headers, timeout=10).json())["status"] == "running" and i,
+        lambda: (i := stack.http.get(info_url, headers=headers).json())["status"] == "running" and i,
         60,
         "the cloud copy running",
     )
@@ -478,7 +336,7 @@ def test_the_stack_pulls_from_its_own_registry_and_runs_cloud_copies_through_the
     proxy_log = subprocess.run(logs, capture_output=True, text=True, timeout=60, check=True).stderr  # Python logs there
     assert "POST /services/create" in proxy_log and "refused" in proxy_log
 
-    stopped = httpx.post(
+    stopped = stack.http.post(
         f"{stack.url}/api/robot/{robot_id}/skill/ticker/stop", params={"wait": 10}, headers=headers, timeout=20
     )
     assert stopped.status_code == 200, stopped.text

@@ -112,11 +112,8 @@ def steady_rate_mbit(marks: list[list[float]]) -> float:
     return (end[1] - begin[1]) * 8 / 1e6 / (end[0] - begin[0])
 
 
-def test_the_4g_preset_shapes_both_directions_within_15_percent(links) -> None:
-    preset = netshape.PRESETS["4g"]
-    # Rates only: TCP under the preset's loss and delay would measure TCP, not the shaper.
-    link = up(links, netshape.conditions_for("4g", delay_ms=0, jitter_ms=0, loss_pct=0))
-
+def uplink_mbit(link: netshape.Link) -> float:
+    """Send for 3.5 s to a sink on the cloud side and return its steady receive rate."""
     sink = cloud_process(link, SINK, "5001")
     try:
         with socket.create_connection((link.cloud_ip, 5001), timeout=30) as conn:
@@ -124,10 +121,13 @@ def test_the_4g_preset_shapes_both_directions_within_15_percent(links) -> None:
             block = b"x" * 65536
             while time.monotonic() < end:
                 conn.sendall(block)
-        uplink = steady_rate_mbit(json.loads(sink.communicate(timeout=60)[0].strip().splitlines()[-1]))
+        return steady_rate_mbit(json.loads(sink.communicate(timeout=60)[0].strip().splitlines()[-1]))
     finally:
         stop(sink)
 
+
+def downlink_mbit(link: netshape.Link) -> float:
+    """Receive for 3.5 s from a source on the cloud side and return the steady rate."""
     source = cloud_process(link, SOURCE, "5002", "3.5")
     try:
         marks, total = [], 0
@@ -136,9 +136,29 @@ def test_the_4g_preset_shapes_both_directions_within_15_percent(links) -> None:
             while chunk := conn.recv(1 << 16):
                 total += len(chunk)
                 marks.append([time.monotonic(), total])
-        downlink = steady_rate_mbit(marks)
+        return steady_rate_mbit(marks)
     finally:
         stop(source)
+
+
+def shaped_rate(measure, link: netshape.Link, goal: float) -> float:
+    """Return the best of up to three runs: the shaper is a ceiling, and a busy CI machine only ever
+    measures below it (the relay is user space), so one slow run says nothing about the shaper."""
+    best = 0.0
+    for _ in range(3):
+        best = max(best, measure(link))
+        if best == pytest.approx(goal, rel=0.15):
+            break
+    return best
+
+
+def test_the_4g_preset_shapes_both_directions_within_15_percent(links) -> None:
+    preset = netshape.PRESETS["4g"]
+    # Rates only: TCP under the preset's loss and delay would measure TCP, not the shaper.
+    link = up(links, netshape.conditions_for("4g", delay_ms=0, jitter_ms=0, loss_pct=0))
+
+    uplink = shaped_rate(uplink_mbit, link, preset.up_mbit)
+    downlink = shaped_rate(downlink_mbit, link, preset.down_mbit)
 
     assert uplink == pytest.approx(preset.up_mbit, rel=0.15), f"uplink {uplink:.2f} Mbit/s"
     assert downlink == pytest.approx(preset.down_mbit, rel=0.15), f"downlink {downlink:.2f} Mbit/s"

@@ -44,6 +44,7 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
         master=args.master,
         robot=args.robot,
         token=args.token,
+        token_file=args.token_file,
         data_dir=Path(data_dir),
         runtime=args.runtime,
         simulate=args.simulate,
@@ -56,6 +57,7 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
         allow_insecure=args.allow_insecure,
         vpn_device=args.vpn_device,
         firewall=args.firewall,
+        labels=getattr(args, "labels", None) or {},
     )
 
 

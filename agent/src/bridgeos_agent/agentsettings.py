@@ -20,6 +20,8 @@ class AgentSettings:
     robot: str
     token: str
     data_dir: Path
+    # Where the token is kept (--token-file): a new token the cloud gives the robot replaces it there.
+    token_file: Path | None = None
     runtime: str = "process"
     simulate: bool = False
     sample_interval: float = 1.0
@@ -45,3 +47,5 @@ class AgentSettings:
     vpn_device: str = "bridgeos-vpn"
     openvpn: str = "openvpn"
     firewall: str = "auto"  # auto (apply when root, else print) | apply | print | off
+    # Labels asked for at first registration (--label); the cloud ignores them once the robot has any.
+    labels: dict[str, str] = field(default_factory=dict)

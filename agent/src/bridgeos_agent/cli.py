@@ -15,10 +15,12 @@ import pydantic
 
 from bridgeos_agent import __version__
 from bridgeos_agent.errors import field_errors
+from bridgeos_agent.labels import LabelError, parse_labels
 from bridgeos_agent.robotconfig import parse_robot_config, robot_config_json_schema
 from bridgeos_agent.ros2graph import Ros2Graph, rclpy_missing
 from bridgeos_agent.skillconfig import parse_skill_config, skill_config_json_schema
 from bridgeos_agent.tls import InsecureMaster, check_master_url
+from bridgeos_agent.tokenfile import TokenFileError, read_token_file
 
 __all__ = ["build_parser", "main"]
 
@@ -165,6 +167,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="robot token (env BRIDGEOS_TOKEN)",
     )
     connection.add_argument(
+        "--token-file",
+        type=Path,
+        default=os.environ.get("BRIDGEOS_TOKEN_FILE") or None,
+        metavar="PATH",
+        help="file holding the robot token, read when --token is absent; when the cloud re-keys the robot, "
+        "the new token replaces it there (mode 600) (env BRIDGEOS_TOKEN_FILE)",
+    )
+    connection.add_argument(
         "--runtime",
         choices=("docker", "process"),
         default=os.environ.get("BRIDGEOS_RUNTIME", "process"),
@@ -304,6 +314,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("BRIDGEOS_FOXGLOVE_ROS", "auto"),
         help="which graph --foxglove serves: ros1, ros2 or auto, as for --rosbridge-ros (env BRIDGEOS_FOXGLOVE_ROS)",
     )
+    run.add_argument(
+        "--label",
+        action="append",
+        dest="label",
+        metavar="KEY=VALUE",
+        help="a label this robot registers with, repeatable (also k=v,k2=v2); the cloud applies them only while "
+        "the robot has no labels yet, so an operator's later labels win (env BRIDGEOS_LABELS=k=v,k2=v2, used "
+        "when no --label is given)",
+    )
     run.add_argument("-q", "--quiet", action="store_true", help="print warnings and errors only")
     run.set_defaults(run_parser=run)
 
@@ -349,6 +368,11 @@ def _validate(path: Path, kind: str) -> int:
 
 
 def _check_connection_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if not args.token and args.token_file is not None:
+        try:
+            args.token = read_token_file(args.token_file)
+        except TokenFileError as exc:
+            parser.error(f"--token-file {exc}")
     # argparse also applies each option's type to a string default, so values taken
     # from the environment are already checked; only absence is left to report.
     missing = [
@@ -432,9 +456,18 @@ def _check_foxglove_args(parser: argparse.ArgumentParser, args: argparse.Namespa
         parser.error(f"--foxglove-ros ros2: {missing}")
 
 
+def _check_label_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    texts = args.label if args.label else [os.environ.get("BRIDGEOS_LABELS", "")]
+    try:
+        args.labels = parse_labels(texts)
+    except LabelError as exc:
+        parser.error(f"--label (env BRIDGEOS_LABELS): {exc}")
+
+
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Check the run options, then run the Robot Controller until it is stopped."""
     _check_connection_args(parser, args)
+    _check_label_args(parser, args)
     if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
         parser.error(f"--data-dir {args.data_dir} exists and is not a directory")
     _check_transport_args(parser, args)

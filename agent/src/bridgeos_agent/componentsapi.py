@@ -20,6 +20,7 @@ from typing_extensions import TypedDict
 
 from bridgeos_agent.protocol import (
     MAX_FRAME_BYTES,
+    MAX_HOLD_S,
     MAX_METRICS_PER_FRAME,
     FiniteFloat,
     LabelKey,
@@ -53,6 +54,10 @@ class SkillView(Protocol):
 
     def recommend(self, component_id: str, location: str) -> None:
         """Queue a manual offloading recommendation; raise ValueError saying why if refused."""
+        ...
+
+    def hold(self, component_id: str, seconds: float, reason: str) -> None:
+        """Hold the robot's updates for ``seconds`` at most on a component's behalf (0 releases its hold)."""
         ...
 
     def latest_metrics(self, names: Collection[str] | None, component: str | None) -> list[dict[str, Any]]:
@@ -147,9 +152,16 @@ class _Recommendation(TypedDict):
     location: str
 
 
+@with_config(extra="forbid")
+class _Hold(TypedDict):
+    seconds: Annotated[float, Field(gt=0, le=MAX_HOLD_S, allow_inf_nan=False)]
+    reason: NotRequired[Annotated[str, Field(max_length=500)]]
+
+
 _BATCH = TypeAdapter(_Batch)
 _SAMPLE = TypeAdapter(_Sample)
 _RECOMMENDATION = TypeAdapter(_Recommendation)
+_HOLD = TypeAdapter(_Hold)
 _NAME = TypeAdapter(MetricName)
 
 
@@ -226,6 +238,9 @@ class ComponentsAPI:
         app.router.add_get("/components/{id}", self._component)
         app.router.add_get("/components/{id}/location", self._component_location)
         app.router.add_post("/components/{id}/location", self._recommend)
+        # A busy component defers its robot's updates (a rollout installs once released or past the deadline).
+        app.router.add_post("/components/{id}/hold", self._hold)
+        app.router.add_delete("/components/{id}/hold", self._release)
         app.router.add_get("/metrics", self._metrics)
         app.router.add_post("/metrics", self._publish_many)
         app.router.add_get("/metrics/{metric}", self._metric)
@@ -283,6 +298,17 @@ class ComponentsAPI:
         except ValueError as exc:
             raise _Refusal(409, str(exc), "location") from None
         return web.json_response({"id": component["id"], "location": location}, status=202)
+
+    async def _hold(self, request: web.Request) -> web.Response:
+        body = _validate(_HOLD, await self._read_json(request))
+        component = self._find(request.match_info["id"])
+        self.view.hold(component["id"], body["seconds"], body.get("reason", ""))
+        return web.json_response({"id": component["id"], "seconds": body["seconds"]}, status=202)
+
+    async def _release(self, request: web.Request) -> web.Response:
+        component = self._find(request.match_info["id"])
+        self.view.hold(component["id"], 0, "")
+        return web.json_response({"id": component["id"], "seconds": 0}, status=202)
 
     def _find(self, component_id: str) -> dict[str, Any]:
         try:

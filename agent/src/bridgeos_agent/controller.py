@@ -10,6 +10,7 @@ keeps the life cycle and the wiring between them.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import functools
 import importlib.util
 import logging
@@ -32,7 +33,7 @@ from bridgeos_agent.network import CloudNetwork
 from bridgeos_agent.outbox import Outbox
 from bridgeos_agent.placement import Placement
 from bridgeos_agent.protocol import ComponentStatusName as CS
-from bridgeos_agent.protocol import Envelope, Event
+from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
 from bridgeos_agent.robotconfig import RobotConfig
 from bridgeos_agent.ros2graph import Ros2Graph
@@ -44,6 +45,7 @@ from bridgeos_agent.skillconfig import SkillConfig, parse_skill_config
 from bridgeos_agent.state import SkillRecord, StateFile, find_skill, previous_placement
 from bridgeos_agent.supervisor import SkillPlugin, SkillSupervisor
 from bridgeos_agent.tasks import TaskOwner
+from bridgeos_agent.tokenfile import write_token_file
 from bridgeos_agent.volumesync import VolumeSync
 
 __all__ = ["AgentSettings", "AuthenticationRefused", "RobotController", "SkillRecord", "previous_placement"]
@@ -318,6 +320,35 @@ class RobotController:
             self.say(f"ROS master: using {offered} from the cloud")
         elif not offered and not self.ros_master:
             self.say("no ROS master here and none from the cloud: ROS routing is off until one is available")
+
+    async def rekey(self, token: str) -> None:
+        """Take the new token the cloud gave this robot: kept in the token file first, then used for every login.
+
+        ProtocolError when the token file cannot be written: the new token is used all the same (the old
+        one stops working when its grace ends), and the cloud hears that it was not kept.
+        """
+        unkept: OSError | None = None
+        if self.settings.token_file is not None:
+            try:
+                # Before it is acked: an agent restarted from here on finds the token that works.
+                await asyncio.to_thread(write_token_file, self.settings.token_file, token)
+            except OSError as exc:
+                unkept = exc
+        self.settings.token = token
+        self.network.token = token  # its VPN profile requests
+        images = getattr(self.runtime, "images", None)
+        if images is not None and images.login is not None:
+            images.login = dataclasses.replace(images.login, token=token)  # its registry token requests
+        self.say("re-keyed: the cloud gave this robot a new token")
+        if unkept is not None:
+            message = (
+                f"the new token is in use but could not be kept in {self.settings.token_file}: "
+                f"{unkept.strerror or unkept}; a restarted agent will not have it"
+            )
+            logger.warning("%s", message)
+            raise ProtocolError(message, code="token_not_kept")
+        if self.settings.token_file is None:
+            logger.warning("the new token is kept in memory only: restarted, this agent needs it (see --token-file)")
 
     async def emit(self, event: Event, data: Mapping[str, Any], *, reply_to: str | None = None) -> Envelope:
         """Send a frame to the cloud; one that changes state is kept on disk until acked."""

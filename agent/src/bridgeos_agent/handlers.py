@@ -83,6 +83,12 @@ async def on_robot_config_update(controller: RobotController, envelope: Envelope
     controller.apply_config(config, source="cloud")
 
 
+@handles(Event.ROBOT_REKEY)
+async def on_robot_rekey(controller: RobotController, envelope: Envelope, p: Any) -> None:
+    # Acked once kept: a write that fails is answered with an error, and the cloud logs it.
+    await controller.rekey(p.token)
+
+
 @handles(Event.OFFLOADING)
 async def on_offloading(controller: RobotController, envelope: Envelope, p: Any) -> None:
     base = (controller.config or RobotConfig()).model_dump(mode="json")
@@ -135,17 +141,18 @@ async def on_skill_config(controller: RobotController, envelope: Envelope, p: An
     except ValueError as exc:
         raise ProtocolError(_first_error(exc), field="data.config", code="invalid_config") from None
     record = controller.skills.get(p.skill)
-    if record is not None:
+    if record is not None and record.status not in (SS.RUNNING, SS.STARTING):
         record.config = config
-        return
-    # A Skill just added in the cloud: its images come now, so its first start does not wait for bytes.
+    # A Skill just added, or a release on its way (installed later, or held): its images come now, so
+    # its start does not wait for bytes. A running version keeps its config until it is restarted.
     images = getattr(controller.runtime, "images", None)
     if images is not None:
         wanted: dict[str, list[str]] = {}
         for name, component in config.components.items():
             if component.location != "cloud" and component.robot is not None and component.robot.image:
                 wanted.setdefault(component.robot.image, []).append(name)
-        controller.spawn(images.prefetch(p.skill, wanted, getattr(controller.runtime, "on_pull", None)))
+        if wanted:
+            controller.spawn(images.prefetch(p.skill, wanted, getattr(controller.runtime, "on_pull", None)))
 
 
 @handles(Event.COMPONENT_START)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ssl
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -25,8 +26,9 @@ class Link:
     and by tests that play a robot (or a client) against a real cloud.
     """
 
-    def __init__(self, url: str, *, auto_ack: bool = True) -> None:
+    def __init__(self, url: str, *, auto_ack: bool = True, ssl_context: ssl.SSLContext | None = None) -> None:
         self.url = url
+        self.ssl_context = ssl_context  # for wss:// to a cloud whose CA is not the system's
         self.auto_ack = auto_ack
         self.reliable = Reliable()
         self.dedup = Dedup()
@@ -44,7 +46,10 @@ class Link:
         self, event: Event, credentials: Mapping[str, Any], *, headers: Mapping[str, str] | None = None
     ) -> Envelope:
         """Open the socket and authenticate; return the authentication_success frame."""
-        self.ws = await websockets.connect(self.url, additional_headers=headers, max_size=2**21, open_timeout=10)
+        options: dict[str, Any] = {"ssl": self.ssl_context} if self.ssl_context is not None else {}
+        self.ws = await websockets.connect(
+            self.url, additional_headers=headers, max_size=2**21, open_timeout=10, **options
+        )
         request = protocol.make(event, dict(credentials), now=time.time())
         await self.ws.send(protocol.encode(request))
         answer = protocol.decode(await asyncio.wait_for(self.ws.recv(), 10))

@@ -152,6 +152,11 @@ class SkillManager:
             raise ValueError(f"location must be 'robot' or 'cloud', not {location!r}")
         self.recommendations[component] = location
 
+    def hold(self, component: str, seconds: float, reason: str) -> None:
+        """Hold the robot's updates on a component's behalf; the cloud keeps the hold (0 seconds releases it)."""
+        data = {"skill": self.skill_id, "component": component, "seconds": seconds, "reason": reason}
+        self.host.spawn(self.host.emit(Event.UPDATE_HOLD, data))
+
     def movable(self) -> list[str]:
         """Return the components the manager may move: movable and running somewhere."""
         record = self.record

@@ -95,6 +95,12 @@ class CloudNetwork:
             self._context = tls.client_context(ca_file=self.ca_file, ca_pem=None if self.ca_file else self._ca_pem)
         return self._context
 
+    def trusted_by(self) -> str:
+        """Name what verifies the cloud's certificate, for a robot owner reading why it was refused."""
+        if self.ca_file:
+            return f"--ca {self.ca_file}"
+        return "the CA the cloud pinned in this robot's config" if self._ca_pem else "the system's CAs (no --ca)"
+
     def preferred(self) -> str:
         """Return the path connections should take now."""
         if self.vpn is not None and self.vpn.up and self._vpn_master() and time.monotonic() >= self._suspended_until:

@@ -103,6 +103,7 @@ __all__ = [
     "RobotConfigGet",
     "RobotConfigPayload",
     "RobotConfigUpdate",
+    "RobotRekey",
     "RobotStart",
     "RobotStop",
     "Ros2GraphInfo",
@@ -115,6 +116,7 @@ __all__ = [
     "SkillStatusGet",
     "SkillStatusName",
     "SkillStop",
+    "UpdateHold",
     "VolumeChanges",
     "VolumeChunk",
     "VolumeChunkRef",
@@ -136,6 +138,8 @@ __all__ = [
 
 MAX_FRAME_BYTES = 1_048_576
 MAX_METRICS_PER_FRAME = 10_000
+# The longest a robot's updates may be held (a rollout installs past the deadline anyway).
+MAX_HOLD_S = 7 * 24 * 3600.0
 
 
 # --------------------------------------------------------------------------- events
@@ -197,6 +201,10 @@ class Event(enum.StrEnum):
     RECORDING_STOP = "recording_stop"
     RECORDING_CHUNK = "recording_chunk"
     RECORDING_STATUS = "recording_status"
+    # Not in the thesis: a connected robot's new token, given when its token is rotated with a grace.
+    ROBOT_REKEY = "robot_rekey"
+    # rollouts: a component holds its robot's updates while it is busy (the Components API's /hold).
+    UPDATE_HOLD = "update_hold"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -276,6 +284,10 @@ MetricName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_.:-
 LabelKey = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$")]
 LabelValue = Annotated[str, StringConstraints(max_length=256)]
 ShortText = Annotated[str, StringConstraints(min_length=1, max_length=256)]
+RobotLabels = Annotated[
+    dict[Annotated[str, StringConstraints(max_length=256)], Annotated[str, StringConstraints(max_length=256)]],
+    Field(max_length=256),
+]
 # Strict so "1.5" or true never sneak in as numbers.
 FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 Timestamp = Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
@@ -343,6 +355,10 @@ class AuthenticationRobot(Payload):
     ros_master: Url | None = None
     # The robot's ROS 2 graph, when its agent can run ROS 2 (None: no rclpy there).
     ros2: Ros2GraphInfo | None = None
+    # Labels the robot asks for at its first registration (`bridgeos-agent run --label`): the cloud applies
+    # them only while the robot has none, and refuses the login when they break the rules of
+    # `bridgeos_agent.labels` (only sizes are bounded here, so the refusal can name the bad key).
+    labels: RobotLabels | None = None
 
 
 class CloudRelayInfo(Payload):
@@ -422,6 +438,12 @@ class RobotConfigUpdate(RobotScoped):
     """Forward a minor runtime change to a robot's configuration."""
 
     changes: Annotated[dict[str, Any], Field(min_length=1, max_length=256)]
+
+
+class RobotRekey(RobotScoped):
+    """Give a connected robot its new token: it logs in with it from now on (its old one works for a grace)."""
+
+    token: Token
 
 
 class Offloading(RobotScoped):
@@ -773,6 +795,15 @@ class RecordingChunk(RobotScoped):
     data: Annotated[str, StringConstraints(min_length=1, max_length=(RECORDING_CHUNK_BYTES * 4) // 3 + 4)]
 
 
+class UpdateHold(RobotScoped):
+    """Hold the robot's updates for ``seconds`` at most (a busy component); 0 releases its hold."""
+
+    skill: Slug
+    component: Slug
+    seconds: Annotated[float, Field(ge=0, le=MAX_HOLD_S, allow_inf_nan=False)]
+    reason: Annotated[str, StringConstraints(max_length=500)] = ""
+
+
 class RecordingStatus(RobotScoped):
     """Report a recording's state; ``finished`` and ``failed`` carry its totals and how many chunks it has."""
 
@@ -993,6 +1024,8 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.RECORDING_STOP: RecordingStop,
     Event.RECORDING_CHUNK: RecordingChunk,
     Event.RECORDING_STATUS: RecordingStatus,
+    Event.UPDATE_HOLD: UpdateHold,
+    Event.ROBOT_REKEY: RobotRekey,
 }
 
 
@@ -1054,6 +1087,8 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.RECORDING_STOP: frozenset({_C2R}),
     Event.RECORDING_CHUNK: frozenset({_R2C}),
     Event.RECORDING_STATUS: frozenset({_R2C}),
+    Event.UPDATE_HOLD: frozenset({_R2C}),
+    Event.ROBOT_REKEY: frozenset({_C2R}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,
@@ -1087,6 +1122,8 @@ REQUIRES_ACK: frozenset[Event] = frozenset(
         Event.RECORDING_STOP,
         Event.RECORDING_CHUNK,
         Event.RECORDING_STATUS,
+        Event.ROBOT_REKEY,
+        Event.UPDATE_HOLD,
     }
 )
 
@@ -1106,6 +1143,8 @@ COMMANDS: frozenset[Event] = frozenset(
         # recordings
         Event.RECORDING_START,
         Event.RECORDING_STOP,
+        # acked once the robot keeps its new token (in its token file, when it has one)
+        Event.ROBOT_REKEY,
     }
 )
 

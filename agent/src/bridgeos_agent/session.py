@@ -114,6 +114,7 @@ class Session:
         self._requests = protocol.Correlator()
         self._replies: dict[str, asyncio.Future[Envelope | None]] = {}
         self._tls_failure: str | None = None
+        self._target: Target | None = None  # where the current connection attempts go
 
     @property
     def unstored_in_flight(self) -> int:
@@ -170,6 +171,7 @@ class Session:
             min_delay=self.settings.reconnect_initial,
             max_delay=self.settings.reconnect_max,
         )
+        self._target = target
         self.say(f"connecting to {target.url} as robot {self.settings.robot} ({target.path})")
         async for ws in websockets.connect(
             target.url,
@@ -209,12 +211,19 @@ class Session:
     def _connect_failed(self, exc: Exception) -> Exception | None:
         """Say why a TLS handshake failed (once per reason), then let websockets retry as usual."""
         if isinstance(exc, ssl.SSLError):
-            reason = exc.reason or str(exc)
+            url = self._target.url if self._target is not None else self.network.master
             if isinstance(exc, ssl.SSLCertVerificationError):
-                reason = f"certificate verify failed ({exc.verify_message})"
+                reason = (
+                    f"TLS certificate of {url} not trusted by {self.network.trusted_by()}: "
+                    f"certificate verify failed: {exc.verify_message}. Pass the CA that issued the cloud's "
+                    "certificate with --ca (`make deploy` prints its path and fingerprint); retrying"
+                )
+            else:
+                reason = f"TLS handshake with {url} failed: {exc.reason or exc}; retrying"
             if reason != self._tls_failure:
+                # Once per reason: a robot retrying with backoff for hours must not fill its log with it.
                 self._tls_failure = reason
-                self.say(f"TLS handshake with the cloud failed: {reason}. Check --ca or the cloud's certificate.")
+                self.say(reason)
         return websockets.asyncio.client.process_exception(exc)
 
     async def _serve(self, ws: Any, path: str = "direct") -> None:
@@ -226,6 +235,8 @@ class Session:
         }
         if self.local_ros2 is not None:
             credentials["ros2"] = self.local_ros2
+        if self.settings.labels:
+            credentials["labels"] = self.settings.labels
         await ws.send(protocol.encode(protocol.make(Event.AUTHENTICATION_ROBOT, credentials, now=time.time())))
         answer = protocol.decode(await asyncio.wait_for(ws.recv(), 10), direction=protocol.Direction.CLOUD_TO_ROBOT)
         if answer.event != Event.AUTHENTICATION_SUCCESS:

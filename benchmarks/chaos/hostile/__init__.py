@@ -6,7 +6,8 @@ replayed ids), counting server errors (`internal_error` answers, closes with 101
 daphne's log) and proving no table changed; (b) schemathesis over every operation of the published
 OpenAPI schema, 0 server errors and no change from a refused request; (c) a robot token acting as
 another robot and a user reaching another user's robot through every door the URL resolver and the
-WebSocket routing list, all refused.
+WebSocket routing list, all refused; and a viewer of the robot's own organization on every door that
+needs more than reading, all refused while her reads are answered.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from benchmarks.chaos import Outcome
 from benchmarks.chaos.hostile.fuzz import fuzz_outcomes, websocket_routes
 from benchmarks.chaos.hostile.rules import published_robot_routes
 from benchmarks.chaos.hostile.schema import schemathesis_outcome
-from benchmarks.chaos.hostile.tenancy import cross_tenant, cross_tenant_outcome
+from benchmarks.chaos.hostile.tenancy import Tenancy, cross_role, cross_tenant, cross_tenant_outcome
 from benchmarks.chaos.hostile.world import NAME, RecordingRobot, make_world
 from benchmarks.chaos.rig import shared_cloud_env as cloud_env
 from benchmarks.chaos.rig import start_daphne
@@ -27,7 +28,9 @@ __all__ = [
     "LIMITS_OFF",
     "NAME",
     "RecordingRobot",
+    "Tenancy",
     "cloud_env",
+    "cross_role",
     "cross_tenant",
     "make_world",
     "published_robot_routes",

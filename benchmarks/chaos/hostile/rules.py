@@ -40,6 +40,8 @@ NO_ROBOT = {
     "": "the fleet page: lists only the user's robots (checked below)",
     "skills/": "the catalog of Skill templates, shared by design",
     "events/": "the event log page: filled by /api/events (checked below)",
+    "rollouts/": "the rollouts of the caller's organizations (rollouts.rolling.visible_rollouts); names no robot",
+    "rollouts/<int:rollout_id>/": "a rollout of the caller's organizations (404 otherwise), read as its API does",
     "images/": "the registry's images of the user's own namespace only (registry.services.repositories)",
     "validate/skill-config": "validates a posted config, touches no robot",
     "validate/robot-config": "validates a posted config, touches no robot",
@@ -52,10 +54,35 @@ NO_ROBOT = {
     "api/registry/token": "grants repositories of the caller's own namespace only (tests/registry prove it)",
     "api/registry/events": "the registry's push notifications, refused without its notify token",
     "api/registry/repositories": "lists the caller's own namespace only (staff: all); tests/registry prove it",
-    "api/templates": "catalog, shared by design; writes are staff only",
-    "api/templates/<int:template_id>": "catalog, shared by design; writes are staff only",
+    "api/templates": "the catalog and the caller's organizations' templates; writes are a developer's",
+    "api/templates/<int:template_id>": "a template of the catalog or of the caller's organizations (404 otherwise)",
     "api/schema/": "the OpenAPI schema",
     "api/docs/": "the API docs page",
+    # Doors of organizations, members and tokens: no robot in them; tests/teams prove another
+    # organization answers 404 as a missing one does, and a missing role 403.
+    "organization": "picks one of the caller's own organizations for the session",
+    "organizations/": "the caller's own organizations",
+    "organizations/<str:slug>/": "members of an organization of the caller's (404 otherwise)",
+    "organizations/<str:slug>/members/<str:username>": "an admin's member change (404 outside, 403 below admin)",
+    "tokens/": "the caller's own API tokens",
+    "tokens/<int:token_id>/revoke": "revokes the caller's own token, or one of an organization they administer",
+    "audit/": "the audit page: entries of organizations the caller administers (tests/audit)",
+    "api/organizations": "the caller's own organizations; a new one has the caller as admin",
+    "api/organizations/<str:slug>": "an organization of the caller's (404 otherwise)",
+    "api/organizations/<str:slug>/members": "members of an organization of the caller's; changes are an admin's",
+    "api/organizations/<str:slug>/members/<str:username>": "an admin's member change (404 outside, 403 below admin)",
+    "api/organizations/<str:slug>/tokens": "an admin's list of the organization's tokens, without keys",
+    "api/tokens": "the caller's own API tokens",
+    "api/tokens/<int:token_id>": "revokes the caller's own token, or one of an organization they administer",
+    "api/audit": "entries of organizations the caller administers (staff: all); tests/audit prove it",
+    "api/releases": "releases of the caller's organizations, naming no robot; a new one is a developer's, in one",
+    "api/releases/<int:release_id>": "a release of the caller's organizations (404 otherwise); it names no robot",
+    "api/rollouts": "rollouts of the caller's organizations; a new one's selector reaches only the release's own "
+    "organization's robots (tests/rollouts)",
+    "api/rollouts/<int:rollout_id>": "a rollout of the caller's organizations (404 otherwise)",
+    "api/rollouts/<int:rollout_id>/pause": "a developer's pause of their organization's rollout (404 outside)",
+    "api/rollouts/<int:rollout_id>/resume": "a developer's resume of their organization's rollout (404 outside)",
+    "api/rollouts/<int:rollout_id>/abort": "a developer's abort of their organization's rollout (404 outside)",
 }
 # Routes that take robots in the body or query string, or act on every robot the caller may see.
 ROBOTS_IN_BODY = {
@@ -66,6 +93,18 @@ ROBOTS_IN_BODY = {
     "api/database/query",
     "api/events",
 }
+
+# Robot routes whose GET needs more than a viewer's role, and why: a viewer is refused them like any write.
+PRIVILEGED_READS = {
+    "api/robot/<slug:robot_id>/vpn": "the robot's VPN profile, with its private key: an admin's",
+}
+# Of those, the commands relayed to every robot the caller may command: a viewer's reaches none.
+FLEET_COMMANDS = ("api/robot/start", "api/robot/stop", "api/robot/shutdown")
+
+
+def is_read_request(event: str) -> bool:
+    """Tell whether a request on /ws/client/ only reads (a viewer's right); every other one changes something."""
+    return event.endswith("_get")
 
 
 def published_robot_routes() -> set[str]:

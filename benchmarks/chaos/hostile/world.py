@@ -15,15 +15,22 @@ SKILL = "people-detection"
 RUN = f"{random.getrandbits(40):010x}"
 
 
+# Members of Alice's organization beside her, with their roles: Vera may only read alice-bot, Otto also command it.
+ALICE_MEMBERS = {"vera": "viewer", "otto": "operator"}
+
+
 @dataclass
 class World:
-    """Alice owns alice-bot, Bob bob-bot, Carol carol-bot (each with the sample Skill); ops is staff."""
+    """Alice owns alice-bot, Bob bob-bot, Carol carol-bot (each with the sample Skill); ops is staff.
+
+    Vera (viewer) and Otto (operator) are members of Alice's organization, where alice-bot is.
+    """
 
     http: str
     ws: str
-    tokens: dict[str, str]  # alice, bob, ops, carol -> API token
+    tokens: dict[str, str]  # alice, bob, ops, carol, vera, otto -> API token
     robot_tokens: dict[str, str]  # robot id -> robot token
-    sessions: dict[str, str]  # alice, bob -> session key
+    sessions: dict[str, str]  # alice, bob, vera -> session key
     template_id: int
     copy_tokens: dict[str, str]  # robot id -> launch token of its cloud copy of the sampler
     recording_id: str  # a finished recording of alice-bot's
@@ -45,10 +52,12 @@ def make_world(http: str, ws: str) -> World:
     from robots.services import create_robot, issue_api_token
     from skills.models import CloudInstance, Component
     from skills.services import add_skill, create_template
+    from teams.models import Membership
+    from teams.services import personal_organization
 
     Robot.objects.filter(id__in=["alice-bot", "bob-bot", "carol-bot"]).delete()
     users, tokens, robot_tokens, sessions, copy_tokens = {}, {}, {}, {}, {}
-    for name in ("alice", "bob", "ops", "carol"):
+    for name in ("alice", "bob", "ops", "carol", *ALICE_MEMBERS):
         get_user_model().objects.filter(username=f"hostile-{name}").delete()
         users[name] = get_user_model().objects.create_user(f"hostile-{name}", is_staff=name == "ops")
         tokens[name] = issue_api_token(users[name])[0]
@@ -56,8 +65,10 @@ def make_world(http: str, ws: str) -> World:
     for owner in ("alice", "bob", "carol"):
         robot, robot_tokens[f"{owner}-bot"] = create_robot(f"{owner}-bot", users[owner])
         add_skill(robot, config)
+    for name, role in ALICE_MEMBERS.items():
+        Membership.objects.create(organization=personal_organization(users["alice"]), user=users[name], role=role)
     store = importlib.import_module(settings.SESSION_ENGINE).SessionStore
-    for name in ("alice", "bob"):
+    for name in ("alice", "bob", "vera"):
         session = store()
         session[SESSION_KEY] = str(users[name].pk)
         session[BACKEND_SESSION_KEY] = "django.contrib.auth.backends.ModelBackend"
