@@ -236,6 +236,7 @@ BRIDGEOS_ROBOT_DB_THREADS = env_int("BRIDGEOS_ROBOT_DB_THREADS", 4)
 BRIDGEOS_ROLLOUT_INSTALL_TIMEOUT_S = env_float("BRIDGEOS_ROLLOUT_INSTALL_TIMEOUT_S", 120.0)
 # How long a reconnected robot's own restart of its Skills (with the stored release) is waited for.
 BRIDGEOS_ROLLOUT_CONVERGE_GRACE_S = env_float("BRIDGEOS_ROLLOUT_CONVERGE_GRACE_S", 3.0)
+BRIDGEOS_ROLLOUT_FETCH_GRACE_S = env_float("BRIDGEOS_ROLLOUT_FETCH_GRACE_S", 3.0)
 CELERY_BEAT_SCHEDULE = {
     "prune-audit": {
         "task": "audit.tasks.prune_audit",

@@ -50,6 +50,11 @@ def install_timeout() -> timedelta:
     return timedelta(seconds=getattr(settings, "BRIDGEOS_ROLLOUT_INSTALL_TIMEOUT_S", 120.0))
 
 
+def fetch_grace() -> timedelta:
+    """How long a robot's first word on fetching the release's images is waited for before it installs anyway."""
+    return timedelta(seconds=getattr(settings, "BRIDGEOS_ROLLOUT_FETCH_GRACE_S", 3.0))
+
+
 def converge_grace() -> timedelta:
     """How long a reconnected robot's own restart of its Skills is waited for before the cloud restarts it."""
     return timedelta(seconds=getattr(settings, "BRIDGEOS_ROLLOUT_CONVERGE_GRACE_S", 3.0))
@@ -121,7 +126,7 @@ class Seen:
 def _seen(rollout: Rollout, members: list[RolloutRobot]) -> Seen:
     """Read in three queries what the steps of ``members`` need (rather than a few queries per robot)."""
     seen = Seen()
-    changing = [m for m in members if m.status in (S.INSTALLING, S.VERIFYING)]
+    changing = [m for m in members if m.status in (S.DOWNLOADING, S.INSTALLING, S.VERIFYING)]
     if changing:
         skills = Skill.objects.filter(
             robot_id__in=[m.robot_id for m in changing], skill_id=rollout.release.skill_id
@@ -243,11 +248,24 @@ def _begin(rollout: Rollout, member: RolloutRobot, now: datetime, hold: UpdateHo
     if not member.robot.connected:
         _converge_later(rollout, member)
         return 0
-    member.touched = True
-    member.status = S.INSTALLING
-    _stop_then_start(rollout, member, found, now)
+    if member.previous_running and rollout.release.robot_images:
+        # The old version runs on while the robot fetches the new one's images (it keeps a running
+        # Skill's config and only pulls): the install that follows does not wait for bytes.
+        member.status, member.step, member.bytes_done, member.bytes_total = S.DOWNLOADING, "fetching", 0, 0
+        _push(
+            member.robot_id, Event.SKILL_CONFIG, {"skill": rollout.release.skill_id, "config": rollout.release.config}
+        )
+    else:
+        _install(rollout, member, found, now)
     _save(member)
     return 1
+
+
+def _install(rollout: Rollout, member: RolloutRobot, skill: Skill | None, now: datetime) -> None:
+    """Put the release on the robot: the old version stopped first, the release started once it has."""
+    member.touched = True
+    member.status = S.INSTALLING
+    _stop_then_start(rollout, member, skill, now)
 
 
 def _stop_then_start(rollout: Rollout, member: RolloutRobot, skill: Skill | None, now: datetime) -> None:
@@ -301,12 +319,15 @@ def _step(rollout: Rollout, strategy: Strategy, member: RolloutRobot, now: datet
             member.status, member.step, member.reason, member.started_at = S.INSTALLING, "converging", "", now
             _save(member)
         return
-    if member.status not in (S.INSTALLING, S.VERIFYING):
+    if member.status not in (S.DOWNLOADING, S.INSTALLING, S.VERIFYING):
         return
     if not member.robot.connected:
         _converge_later(rollout, member)
         return
     skill = seen.skills.get(member.robot_id)
+    if member.status == S.DOWNLOADING:
+        _download_step(rollout, member, skill, now)
+        return
     if skill is None:
         _fail(rollout, member, now, "the Skill was removed during the rollout")
         return
@@ -314,6 +335,34 @@ def _step(rollout: Rollout, strategy: Strategy, member: RolloutRobot, now: datet
         _install_step(rollout, strategy, member, skill, now)
     else:
         _verify_step(rollout, strategy, member, skill, now, seen.crashes.get(member.robot_id, []))
+
+
+def _download_step(rollout: Rollout, member: RolloutRobot, skill: Skill | None, now: datetime) -> None:
+    """Follow the robot's pull of the release's images (bytes of their layers); install once they are there.
+
+    Each image's progress is what the robot last reported on a component of the Skill since the
+    fetch began; an image already on the robot is reported at once as 0 of 0 bytes. A robot that
+    says nothing within the fetch grace (an agent without an image runtime) installs anyway, as
+    does one still pulling at the install timeout: the release's start pulls what is missing.
+    """
+    assert member.started_at is not None
+    wanted = rollout.release.robot_images
+    reported: dict[str, tuple[int, int]] = {}
+    for component in skill.components.all() if skill is not None else ():
+        pull = (component.container.get("robot") or {}).get("pull")
+        if pull and pull.get("image") in wanted and component.updated_at >= member.started_at:
+            reported[pull["image"]] = (int(pull.get("done", 0)), int(pull.get("total", 0)))
+    done, total = sum(d for d, _ in reported.values()), sum(t for _, t in reported.values())
+    fetched = len(reported) == len(wanted) and all(d >= t for d, t in reported.values())
+    waited = now - member.started_at
+    if fetched or (not reported and waited >= fetch_grace()) or waited >= install_timeout():
+        member.bytes_done, member.bytes_total = max(done, member.bytes_done), max(total, member.bytes_total)
+        member.started_at = now  # the install's own time runs from here
+        _install(rollout, member, skill, now)
+        _save(member)
+    elif (done, total) != (member.bytes_done, member.bytes_total):
+        member.bytes_done, member.bytes_total = done, total
+        _save(member)
 
 
 def _install_step(rollout: Rollout, strategy: Strategy, member: RolloutRobot, skill: Skill, now: datetime) -> None:
@@ -416,6 +465,10 @@ def _fail(rollout: Rollout, member: RolloutRobot, now: datetime, reason: str) ->
 
 def _roll_back(rollout: Rollout, now: datetime) -> None:
     """Put every touched robot back on the version it ran before; done when all are back."""
+    # A robot still fetching was never changed: it keeps its version and is no longer waited for.
+    rollout.robots.filter(status=S.DOWNLOADING, touched=False).update(
+        status=S.PENDING, step="", reason="not installed: the rollout stopped", updated_at=now
+    )
     members = list(rollout.robots.filter(touched=True).select_related("robot"))
     for member in members:
         if member.status == S.ROLLED_BACK:

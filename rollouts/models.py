@@ -44,6 +44,15 @@ class Release(models.Model):
             raise ImmutableError(f"Release {self} is immutable: make a new release instead.")
         super().save(*args, **kwargs)
 
+    @property
+    def robot_images(self) -> set[str]:
+        """The images the release's robot copies run: what a robot fetches before it installs the release."""
+        return {
+            component["robot"]["image"]
+            for component in self.config.get("components", {}).values()
+            if component.get("location") != "cloud" and (component.get("robot") or {}).get("image")
+        }
+
 
 class Rollout(models.Model):
     """A release going out to a group of robots in batches, each gated on the robots' health."""

@@ -123,8 +123,7 @@ def _prefetch_on_commit(release: Release, robots: list[str]) -> None:
     A running Skill keeps its config on the robot until it is restarted (the agent only fetches the
     images), so nothing changes on a robot the rollout never reaches.
     """
-    components = release.config.get("components", {}).values()
-    if not any((component.get("robot") or {}).get("image") for component in components):
+    if not release.robot_images:
         return  # nothing to download
     running = list(
         Skill.objects.filter(

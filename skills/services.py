@@ -199,6 +199,11 @@ def report_component_information(
     container = storable(container)  # the robot's own text: a NUL in it must not fail the frame
     with transaction.atomic():
         component = _component(robot_id, skill_id, component_id)
+        previous = component.container.get(location) or {}
+        running = component.status == ComponentStatusName.RUNNING and component.active_location == location
+        if running and _fetched_ahead(container):
+            # A next version's image fetched while this one runs: the running container's details stay.
+            container = {**previous, "pull": container["pull"]}
         component.container = {**component.container, location: container}
         component.save(update_fields=["container", "updated_at"])
         _announce(
@@ -206,6 +211,11 @@ def report_component_information(
             Event.COMPONENT_INFORMATION,
             {"skill": skill_id, "component": component_id, "location": location, "container": container},
         )
+
+
+def _fetched_ahead(container: dict[str, Any]) -> bool:
+    """Tell whether a report says only how far an image's pull is (no container of it runs yet)."""
+    return "pull" in container and not set(container) - {"runtime", "image", "pull"}
 
 
 def report_offloading_decision(robot_id: str, decision: OffloadingDecision) -> None:

@@ -35,13 +35,20 @@ function countBadges(counts) {
   return shown.flatMap(([status, robots]) => [el("span", { class: `badge status-${status}`, dataset: { status } }, `${status} ${robots}`), " "]);
 }
 
+// A robot fetching the release's images: bytes pulled of the layers' compressed size.
+function pulled(member) {
+  if (member.status !== "downloading" || !member.bytes_total) return "";
+  const mb = (n) => (n / 1e6).toFixed(1);
+  return el("span", { class: "pulled" }, ` ${mb(member.bytes_done)} of ${mb(member.bytes_total)} MB`);
+}
+
 function robotRow(member) {
   return el(
     "tr",
     { dataset: { robot: member.robot, status: member.status } },
     el("th", { scope: "row" }, el("a", { href: `/robots/${seg(member.robot)}/` }, member.robot)),
     el("td", { "data-label": "Batch" }, String(member.batch + 1)),
-    el("td", { "data-label": "Status" }, el("span", { class: `badge status-${member.status}` }, member.status)),
+    el("td", { "data-label": "Status" }, el("span", { class: `badge status-${member.status}` }, member.status), pulled(member)),
     el("td", { "data-label": "Reason" }, member.reason || ""),
     timeCell(member.started_at),
     timeCell(member.finished_at),

@@ -30,16 +30,39 @@ pytestmark = pytest.mark.django_db(transaction=True)
 SKILL = "detector"
 
 
+# The camera appends a numbered line to the Skill's volume every tenth of a second, going on from
+# the file's last number: a swap that lost the volume, or a line, shows as a gap or a restart.
+CAMERA = (
+    'f="$BRIDGEOS_VOLUMES/data/frames.log"; n=$(tail -n 1 "$f" 2>/dev/null | cut -d " " -f 2); n=${n:-0}; '
+    'while true; do n=$((n + 1)); echo "VERSION $n" >> "$f"; sleep 0.1; done'
+)
+
+
 def detector(version: str, *, crash_after_s: float | None = None) -> dict[str, Any]:
-    """A Skill of two process components whose command line names the version (a crash: exits after a while)."""
-    run = f"exec sleep 600 # {version}" if crash_after_s is None else f"sleep {crash_after_s}; exit 3 # {version}"
-    spec = {"command": ["sh", "-c", run]}
+    """A Skill of two process components: a camera writing to the Skill's volume, and a detector (a crash: exits)."""
+    detect = "exec sleep 600" if crash_after_s is None else f"sleep {crash_after_s}; exit 3"
+    commands = {"camera": CAMERA.replace("VERSION", version), "detect": detect}
     components = {
-        name: {"name": name, "location": "robot", "ros": False, "resources": {"cpu": 0.1, "ram": 16}, "robot": spec}
-        for name in ("camera", "detect")
+        name: {
+            "name": name,
+            "location": "robot",
+            "ros": False,
+            "resources": {"cpu": 0.1, "ram": 16},
+            "robot": {"command": ["sh", "-c", command]},
+        }
+        for name, command in commands.items()
     }
-    config = {"skill": f"Detector {version}", "skill_id": SKILL, "components": components}
+    config = {"skill": f"Detector {version}", "skill_id": SKILL, "components": components, "volumes": ["data"]}
     return parse_skill_config(config).model_dump(mode="json")
+
+
+def frames(controller: RobotController) -> list[tuple[str, int]]:
+    """The lines the camera wrote to the robot's volume: (version, number)."""
+    path = controller.runtime.volumes_dir(SKILL) / "data" / "frames.log"
+    if not path.exists():
+        return []
+    lines = [line.split() for line in path.read_text().splitlines()]
+    return [(version, int(number)) for version, number in lines if number.isdigit()]
 
 
 @sync_to_async
@@ -132,7 +155,7 @@ async def running_everywhere(controllers: list[RobotController], version: str, t
 
 
 async def test_a_good_release_reaches_every_robot_batch_after_batch(cloud, tmp_path) -> None:
-    owner, robots = await fleet(6, {"site": "lab"})
+    owner, robots = await fleet(20, {"site": "lab"})
     made = await release(owner, detector("v2"))
     async with agents(cloud, robots, tmp_path) as controllers:
         await old_version_running(robots)
@@ -140,29 +163,30 @@ async def test_a_good_release_reaches_every_robot_batch_after_batch(cloud, tmp_p
         rollout = await start_rollout(
             owner, made, "site=lab", strategy={"first": 1, "factor": 2, "soak_s": 1, "pause_s": 0}
         )
-        assert rollout.batch_sizes == [1, 2, 3]
-        done = await tick_until(rollout.id, {"succeeded", "rolled_back", "paused"}, timeout=90)
+        assert rollout.batch_sizes == [1, 2, 4, 8, 5]
+        done = await tick_until(rollout.id, {"succeeded", "rolled_back", "paused"}, timeout=150)
         assert done.state == "succeeded", done.reason
         await running_everywhere(controllers, "v2", timeout=5)
 
         members = await sync_to_async(list)(RolloutRobot.objects.filter(rollout=rollout).order_by("batch", "robot"))
         assert {m.status for m in members} == {"succeeded"}
-        # Each batch started only after the batch before it had passed its soak.
-        for earlier in members:
-            for later in members:
-                if later.batch == earlier.batch + 1:
-                    assert later.started_at >= earlier.finished_at, (earlier.robot_id, later.robot_id)
+        assert [sum(m.batch == b for m in members) for b in range(5)] == [1, 2, 4, 8, 5]
+        # Each batch started only after every robot of the batch before it had passed its soak.
+        for batch in range(1, 5):
+            passed = max(m.finished_at for m in members if m.batch == batch - 1)
+            started = min(m.started_at for m in members if m.batch == batch)
+            assert started >= passed, (batch, started, passed)
 
 
 async def test_a_bad_release_fails_its_canary_and_every_touched_robot_runs_the_old_version_again(
     cloud, tmp_path
 ) -> None:
-    owner, robots = await fleet(5, {"site": "lab"})
-    made = await release(owner, detector("v2", crash_after_s=3))
+    owner, robots = await fleet(20, {"site": "lab"})
+    made = await release(owner, detector("v2", crash_after_s=5))
     async with agents(cloud, robots, tmp_path) as controllers:
         await old_version_running(robots)
         await running_everywhere(controllers, "v1")
-        rollout = await start_rollout(owner, made, "site=lab", strategy={"first": 1, "soak_s": 6})
+        rollout = await start_rollout(owner, made, "site=lab", strategy={"first": 1, "soak_s": 8})
         done = await tick_until(rollout.id, {"succeeded", "rolled_back", "paused"}, timeout=90)
         assert done.state == "rolled_back", done.reason
         assert "crash" in done.reason or "failed" in done.reason, done.reason
@@ -172,3 +196,16 @@ async def test_a_bad_release_fails_its_canary_and_every_touched_robot_runs_the_o
         assert [m.batch for m in touched] == [0], "no robot past the canary is touched"
         assert all(m.status == "pending" for m in members if not m.touched)
         await running_everywhere(controllers, "v1", timeout=20)
+
+        # Nothing the old version's camera wrote was lost across the swap and back: one unbroken count
+        # through the release's lines, and the old version writing on after them.
+        canary = next(c for c in controllers if c.settings.robot == touched[0].robot_id)
+        await asyncio.sleep(0.5)
+        written = frames(canary)
+        assert [number for _, number in written] == list(range(1, len(written) + 1)), written[-20:]
+        versions_in_order = [version for version, _ in written]
+        first_v2, last_v2 = versions_in_order.index("v2"), len(versions_in_order) - versions_in_order[::-1].index("v2")
+        assert set(versions_in_order[:first_v2]) == {"v1"} and first_v2 > 0
+        assert versions_in_order[last_v2:] and set(versions_in_order[last_v2:]) == {"v1"}, "the old version is back"
+        untouched = next(c for c in controllers if c.settings.robot != touched[0].robot_id)
+        assert {version for version, _ in frames(untouched)} == {"v1"}

@@ -178,7 +178,9 @@ class ImagePuller:
         for image, components in wanted.items():
             report = on_pull(skill, components[0], image) if on_pull is not None else None
             try:
-                await self.ensure(api, image, f"skill {skill} ({', '.join(components)})", report)
+                pulled = await self.ensure(api, image, f"skill {skill} ({', '.join(components)})", report)
+                if not pulled and report is not None:
+                    report(0, 0)  # already here: a rollout waiting for the bytes need not wait
             except RuntimeFailure as exc:
                 logger.warning("pulling ahead for %s", exc)
 
