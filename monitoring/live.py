@@ -11,6 +11,7 @@ Subscribers filter by the robots they may see.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -18,6 +19,7 @@ import time
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
+from asgiref.sync import SyncToAsync
 from channels.layers import BaseChannelLayer, get_channel_layer
 from django.db import transaction
 
@@ -39,6 +41,8 @@ logger = logging.getLogger(__name__)
 LIVE_GROUP = "live"
 # State events per group message when many are published at once (bounded message size).
 PUBLISH_CHUNK = 250
+# How long a round of state events gathers before it goes to the live group.
+EVENT_SETTLE_S = 0.005
 
 # (skill, component, name) of one series of one robot.
 SeriesKey = tuple[str | None, str | None, str]
@@ -144,21 +148,99 @@ def get_live_feed() -> LiveFeed:
     return loop_object("live feed", _started_feed)
 
 
-async def publish(robot_id: str | None, frame: dict[str, Any], *, organization_id: int | None = None) -> None:
-    """Send a state event of a robot to the live group (no robot: staff's, or an organization's members' too)."""
-    layer = get_channel_layer()
-    if layer is not None:
-        message: dict[str, Any] = {"type": "live.event", "robot": robot_id, "frame": frame}
-        if organization_id is not None:
-            message["organization"] = organization_id
-        await layer.group_send(LIVE_GROUP, message)
+class EventSender:
+    """Send a process's state events to the live group in order, those of a few milliseconds as one message.
+
+    A robot's report publishes its new state and its event-log entry; a group send for each held
+    a thousand robots' rollout to the pace of daphne's round trips to Redis. Queued on the loop,
+    the database thread that committed goes on at once, and the events of one round go together.
+    The sending task lives only while events wait, so an idle loop holds no task of it.
+    """
+
+    def __init__(self, *, settle: float = EVENT_SETTLE_S, layer: BaseChannelLayer | None = None) -> None:
+        self.settle = settle
+        self.layer = layer
+        self._queue: list[dict[str, Any]] = []
+        self._task: asyncio.Task[None] | None = None
+        self._failures = LogOnce(logger, "Sending live events", traceback=True)
+
+    def add(self, messages: list[dict[str, Any]]) -> None:
+        """Queue ``live.event`` messages, to be sent after the ones queued before them."""
+        self._queue.extend(messages)
+        if self._task is None:
+            self._task = asyncio.get_running_loop().create_task(self._run(), name="live-events")
+
+    async def close(self) -> None:
+        """Send what is still queued."""
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        await self.send()
+
+    async def send(self) -> None:
+        """Send what is queued now."""
+        queued, self._queue = self._queue, []
+        await group_send_events(self.layer or get_channel_layer(), queued)
+
+    async def _run(self) -> None:
+        try:
+            while self._queue:
+                await asyncio.sleep(self.settle)
+                try:
+                    await self.send()
+                except Exception as exc:
+                    # Live events are expendable (a dashboard reads the state again when it reconnects).
+                    prometheus.LIVE_DROPS.inc()
+                    self._failures.failed(exc)
+                else:
+                    self._failures.worked()
+        finally:
+            self._task = None
+
+
+async def group_send_events(layer: BaseChannelLayer | None, messages: list[dict[str, Any]]) -> None:
+    """Send ``live.event`` messages to the live group, a few hundred per group message (one alone as itself)."""
+    if layer is None:
+        return
+    for start in range(0, len(messages), PUBLISH_CHUNK):
+        chunk = messages[start : start + PUBLISH_CHUNK]
+        await layer.group_send(LIVE_GROUP, chunk[0] if len(chunk) == 1 else {"type": "live.events", "events": chunk})
+
+
+def get_event_sender() -> EventSender:
+    """Return this event loop's sender of state events; its owner closes it at shutdown."""
+    return loop_object("live event sender", EventSender)
+
+
+def event_message(robot_id: str | None, frame: dict[str, Any], organization_id: int | None = None) -> dict[str, Any]:
+    """Return the live group's message of one state event (no robot: staff's, or an organization's members' too)."""
+    message: dict[str, Any] = {"type": "live.event", "robot": robot_id, "frame": frame}
+    if organization_id is not None:
+        message["organization"] = organization_id
+    return message
+
+
+async def _send_now(messages: list[dict[str, Any]]) -> None:
+    await group_send_events(get_channel_layer(), messages)
+
+
+def _post(messages: list[dict[str, Any]]) -> None:
+    """Hand committed state events to the live group: queued on daphne's loop, or sent before returning elsewhere."""
+    loop = getattr(SyncToAsync.threadlocal, "main_event_loop", None)
+    if loop is not None and loop.is_running():
+        # A consumer's database thread or a sync view: daphne's loop sends them in order, soon.
+        loop.call_soon_threadsafe(lambda: get_event_sender().add(messages))
+        return
+    # A Celery worker or a command (no loop waits on this thread): sent through the kept loop now.
+    layer_sync(_send_now)(messages)
 
 
 def publish_on_commit(robot_id: str, frame: dict[str, Any], *, using: str | None = None) -> None:
     """Publish a state event once the current transaction commits, never if it rolls back."""
 
     def send() -> None:
-        layer_sync(publish)(robot_id, frame)
+        _post([event_message(robot_id, frame)])
 
     # robust: the change is committed already, so a broadcast failure must not fail the caller. (A named
     # function, not a partial: Django logs a robust callback's failure by its __qualname__.)
@@ -174,7 +256,7 @@ def publish_log_event_on_commit(event: Event, *, organization_id: int | None = N
     robot_id, frame = log_event_frame(event)
 
     def send() -> None:
-        layer_sync(publish)(robot_id, frame, organization_id=organization_id)
+        _post([event_message(robot_id, frame, organization_id)])
 
     transaction.on_commit(send, using=event._state.db, robust=True)
 
@@ -200,20 +282,8 @@ def log_event_frame(event: Event) -> tuple[str | None, dict[str, Any]]:
 def publish_all_on_commit(frames: list[tuple[str | None, dict[str, Any]]], *, using: str | None = None) -> None:
     """Publish many (robot, frame) state events once the transaction commits, a few hundred per message."""
 
-    async def publish_all() -> None:
-        layer = get_channel_layer()
-        if layer is None:
-            return
-        # One group message per chunk, not per frame: a connect storm publishes thousands.
-        for start in range(0, len(frames), PUBLISH_CHUNK):
-            events = [
-                {"type": "live.event", "robot": robot_id, "frame": frame}
-                for robot_id, frame in frames[start : start + PUBLISH_CHUNK]
-            ]
-            await layer.group_send(LIVE_GROUP, {"type": "live.events", "events": events})
-
     def send() -> None:
-        layer_sync(publish_all)()
+        _post([event_message(robot_id, frame) for robot_id, frame in frames])
 
     if frames:
         transaction.on_commit(send, using=using, robust=True)

@@ -20,6 +20,7 @@ from typing import Any
 
 from django.conf import settings
 from django.db import connection, transaction
+from django.db.models import Prefetch
 from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName, Event, SkillStatusName
@@ -31,7 +32,7 @@ from robots.labels import selector_q
 from robots.models import Robot
 from robots.services import push_to_robot
 from skills import services as skills
-from skills.models import Skill
+from skills.models import Component, Skill
 
 from .gates import RESOURCES, parse_conditions
 from .models import Rollout, RolloutRobot, UpdateHold
@@ -128,9 +129,12 @@ def _seen(rollout: Rollout, members: list[RolloutRobot]) -> Seen:
     seen = Seen()
     changing = [m for m in members if m.status in (S.DOWNLOADING, S.INSTALLING, S.VERIFYING)]
     if changing:
-        skills = Skill.objects.filter(
-            robot_id__in=[m.robot_id for m in changing], skill_id=rollout.release.skill_id
-        ).prefetch_related("components")
+        # Their statuses, not their configs: a tick reads this for every robot of the batch.
+        skills = (
+            Skill.objects.filter(robot_id__in=[m.robot_id for m in changing], skill_id=rollout.release.skill_id)
+            .only("id", "robot_id", "skill_id", "status", "updated_at")
+            .prefetch_related(Prefetch("components", queryset=Component.objects.defer("resources")))
+        )
         seen.skills = {skill.robot_id: skill for skill in skills}
     verifying = [m for m in members if m.status == S.VERIFYING and m.verify_from is not None]
     if verifying:
@@ -157,7 +161,13 @@ def _run(rollout: Rollout, now: datetime) -> None:
     strategy = parse_strategy(rollout.strategy)
     if rollout.follow:
         _take_followers(rollout)
-    members = list(rollout.robots.filter(batch__lte=rollout.batch).select_related("robot").order_by("id"))
+    # The config a robot ran before is read only to roll it back: not with every tick's thousand rows.
+    members = list(
+        rollout.robots.filter(batch__lte=rollout.batch)
+        .select_related("robot")
+        .defer("previous_config", "robot__config", "robot__ros2")
+        .order_by("id")
+    )
     current = [member for member in members if member.batch == rollout.batch]
     room = strategy.at_once(len(current)) - sum(member.status in BUSY for member in current)
     seen = _seen(rollout, members)
@@ -280,7 +290,7 @@ def _stop_then_start(rollout: Rollout, member: RolloutRobot, skill: Skill | None
 
 def _converge_later(rollout: Rollout, member: RolloutRobot) -> None:
     """Store the release as the offline robot's desired version: it converges when it logs in."""
-    _set_config(member.robot, rollout.release.config)
+    _set_config(member.robot, rollout.release.config, tell=False)  # it is read at the robot's login
     member.touched = True
     member.status, member.step, member.reason = S.OFFLINE, "", "offline: installs when it reconnects"
     _save(member)
@@ -288,18 +298,23 @@ def _converge_later(rollout: Rollout, member: RolloutRobot) -> None:
 
 def _start(config: dict[str, Any], member: RolloutRobot, now: datetime) -> None:
     """Make ``config`` the robot's Skill and order it started."""
-    skill = _set_config(member.robot, config)
+    skill = _set_config(member.robot, config, tell=False)  # the start order carries it
     Skill.objects.filter(pk=skill.pk).update(status=SkillStatusName.STARTING)
     member.step, member.verify_from = "starting", None
     _push(member.robot_id, Event.SKILL_START, skills.start_order(skill))
 
 
-def _set_config(robot: Robot, config: dict[str, Any]) -> Skill:
-    """Make ``config`` the stored config of the robot's Skill (adding it if the robot lacks it)."""
-    skill = Skill.objects.select_for_update(no_key=True).filter(robot=robot, skill_id=config["skill_id"]).first()
+def _set_config(robot: Robot, config: dict[str, Any], *, tell: bool = True) -> Skill:
+    """Store ``config`` (a release's, or one the robot ran) as the robot's Skill config, adding the Skill if need be."""
+    skill = (
+        Skill.objects.select_for_update(no_key=True)
+        .only("id", "robot_id", "skill_id", "status")
+        .filter(robot=robot, skill_id=config["skill_id"])
+        .first()
+    )
     if skill is None:
         return skills.add_skill(robot, config)
-    skills.set_skill_config(skill, config)
+    skills.set_skill_config(skill, config, stored=True, tell=tell)
     return skill
 
 
@@ -450,7 +465,12 @@ def failed_conditions(rollout: Rollout, member: RolloutRobot, now: datetime) -> 
 
 def _save(member: RolloutRobot) -> None:
     """Store a robot's step; a row gone meanwhile (its robot or organization deleted) is not made again."""
-    fields = {f.attname: getattr(member, f.attname) for f in RolloutRobot._meta.concrete_fields if not f.primary_key}
+    unread = member.get_deferred_fields()
+    fields = {
+        f.attname: getattr(member, f.attname)
+        for f in RolloutRobot._meta.concrete_fields
+        if not f.primary_key and f.attname not in unread
+    }
     RolloutRobot.objects.filter(pk=member.pk).update(**{**fields, "updated_at": timezone.now()})
 
 
