@@ -13,14 +13,14 @@ for its Skills' configs), so an offline robot is never waited for and never roll
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
 from django.conf import settings
 from django.db import connection, transaction
-from django.db.models import Prefetch
+from django.db.models import Count, Prefetch
 from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName, Event, SkillStatusName
@@ -39,6 +39,8 @@ from .models import Rollout, RolloutRobot, UpdateHold
 from .strategy import Strategy, parse_strategy
 
 S = RolloutRobot.Status
+# A robot that is done with the rollout, one way or the other.
+FINISHED = (S.SUCCEEDED, S.FAILED)
 # A robot's status within its batch that no longer holds the batch back.
 SETTLED = (S.SUCCEEDED, S.FAILED, S.OFFLINE, S.DEFERRED)
 # The statuses counted against max_unavailable: robots changing now.
@@ -154,6 +156,35 @@ def _seen(rollout: Rollout, members: list[RolloutRobot]) -> Seen:
     return seen
 
 
+@dataclass
+class Tally:
+    """How many of a rollout's robots of the batches begun so far are in each status, by batch."""
+
+    counts: dict[tuple[int, str], int]
+
+    def count(self, *, batch: int | None = None, statuses: Iterable[str] | None = None) -> int:
+        wanted = None if statuses is None else set(statuses)
+        return sum(
+            n
+            for (at, status), n in self.counts.items()
+            if (batch is None or at == batch) and (wanted is None or status in wanted)
+        )
+
+    def size(self, batch: int) -> int:
+        return self.count(batch=batch)
+
+
+def _tally(rollout: Rollout) -> Tally:
+    """Count the robots of the batches begun so far by batch and status, in one query."""
+    rows = (
+        rollout.robots.filter(batch__lte=rollout.batch)
+        .values_list("batch", "status")
+        .annotate(n=Count("id"))
+        .order_by()
+    )
+    return Tally({(batch, status): n for batch, status, n in rows})
+
+
 # --------------------------------------------------------------------------- running
 
 
@@ -161,19 +192,19 @@ def _run(rollout: Rollout, now: datetime) -> None:
     strategy = parse_strategy(rollout.strategy)
     if rollout.follow:
         _take_followers(rollout)
-    # The config a robot ran before is read only to roll it back: not with every tick's thousand rows.
+    # Only robots still on their way are read (a batch of a thousand that passed is counted, not
+    # read), and without the config each ran before: that is read only to roll it back.
     members = list(
         rollout.robots.filter(batch__lte=rollout.batch)
+        .exclude(status__in=FINISHED)
         .select_related("robot")
         .defer("previous_config", "robot__config", "robot__ros2")
         .order_by("id")
     )
-    current = [member for member in members if member.batch == rollout.batch]
-    room = strategy.at_once(len(current)) - sum(member.status in BUSY for member in current)
+    tally = _tally(rollout)
+    room = strategy.at_once(tally.size(rollout.batch)) - tally.count(batch=rollout.batch, statuses=BUSY)
     seen = _seen(rollout, members)
     for member in members:
-        if member.status in (S.SUCCEEDED, S.FAILED):
-            continue
         with transaction.atomic():
             if member.status == S.PENDING and member.batch == rollout.batch:
                 if room <= 0 and member.robot.connected:
@@ -181,29 +212,30 @@ def _run(rollout: Rollout, now: datetime) -> None:
                 room -= _begin(rollout, member, now, seen.holds.get(member.robot_id))
             else:
                 _step(rollout, strategy, member, now, seen)
-    finished = rollout.robots.filter(status__in=[S.SUCCEEDED, S.FAILED])
-    failed = sum(status == S.FAILED for status in finished.values_list("status", flat=True))
-    if failed and strategy.should_stop(finished.count(), failed):
+    tally = _tally(rollout)
+    finished, failed = tally.count(statuses=FINISHED), tally.count(statuses=(S.FAILED,))
+    if failed and strategy.should_stop(finished, failed):
         why = rollout.robots.filter(status=S.FAILED).order_by("finished_at").first()
-        reason = f"{failed} of {finished.count()} robots failed; first: {why.robot_id}: {why.reason}" if why else ""
+        reason = f"{failed} of {finished} robots failed; first: {why.robot_id}: {why.reason}" if why else ""
         if strategy.on_failure == "pause":
             _set_state(rollout, Rollout.State.PAUSED, f"paused on failure: {reason}")
         else:
             _set_state(rollout, Rollout.State.ROLLING_BACK, f"rolling back: {reason}", level=Level.ERROR)
         return
-    if any(member.status not in SETTLED for member in current):
+    unsettled = [status for status in S.values if status not in SETTLED]
+    if tally.count(batch=rollout.batch, statuses=unsettled):
         return
     if rollout.batch + 1 < len(rollout.batch_sizes):
         _next_batch(rollout, strategy, now)
     elif rollout.follow:
         # A followed group has no end (Greengrass's continuous deployment): it runs until aborted.
-        done = sum(member.status == S.SUCCEEDED for member in members)
-        following = f"following {rollout.selector}: {done} of {len(members)} robots run the release"
+        done = tally.count(statuses=(S.SUCCEEDED,))
+        following = f"following {rollout.selector}: {done} of {tally.count()} robots run the release"
         if rollout.reason != following:
             rollout.reason = following
             _store(rollout, "reason")
-    elif all(member.status == S.SUCCEEDED for member in members):
-        _set_state(rollout, Rollout.State.SUCCEEDED, f"all {len(members)} robots run the release")
+    elif tally.count(statuses=(S.SUCCEEDED,)) == tally.count():
+        _set_state(rollout, Rollout.State.SUCCEEDED, f"all {tally.count()} robots run the release")
 
 
 def _next_batch(rollout: Rollout, strategy: Strategy, now: datetime) -> None:

@@ -6,7 +6,7 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
 from django.core.exceptions import ValidationError
-from django.db import transaction
+from django.db import connection, transaction
 from django.db.models import Q, QuerySet
 from django.utils import timezone
 
@@ -148,17 +148,33 @@ def report_skill_status(robot_id: str, skill_id: str, status: str, message: str 
         _announce(robot_id, Event.SKILL_STATUS, {"skill": skill_id, "status": status})
 
 
+def _set_component_status(
+    robot_id: str, skill_id: str, component_id: str, status: str, message: str, location: str | None
+) -> bool:
+    """Store a component's reported status in one statement; return whether the component exists.
+
+    Written in SQL: the ORM's update through a join cost daphne more than the round trip itself,
+    and a rollout's thousand robots each report a dozen of these per install.
+    """
+    component, skill = Component._meta.db_table, Skill._meta.db_table
+    with connection.cursor() as cursor:
+        cursor.execute(
+            f"UPDATE {component} AS c SET status = %s, message = %s, "  # our table names; values as parameters
+            f"active_location = COALESCE(%s, c.active_location), updated_at = %s "
+            f"FROM {skill} AS s WHERE c.skill_id = s.id AND s.robot_id = %s AND s.skill_id = %s "
+            f"AND c.component_id = %s",
+            [status, message, location or None, timezone.now(), robot_id, skill_id, component_id],
+        )
+        return cursor.rowcount > 0
+
+
 def report_component_status(
     robot_id: str, skill_id: str, component_id: str, status: str, location: str | None, message: str | None = None
 ) -> None:
     """Record the status a robot reports for a component."""
     with transaction.atomic():
         # The reason goes with the status it explains: a component that runs again has none.
-        fields: dict[str, Any] = {"status": status, "message": message or "", "updated_at": timezone.now()}
-        if location:
-            fields["active_location"] = location
-        found = Component.objects.filter(skill__robot_id=robot_id, skill__skill_id=skill_id, component_id=component_id)
-        if not found.update(**fields):
+        if not _set_component_status(robot_id, skill_id, component_id, status, message or "", location):
             _skill(robot_id, skill_id)
             raise NotFound(f"skill {skill_id!r} has no component {component_id!r}", field="data.component")
         record_event(
