@@ -346,6 +346,7 @@ def _set_config(robot: Robot, config: dict[str, Any], *, tell: bool = True) -> S
     )
     if skill is None:
         return skills.add_skill(robot, config)
+    skill.robot = robot  # read already: the start order asks whether it has a ROS master
     skills.set_skill_config(skill, config, stored=True, tell=tell)
     return skill
 

@@ -69,6 +69,14 @@ def set_skill_config(skill: Skill, config: dict[str, Any], *, stored: bool = Fal
     skill.config, skill.name = normalised, normalised["skill"]
     skill.save(update_fields=["config", "name", "updated_at"])
     wanted = normalised["components"]
+    placed = {cid: (c["location"], c.get("resources", {})) for cid, c in wanted.items()}
+    known_placed = {
+        cid: (loc, res) for cid, loc, res in skill.components.values_list("component_id", "location", "resources")
+    }
+    if placed == known_placed:
+        # A new version of the same components (a release's usual change): nothing to add, drop or move.
+        _tell_config(skill, normalised, tell)
+        return
     skill.components.exclude(component_id__in=list(wanted)).delete()
     known = set(skill.components.values_list("component_id", flat=True))
     Component.objects.bulk_create(
@@ -81,11 +89,14 @@ def set_skill_config(skill: Skill, config: dict[str, Any], *, stored: bool = Fal
         if component.location != spec["location"] or component.resources != spec.get("resources", {}):
             component.location, component.resources = spec["location"], spec.get("resources", {})
             component.save(update_fields=["location", "resources", "updated_at"])
+    _tell_config(skill, normalised, tell)
+
+
+def _tell_config(skill: Skill, config: dict[str, Any], tell: bool) -> None:
     if tell:
         robot_id, skill_id = skill.robot_id, skill.skill_id
         transaction.on_commit(
-            lambda: push_to_robot(robot_id, Event.SKILL_CONFIG, {"skill": skill_id, "config": normalised}),
-            robust=True,
+            lambda: push_to_robot(robot_id, Event.SKILL_CONFIG, {"skill": skill_id, "config": config}), robust=True
         )
 
 
@@ -131,11 +142,14 @@ def _announce(robot_id: str, event: Event, data: dict[str, Any]) -> None:
 def report_skill_status(robot_id: str, skill_id: str, status: str, message: str | None = None) -> None:
     """Record the status a robot reports for one of its skills."""
     with transaction.atomic():
-        # One UPDATE (its row lock as a SELECT FOR UPDATE's): a rollout's thousand robots report
-        # eight of these and component statuses each per install.
-        if not Skill.objects.filter(robot_id=robot_id, skill_id=skill_id).update(
-            status=status, updated_at=timezone.now()
-        ):
+        # One UPDATE in SQL (its row lock as a SELECT FOR UPDATE's), as a component's status is.
+        with connection.cursor() as cursor:
+            cursor.execute(
+                f"UPDATE {Skill._meta.db_table} SET status = %s, updated_at = %s WHERE robot_id = %s AND skill_id = %s",
+                [status, timezone.now(), robot_id, skill_id],
+            )
+            found = cursor.rowcount > 0
+        if not found:
             raise NotFound(f"robot {robot_id} has no skill {skill_id!r}", field="data.skill")
         record_event(
             f"Skill {skill_id} is {status}" + (f": {message}" if message else ""),
