@@ -3,7 +3,8 @@
 The cloud is real (daphne, PostgreSQL, Redis); the robots are simulated, many per process over the
 real wire protocol (benchmarks/_simfleet.py: each answers Skill orders as a Robot Controller does),
 and the rollout executor's steps are the Celery beat task's own function, called every
-BRIDGEOS_ROLLOUT_TICK_S here. Phases, on one fleet running release 1 of a Skill:
+BRIDGEOS_ROLLOUT_TICK_S here, in a process of its own as a Celery worker's. Phases, on one fleet
+running release 1 of a Skill:
 
 1. release 2 to every robot: 10 % first, batches doubling, no pause, a 2 s soak; while it rolls,
    a reader asks the Robot API for robots and for the rollout (p99 of those reads);
@@ -30,7 +31,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, log, percentile
+from _common import ROOT, log, percentile, setup_django
 from _harness import Clients, arguments, cloud, create_fleet, forget_fleet, machine_load, report, shares
 from _simfleet import SimRobot, fleet_worker
 
@@ -84,24 +85,38 @@ def prepare(robots: int) -> dict[str, Any]:
 
 
 class Executor:
-    """The rollout executor's beat, in a thread: every TICK_S, every active rollout moves a step."""
+    """The rollout executor's beat in a process of its own, as a Celery worker runs it: every TICK_S, a step."""
 
-    def __init__(self) -> None:
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        from django.db import connection
-
-        from rollouts import executor
-
+    def __init__(self, env: dict[str, str]) -> None:
+        # Spawned, not forked: a forked child would share the parent's pooled database connections.
+        context = mp.get_context("spawn")
+        self.stop = context.Event()
+        self._ticks = context.Queue()
         self.ticks: list[float] = []
-        while not self.stop.wait(TICK_S):
-            started = time.monotonic()
-            executor.tick()
-            self.ticks.append(time.monotonic() - started)
-        connection.close()
+        self.process = context.Process(target=beat, args=(env, self.stop, self._ticks), daemon=True)
+        self.process.start()
+
+    def join(self, timeout: float) -> None:
+        """Stop the beat and collect how long its ticks took."""
+        self.stop.set()
+        self.ticks = self._ticks.get(timeout=timeout)
+        self.process.join(timeout)
+
+
+def beat(env: dict[str, str], stop: Any, ticks_out: Any) -> None:
+    """Call the executor's tick every TICK_S until told to stop; hand back each tick's duration."""
+    setup_django(env)
+    from django.db import connection
+
+    from rollouts import executor
+
+    ticks: list[float] = []
+    while not stop.wait(TICK_S):
+        started = time.monotonic()
+        executor.tick()
+        ticks.append(time.monotonic() - started)
+    connection.close()
+    ticks_out.put(ticks)
 
 
 class Reader:
@@ -259,7 +274,7 @@ def main() -> None:
                 raise TimeoutError(f"only {connected.value} of {args.robots} simulated robots connected")
             time.sleep(0.1)
         log(f"{args.robots} simulated robots connected")
-        executor = Executor()
+        executor = Executor(bench.env)
         try:
             figures: dict[str, Any] = {"robots": args.robots}
             cpu = daphne.cpu_seconds()
@@ -268,8 +283,7 @@ def main() -> None:
             figures |= bad_release(world)
             figures |= offline_converge(world, url)
         finally:
-            executor.stop.set()
-            executor.thread.join(30)
+            executor.join(30)
             log(
                 f"executor: {len(executor.ticks)} ticks, longest {max(executor.ticks, default=0):.2f} s, "
                 f"p50 {percentile(executor.ticks, 0.5) or 0:.3f} s"
