@@ -162,7 +162,7 @@ class Tally:
 
     counts: dict[tuple[int, str], int]
 
-    def count(self, *, batch: int | None = None, statuses: Iterable[str] | None = None) -> int:
+    def count(self, *, batch: int | None = None, statuses: Iterable[Any] | None = None) -> int:
         wanted = None if statuses is None else set(statuses)
         return sum(
             n
