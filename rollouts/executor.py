@@ -13,29 +13,27 @@ for its Skills' configs), so an offline robot is never waited for and never roll
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Iterator
 from datetime import datetime, timedelta
 from typing import Any
 
 from django.conf import settings
 from django.db import connection, transaction
-from django.db.models import Count, Prefetch
 from django.utils import timezone
 
-from bridgeos_agent.protocol import ComponentStatusName, Event, SkillStatusName
+from bridgeos_agent.protocol import Event, SkillStatusName
 from monitoring.choices import Level
 from monitoring.models import Event as LogEvent
-from monitoring.models import Metric
 from monitoring.services import record_event
 from robots.labels import selector_q
 from robots.models import Robot
 from robots.services import push_to_robot
 from skills import services as skills
-from skills.models import Component, Skill
+from skills.models import Skill
 
-from .gates import RESOURCES, parse_conditions
+from .health import failed_conditions, health_problem, router_problem
 from .models import Rollout, RolloutRobot, UpdateHold
+from .snapshot import Seen, read_seen, tally
 from .strategy import Strategy, parse_strategy
 
 S = RolloutRobot.Status
@@ -45,7 +43,6 @@ FINISHED = (S.SUCCEEDED, S.FAILED)
 SETTLED = (S.SUCCEEDED, S.FAILED, S.OFFLINE, S.DEFERRED)
 # The statuses counted against max_unavailable: robots changing now.
 BUSY = (S.DOWNLOADING, S.INSTALLING, S.VERIFYING)
-UP = (ComponentStatusName.RUNNING, ComponentStatusName.MIGRATING)
 
 
 def install_timeout() -> timedelta:
@@ -117,74 +114,6 @@ def holding(rollout_id: int) -> Iterator[bool]:
                 cursor.execute("SELECT pg_advisory_unlock(hashtextextended(%s, 0))", [lock_key(rollout_id)])
 
 
-@dataclass
-class Seen:
-    """What a tick read at once about the robots it steps: their Skills, components, crashes and holds."""
-
-    skills: dict[str, Skill] = field(default_factory=dict)
-    crashes: dict[str, list[LogEvent]] = field(default_factory=dict)
-    holds: dict[str, UpdateHold] = field(default_factory=dict)
-
-
-def _seen(rollout: Rollout, members: list[RolloutRobot]) -> Seen:
-    """Read in three queries what the steps of ``members`` need (rather than a few queries per robot)."""
-    seen = Seen()
-    changing = [m for m in members if m.status in (S.DOWNLOADING, S.INSTALLING, S.VERIFYING)]
-    if changing:
-        # Their statuses, not their configs: a tick reads this for every robot of the batch.
-        skills = (
-            Skill.objects.filter(robot_id__in=[m.robot_id for m in changing], skill_id=rollout.release.skill_id)
-            .only("id", "robot_id", "skill_id", "status", "updated_at")
-            .prefetch_related(Prefetch("components", queryset=Component.objects.defer("resources")))
-        )
-        seen.skills = {skill.robot_id: skill for skill in skills}
-    verifying = [m for m in members if m.status == S.VERIFYING and m.verify_from is not None]
-    if verifying:
-        since = min(m.verify_from for m in verifying if m.verify_from is not None)
-        crashes = LogEvent.objects.filter(
-            robot_id__in=[m.robot_id for m in verifying],
-            skill=rollout.release.skill_id,
-            kind=Event.COMPONENT_STATUS,
-            ts__gte=since,
-            data__status__in=[ComponentStatusName.FAILED, ComponentStatusName.STOPPED],
-        ).order_by("ts")
-        for crash in crashes:
-            seen.crashes.setdefault(str(crash.robot_id), []).append(crash)
-    waiting = [m.robot_id for m in members if m.status in (S.PENDING, S.DEFERRED)]
-    if waiting:
-        seen.holds = {hold.robot_id: hold for hold in UpdateHold.objects.filter(robot_id__in=waiting)}
-    return seen
-
-
-@dataclass
-class Tally:
-    """How many of a rollout's robots of the batches begun so far are in each status, by batch."""
-
-    counts: dict[tuple[int, str], int]
-
-    def count(self, *, batch: int | None = None, statuses: Iterable[Any] | None = None) -> int:
-        wanted = None if statuses is None else set(statuses)
-        return sum(
-            n
-            for (at, status), n in self.counts.items()
-            if (batch is None or at == batch) and (wanted is None or status in wanted)
-        )
-
-    def size(self, batch: int) -> int:
-        return self.count(batch=batch)
-
-
-def _tally(rollout: Rollout) -> Tally:
-    """Count the robots of the batches begun so far by batch and status, in one query."""
-    rows = (
-        rollout.robots.filter(batch__lte=rollout.batch)
-        .values_list("batch", "status")
-        .annotate(n=Count("id"))
-        .order_by()
-    )
-    return Tally({(batch, status): n for batch, status, n in rows})
-
-
 # --------------------------------------------------------------------------- running
 
 
@@ -201,9 +130,9 @@ def _run(rollout: Rollout, now: datetime) -> None:
         .defer("previous_config", "robot__config", "robot__ros2")
         .order_by("id")
     )
-    tally = _tally(rollout)
-    room = strategy.at_once(tally.size(rollout.batch)) - tally.count(batch=rollout.batch, statuses=BUSY)
-    seen = _seen(rollout, members)
+    counted = tally(rollout)
+    room = strategy.at_once(counted.size(rollout.batch)) - counted.count(batch=rollout.batch, statuses=BUSY)
+    seen = read_seen(rollout, members)
     for member in members:
         with transaction.atomic():
             if member.status == S.PENDING and member.batch == rollout.batch:
@@ -212,8 +141,8 @@ def _run(rollout: Rollout, now: datetime) -> None:
                 room -= _begin(rollout, member, now, seen.holds.get(member.robot_id))
             else:
                 _step(rollout, strategy, member, now, seen)
-    tally = _tally(rollout)
-    finished, failed = tally.count(statuses=FINISHED), tally.count(statuses=(S.FAILED,))
+    counted = tally(rollout)
+    finished, failed = counted.count(statuses=FINISHED), counted.count(statuses=(S.FAILED,))
     if failed and strategy.should_stop(finished, failed):
         why = rollout.robots.filter(status=S.FAILED).order_by("finished_at").first()
         reason = f"{failed} of {finished} robots failed; first: {why.robot_id}: {why.reason}" if why else ""
@@ -223,19 +152,19 @@ def _run(rollout: Rollout, now: datetime) -> None:
             _set_state(rollout, Rollout.State.ROLLING_BACK, f"rolling back: {reason}", level=Level.ERROR)
         return
     unsettled = [status for status in S.values if status not in SETTLED]
-    if tally.count(batch=rollout.batch, statuses=unsettled):
+    if counted.count(batch=rollout.batch, statuses=unsettled):
         return
     if rollout.batch + 1 < len(rollout.batch_sizes):
         _next_batch(rollout, strategy, now)
     elif rollout.follow:
         # A followed group has no end (Greengrass's continuous deployment): it runs until aborted.
-        done = tally.count(statuses=(S.SUCCEEDED,))
-        following = f"following {rollout.selector}: {done} of {tally.count()} robots run the release"
+        done = counted.count(statuses=(S.SUCCEEDED,))
+        following = f"following {rollout.selector}: {done} of {counted.count()} robots run the release"
         if rollout.reason != following:
             rollout.reason = following
             _store(rollout, "reason")
-    elif tally.count(statuses=(S.SUCCEEDED,)) == tally.count():
-        _set_state(rollout, Rollout.State.SUCCEEDED, f"all {tally.count()} robots run the release")
+    elif counted.count(statuses=(S.SUCCEEDED,)) == counted.count():
+        _set_state(rollout, Rollout.State.SUCCEEDED, f"all {counted.count()} robots run the release")
 
 
 def _next_batch(rollout: Rollout, strategy: Strategy, now: datetime) -> None:
@@ -454,46 +383,12 @@ def _verify_step(
     assert member.verify_from is not None
     if now - member.verify_from < timedelta(seconds=strategy.soak_s):
         return
-    failed = failed_conditions(rollout, member, now)
+    failed = failed_conditions(rollout, member, now) or router_problem(rollout, member, now)
     if failed:
         _fail(rollout, member, now, failed)
         return
     member.status, member.reason, member.finished_at = S.SUCCEEDED, "", now
     _save(member)
-
-
-def health_problem(member: RolloutRobot, skill: Skill, crashes: list[LogEvent]) -> str:
-    """Say what is wrong with a robot's new version now (its components prefetched), or return an empty string."""
-    if skill.status != SkillStatusName.RUNNING:
-        return f"the Skill is {skill.status}"
-    for component in skill.components.all():
-        if component.status not in UP:
-            why = f": {component.message}" if component.message else ""
-            return f"component {component.component_id} is {component.status}{why}"
-        if not component.active_location:
-            return f"component {component.component_id} runs nowhere"
-    assert member.verify_from is not None
-    crash = next((crash for crash in crashes if crash.ts >= member.verify_from), None)
-    if crash is not None:
-        return f"component {crash.component} crashed or restarted while verified: {crash.message}"
-    return ""
-
-
-def failed_conditions(rollout: Rollout, member: RolloutRobot, now: datetime) -> str:
-    """Check the rollout's conditions over the robot's metrics of the soak window; name those missed."""
-    conditions = parse_conditions((rollout.gates or {}).get("conditions"))
-    missed = []
-    for condition in conditions:
-        points = Metric.objects.filter(
-            robot_id=member.robot_id, name=condition.metric, ts__gte=member.verify_from, ts__lte=now
-        )
-        if condition.metric not in RESOURCES:
-            points = points.filter(skill=rollout.release.skill_id)
-        values = list(points.values_list("value", flat=True))
-        if not condition.holds(values):
-            mean = f"mean {sum(values) / len(values):g}" if values else "no points"
-            missed.append(f"{condition} ({mean} over the soak)")
-    return "gate missed: " + "; ".join(missed) if missed else ""
 
 
 def _save(member: RolloutRobot) -> None:

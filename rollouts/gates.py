@@ -30,6 +30,8 @@ CONDITION = re.compile(
     r"(?P<value>[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*$"
 )
 MAX_CONDITIONS = 32
+# The share of its messages a Skill Router may drop over a soak before the robot fails its gate.
+ROUTER_DROPPED_MAX = 0.05
 
 
 @dataclass(frozen=True)
@@ -77,3 +79,22 @@ def parse_conditions(items: object, field: str = "gates.conditions") -> list[Con
     if not isinstance(items, list) or len(items) > MAX_CONDITIONS:
         raise ValidationError({field: [f"A list of at most {MAX_CONDITIONS} conditions."]})
     return [parse_condition(item, f"{field}[{index}]") for index, item in enumerate(items)]
+
+
+def parse_share(value: object, field: str) -> float:
+    """Read a share between 0 and 1; ValidationError naming the field."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value <= 1:
+        raise ValidationError({field: [f"{value!r} is not a share between 0 and 1 (0.05 is 5 %)."]})
+    return float(value)
+
+
+def router_dropped_share(delivered: Iterable[float], dropped: Iterable[float]) -> float | None:
+    """Return the share of messages a router dropped, from its rates over a window (None: it routed nothing)."""
+    delivered_mean, dropped_mean = _mean(delivered), _mean(dropped)
+    routed = delivered_mean + dropped_mean
+    return dropped_mean / routed if routed > 0 else None
+
+
+def _mean(values: Iterable[float]) -> float:
+    points = [v for v in values if math.isfinite(v)]
+    return sum(points) / len(points) if points else 0.0

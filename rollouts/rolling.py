@@ -22,11 +22,11 @@ from robots.services import push_to_robot
 from skills.models import Skill
 
 from .executor import lock_key
-from .gates import parse_conditions
+from .gates import parse_conditions, parse_share
 from .models import Release, Rollout, RolloutRobot, UpdateHold
 from .strategy import parse_strategy
 
-GATE_KEYS = ("conditions",)
+GATE_KEYS = ("conditions", "router_dropped_max")
 ACTIVE = (Rollout.State.RUNNING, Rollout.State.PAUSED, Rollout.State.ROLLING_BACK)
 
 
@@ -44,7 +44,10 @@ def parse_gates(data: Any) -> dict[str, Any]:
     if unknown:
         raise ValidationError({f"gates.{unknown[0]}": [f"Unknown; gates have {', '.join(GATE_KEYS)}."]})
     conditions = parse_conditions(data.get("conditions"))
-    return {"conditions": [str(condition) for condition in conditions]} if conditions else {}
+    gates: dict[str, Any] = {"conditions": [str(condition) for condition in conditions]} if conditions else {}
+    if data.get("router_dropped_max") is not None:
+        gates["router_dropped_max"] = parse_share(data["router_dropped_max"], "gates.router_dropped_max")
+    return gates
 
 
 def create_rollout(

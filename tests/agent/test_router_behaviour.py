@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 
+from bridgeos_agent.delivery import delivery_totals
 from bridgeos_agent.ros2graph import rclpy_missing
 from bridgeos_agent.router import RouterSettings, SkillRouter
 from bridgeos_agent.skillconfig import parse_skill_config
@@ -246,6 +247,8 @@ async def test_statistics_count_what_was_routed(world, tmp_path):
     stats = router.statistics()["/chatter"]
     assert stats["messages"] == 200 and stats["subscribers"]["listener"]["messages"] == 200
     assert stats["dropped"] == 0 and stats["delivery_ratio"] == 1.0 and stats["bytes"] > 0
+    # What the robot reports for a rollout's router gate: every message delivered, none dropped.
+    assert delivery_totals(router.statistics()) == (stats["delivered"], 0) and stats["delivered"] >= 200
     traffic = router.traffic("talker")
     assert traffic.messages == 200 and traffic.dropped == 0 and traffic.bytes_robot > 0
 

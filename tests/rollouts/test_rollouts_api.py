@@ -115,6 +115,8 @@ def test_a_developer_rolls_a_release_out_to_a_group_of_their_organization_in_pla
         ({"gates": {"conditions": ["cpu <"]}}, "gates.conditions[0]"),
         ({"gates": {"conditions": ["temperature < 3"]}}, "gates.conditions[0]"),
         ({"gates": {"rules": []}}, "gates.rules"),
+        ({"gates": {"router_dropped_max": 5}}, "gates.router_dropped_max"),
+        ({"gates": {"router_dropped_max": "5%"}}, "gates.router_dropped_max"),
         ({"follow": "maybe"}, "follow"),
     ],
 )

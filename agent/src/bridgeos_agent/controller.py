@@ -26,6 +26,7 @@ from bridgeos_agent.bridges.graph import BridgeError, BridgeGraph
 from bridgeos_agent.bridges.recorder import Recordings
 from bridgeos_agent.bridges.relay import BridgeRelay
 from bridgeos_agent.cloudrole import CloudRole
+from bridgeos_agent.delivery import DeliveryRates
 from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.metrics import AgentMetrics
 from bridgeos_agent.monitor import RESOURCES, Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
@@ -115,6 +116,7 @@ class RobotController:
         self.tasks = TaskOwner()  # commands being handled and other background work
         self._loops: list[asyncio.Task[Any]] = []
         self._reporter = Reporter(max_interval=settings.report_max_interval)
+        self._delivery = DeliveryRates()  # what each Skill Router delivered and dropped, per second
         self._stats_failures = LogOnce(logger, "measuring the components' usage")
         self.state = StateFile(self.data_dir / "state.json", self._collect_state)
         self.volumes = VolumeSync(self)
@@ -524,6 +526,8 @@ class RobotController:
             for (skill, component), usage in self.usage.items():
                 readings.append(("cpu", round(100 * usage.cpu, 2), skill, component))
                 readings.append(("ram", round(usage.ram, 1), skill, component))
+            routers = ((skill_id, record.context("router")) for skill_id, record in list(self.skills.items()))
+            readings += self._delivery.sample(((s, r) for s, r in routers if r is not None), now)
             points = self._reporter.select(time.time(), readings)
             if points:
                 await self.emit(Event.METRICS, {"metrics": points})
