@@ -408,6 +408,27 @@ def push_to_robot(robot_id: str, event: Event, data: dict[str, Any]) -> bool:
     return True
 
 
+def push_to_robots(orders: list[tuple[str, Event, dict[str, Any]]]) -> int:
+    """Send frames to many connected robots at once (their channels read in one query); return how many went."""
+    wanted = {robot_id for robot_id, _, _ in orders}
+    channels = dict(Robot.objects.filter(id__in=wanted, connected=True).values_list("id", "channel"))
+    now = time.time()
+    messages = [
+        (channels[robot_id], {"type": "robot.push", "frame": protocol.encode(protocol.make(event, data, now=now))})
+        for robot_id, event, data in orders
+        if channels.get(robot_id)
+    ]
+
+    async def send_all() -> None:
+        layer = get_channel_layer()
+        for channel, message in messages:
+            await layer.send(channel, message)
+
+    if messages:
+        layer_sync(send_all)()
+    return len(messages)
+
+
 def robot_channel(robot_id: str) -> str | None:
     """Return the channel of a connected robot's consumer, or None if it is offline."""
     row = Robot.objects.filter(id=robot_id, connected=True).values_list("channel", flat=True).first()
