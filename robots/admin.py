@@ -13,7 +13,7 @@ from django.http import HttpRequest
 
 from monitoring.services import record_event
 
-from . import services
+from . import rotation
 from .labels import selector_q
 from .models import ApiToken, Robot
 
@@ -96,7 +96,7 @@ class RobotAdmin(admin.ModelAdmin):
     @admin.action(description="Rotate the token of the selected robots (connected ones re-key live)")
     def rotate_tokens(self, request: HttpRequest, queryset: QuerySet[Robot]) -> None:
         grace_s = settings.BRIDGEOS["TOKEN_ROTATION_GRACE_S"]
-        rotated = services.rotate_tokens(queryset, grace_s=grace_s)
+        rotated = rotation.rotate_tokens(queryset, grace_s=grace_s)
         for each in rotated:
             messages.warning(request, f"New token of robot {each.robot.id} (shown only once): {each.token}")
         if grace_s <= 0:

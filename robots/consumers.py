@@ -28,7 +28,7 @@ from skills import services as skills
 from skills.cloud.reporting import cloud_reports_for
 from skills.cloud.volumes import CloudVolumes, QuotaExceeded
 
-from . import dedup, services
+from . import dedup, rotation, services
 from .bridges import RobotBridges, deliver, register_local
 from .dbthreads import sync
 from .dedup import applied_ids
@@ -147,7 +147,7 @@ class RobotConsumer(ProtocolConsumer):
             self.reliable.on_ack(envelope.reply_to)
             if envelope.reply_to in self.rekeys:
                 self.rekeys.discard(envelope.reply_to)
-                await sync(services.record_rekeyed)(self.robot_id)
+                await sync(rotation.record_rekeyed)(self.robot_id)
             return
         if event == Event.ERROR_MESSAGE:
             # The robot refused a frame: sending it again would be refused again.

@@ -6,7 +6,6 @@ import asyncio
 import json
 import secrets
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any, Literal
@@ -34,7 +33,8 @@ from teams.services import personal_organization
 from .access import API_TOKEN_PREFIX, BRIDGE_TICKET_PREFIX
 from .choices import RobotStatus
 from .models import ApiToken, BridgeTicket, Robot, hash_token, token_matches
-from .signals import cloud_relays_wanted, credentials_rotated, ros2_discovery_wanted, ros_master_wanted
+from .rotation import revoke_on_commit
+from .signals import cloud_relays_wanted, ros2_discovery_wanted, ros_master_wanted
 
 
 def create_robot(
@@ -57,78 +57,6 @@ def create_robot(
         robot.save(force_insert=True)
         record_event(f"Robot {robot_id} created", robot_id=robot_id, kind="robot_created")
     return robot, token
-
-
-def rotate_token(robot: Robot, *, grace_s: float = 0) -> str:
-    """Give a robot a new token that works at once; the old one works ``grace_s`` seconds more.
-
-    Without a grace the old token, and any connection made with it, end now (a leaked token);
-    with one, a connected robot stays connected and is given the new token over its connection
-    (``robot_rekey``); a robot offline meanwhile needs it handed over before the grace ends.
-    """
-    return _rotate(robot, grace_s)[0]
-
-
-@dataclass(frozen=True)
-class Rotated:
-    """A robot whose token was rotated: its new token, and whether it was sent to the robot's live connection."""
-
-    robot: Robot
-    token: str
-    sent_live: bool
-
-
-def rotate_tokens(robots: Iterable[Robot], *, grace_s: float) -> list[Rotated]:
-    """Rotate the tokens of a fleet with a grace, each robot in its own transaction (see ``rotate_token``)."""
-    return [Rotated(robot, *_rotate(robot, grace_s)) for robot in robots]
-
-
-def _rotate(robot: Robot, grace_s: float) -> tuple[str, bool]:
-    """Rotate a robot's token; return it and whether it goes to the robot's live connection."""
-    grace_until = timezone.now() + timedelta(seconds=grace_s) if grace_s > 0 else None
-    token = robot.issue_token(grace_until=grace_until)
-    with transaction.atomic():
-        channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot.id)
-        robot.save(update_fields=["token_hash", "previous_token_hash", "previous_token_until"])
-        if grace_until is None:
-            message = f"Token of robot {robot.id} rotated"
-        else:
-            message = f"Token of robot {robot.id} rotated; the old one works until {grace_until:%Y-%m-%d %H:%M:%S} UTC"
-        record_event(
-            message,
-            robot_id=robot.id,
-            kind="robot_token_rotated",
-            data={"grace_s": grace_s, "sent_live": bool(channel and grace_until)},
-        )
-        if grace_until is None:
-            credentials_rotated.send(sender=Robot, robot=robot)
-            _revoke_on_commit(channel)
-        else:
-            _rekey_on_commit(channel, token)
-    return token, bool(channel and grace_until)
-
-
-def _revoke_on_commit(channel: str) -> None:
-    """Close a robot's live connection once the change that revoked its credentials commits."""
-    if channel:
-        send = layer_sync(get_channel_layer().send)
-        transaction.on_commit(lambda: send(channel, {"type": "robot.revoked"}), robust=True)
-
-
-def _rekey_on_commit(channel: str, token: str) -> None:
-    """Give a robot's live connection its new token once the rotation commits (resent until the robot acks)."""
-    if channel:
-        send = layer_sync(get_channel_layer().send)
-        frame = protocol.encode(protocol.make(Event.ROBOT_REKEY, {"token": token}, now=time.time()))
-        transaction.on_commit(lambda: send(channel, {"type": "robot.rekey", "frame": frame}), robust=True)
-
-
-def record_rekeyed(robot_id: str) -> None:
-    """Log that a robot acknowledged its new token: it logs in with it from now on."""
-    with transaction.atomic():
-        record_event(
-            f"Robot {robot_id} took its new token over its connection", robot_id=robot_id, kind="robot_rekeyed"
-        )
 
 
 # --------------------------------------------------------------------------- connections
@@ -583,7 +511,7 @@ def delete_robot(robot: Robot) -> None:
     robot_id = robot.id
     with transaction.atomic():
         channel = Robot.objects.select_for_update().values_list("channel", flat=True).get(id=robot_id)
-        _revoke_on_commit(channel)
+        revoke_on_commit(channel)
         organization_id = robot.organization_id
         robot.delete()
         # Pushed live to its organization and staff: open dashboards drop the robot at once.

@@ -26,7 +26,7 @@ from teams.models import Organization
 from teams.roles import Right
 from teams.services import personal_organization
 
-from .. import access, services
+from .. import access, rotation, services
 from ..authentication import ApiTokenAuthentication, PasswordAuthentication
 from ..labels import selector_q
 from ..models import ApiToken, Robot
@@ -260,7 +260,7 @@ class RobotTokenView(APIView):
         robot = robot_of(request, robot_id, Right.ADMINISTER)
         form = RobotTokenRotateSerializer(data=request.data)
         form.is_valid(raise_exception=True)
-        token = services.rotate_token(robot, grace_s=form.validated_data["grace_s"])
+        token = rotation.rotate_token(robot, grace_s=form.validated_data["grace_s"])
         return Response({"token": token, "old_token_valid_until": robot.previous_token_until})
 
 

@@ -13,7 +13,8 @@ from django.db import connection
 
 from bridgeos_agent.skillconfig import load_sample_skill_config
 from robots.models import Robot
-from robots.services import create_robot, rotate_token
+from robots.rotation import rotate_token
+from robots.services import create_robot
 from skills.models import Component, Skill, SkillTemplate
 from skills.services import add_skill
 

@@ -17,7 +17,8 @@ from bridgeos_agent.firewall import RobotNetwork, cloud_rules, robot_rules
 from network import openvpn, pki, services
 from network.models import Authority, ClientCertificate, Revocation
 from robots.models import Robot
-from robots.services import create_robot, delete_robot, rotate_token
+from robots.rotation import rotate_token
+from robots.services import create_robot, delete_robot
 from tests.net import netns
 
 NOW = datetime(2026, 1, 1, tzinfo=UTC)

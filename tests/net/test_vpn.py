@@ -18,7 +18,8 @@ from django.contrib.auth import get_user_model
 
 from monitoring.models import Metric
 from network.models import Subnet
-from robots.services import create_robot, rotate_token
+from robots.rotation import rotate_token
+from robots.services import create_robot
 from tests.net import netns
 from tests.net.world import DEVICE, World, connects, network_settings, wait_until
 

@@ -12,7 +12,8 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from bridgeos_agent.skillconfig import parse_skill_config
 from robots.models import Robot, default_robot_config
-from robots.services import create_robot, issue_api_token, rotate_token
+from robots.rotation import rotate_token
+from robots.services import create_robot, issue_api_token
 from skills.models import Skill, SkillTemplate
 from skills.services import add_skill
 
