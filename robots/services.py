@@ -328,12 +328,7 @@ def connection_frame(event: Event, robot_id: str, reason: str | None = None) -> 
 
 def push_to_robot(robot_id: str, event: Event, data: dict[str, Any]) -> bool:
     """Send a frame to a connected robot, resent until it acks; return False if it is offline."""
-    channel = robot_channel(robot_id)
-    if channel is None:
-        return False
-    frame = protocol.encode(protocol.make(event, data, now=time.time()))
-    layer_sync(get_channel_layer().send)(channel, {"type": "robot.push", "frame": frame})
-    return True
+    return push_to_robots([(robot_id, event, data)]) == 1
 
 
 def push_to_robots(orders: list[tuple[str, Event, dict[str, Any]]]) -> int:

@@ -261,7 +261,7 @@ def _start_release(rollout: Rollout, stopped: list[tuple[RolloutRobot, Skill]], 
     one-by-one path (the components reconciled). One at a time, a batch of 400 held a tick for seconds.
     """
     config = rollout.release.config
-    placed = {cid: (c["location"], c.get("resources", {})) for cid, c in config["components"].items()}
+    placed = skills.placement(config)
     known: dict[int, dict[str, tuple[str, Any]]] = {}
     rows = Component.objects.filter(skill_id__in=[skill.pk for _, skill in stopped])
     for skill_pk, cid, location, resources in rows.values_list("skill_id", "component_id", "location", "resources"):

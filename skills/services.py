@@ -69,7 +69,7 @@ def set_skill_config(skill: Skill, config: dict[str, Any], *, stored: bool = Fal
     skill.config, skill.name = normalised, normalised["skill"]
     skill.save(update_fields=["config", "name", "updated_at"])
     wanted = normalised["components"]
-    placed = {cid: (c["location"], c.get("resources", {})) for cid, c in wanted.items()}
+    placed = placement(normalised)
     known_placed = {
         cid: (loc, res) for cid, loc, res in skill.components.values_list("component_id", "location", "resources")
     }
@@ -90,6 +90,11 @@ def set_skill_config(skill: Skill, config: dict[str, Any], *, stored: bool = Fal
             component.location, component.resources = spec["location"], spec.get("resources", {})
             component.save(update_fields=["location", "resources", "updated_at"])
     _tell_config(skill, normalised, tell)
+
+
+def placement(config: dict[str, Any]) -> dict[str, tuple[str, Any]]:
+    """Return which components a Skill config has, and where each may run with what resources."""
+    return {cid: (c["location"], c.get("resources", {})) for cid, c in config["components"].items()}
 
 
 def _tell_config(skill: Skill, config: dict[str, Any], tell: bool) -> None:

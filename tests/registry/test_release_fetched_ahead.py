@@ -18,7 +18,7 @@ from tests.rollouts.test_rollout_agents import tick_until
 
 from .test_docker_registry import PUSH_PROBE, run
 from .test_pinning import own_registry  # noqa: F401 (a fixture used by name)
-from .test_robot_pull import fleet, published, remove_robot_objects  # noqa: F401 (fixtures used by name)
+from .test_robot_pull import docker_agent, fleet, published, remove_robot_objects  # noqa: F401 (fixtures used by name)
 
 pytestmark = [pytest.mark.docker, pytest.mark.django_db(transaction=True), pytest.mark.log_errors(PUSH_PROBE)]
 
@@ -62,7 +62,7 @@ async def test_a_robot_downloads_the_release_while_its_old_version_runs_then_ins
     fleet,  # noqa: F811
     tmp_path,
 ):
-    from bridgeos_agent.controller import AgentSettings, RobotController
+    from bridgeos_agent.controller import RobotController
     from robots.services import push_to_robot
     from rollouts import executor
     from rollouts.models import RolloutRobot
@@ -72,16 +72,7 @@ async def test_a_robot_downloads_the_release_while_its_old_version_runs_then_ins
     old, new = published("alice/sleeper:1"), published("alice/sleeper:2")
     robot = fleet.alice_robot.name
     alice, skill = await owned(robot, sleeper(old))
-    settings = AgentSettings(
-        master=daphne_server.ws_url,
-        robot=robot,
-        token=fleet.alice_robot.secret,
-        data_dir=tmp_path / "agent",
-        runtime="docker",
-        simulate=True,
-        stop_components_on_exit=True,
-    )
-    controller = RobotController(settings)
+    controller = RobotController(docker_agent(daphne_server, fleet, tmp_path))
     task = asyncio.create_task(controller.run())
     try:
         await asyncio.wait_for(controller.config_from_cloud.wait(), 20)

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import tarfile
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -58,6 +59,21 @@ def published(registry, fleet, tmp_path):
 def fleet(daphne_server):
     """Alice, Bob and their robots (made outside the event loop: the tests are async)."""
     return make_fleet()
+
+
+def docker_agent(daphne_server, fleet, tmp_path) -> Any:
+    """The settings of Alice's robot's agent on the Docker runtime (simulated sensors), stopping its components at exit."""
+    from bridgeos_agent.controller import AgentSettings
+
+    return AgentSettings(
+        master=daphne_server.ws_url,
+        robot=fleet.alice_robot.name,
+        token=fleet.alice_robot.secret,
+        data_dir=tmp_path / "agent",
+        runtime="docker",
+        simulate=True,
+        stop_components_on_exit=True,
+    )
 
 
 def spec(robot: str, image: str, component: str = "hello") -> ComponentSpec:
@@ -184,7 +200,7 @@ async def test_an_agent_pulls_a_skills_image_as_it_is_added_tells_the_cloud_how_
 ):
     from asgiref.sync import sync_to_async
 
-    from bridgeos_agent.controller import AgentSettings, RobotController
+    from bridgeos_agent.controller import RobotController
     from bridgeos_agent.link import Link
     from bridgeos_agent.protocol import Event
     from robots.models import Robot
@@ -201,16 +217,7 @@ async def test_an_agent_pulls_a_skills_image_as_it_is_added_tells_the_cloud_how_
     }
     viewer = Link(daphne_server.ws_url + "/ws/client/")
     await viewer.connect(Event.AUTHENTICATION_CLIENT, {"token": fleet.alice_token.secret})
-    settings = AgentSettings(
-        master=daphne_server.ws_url,
-        robot=robot,
-        token=fleet.alice_robot.secret,
-        data_dir=tmp_path / "agent",
-        runtime="docker",
-        simulate=True,
-        stop_components_on_exit=True,
-    )
-    controller = RobotController(settings)
+    controller = RobotController(docker_agent(daphne_server, fleet, tmp_path))
     task = asyncio.create_task(controller.run())
     try:
         await asyncio.wait_for(controller.config_from_cloud.wait(), 20)
