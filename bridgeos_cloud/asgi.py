@@ -18,7 +18,9 @@ from django.conf import settings  # noqa: E402
 from bridgeos_cloud.handler import PooledASGIHandler  # noqa: E402
 from bridgeos_cloud.loopowned import close_loop_objects  # noqa: E402
 
-django_asgi_app = PooledASGIHandler(threads=settings.BRIDGEOS["HTTP_THREADS"])
+django_asgi_app = PooledASGIHandler(
+    threads=settings.BRIDGEOS["HTTP_THREADS"], write_threads=settings.BRIDGEOS["HTTP_WRITE_THREADS"]
+)
 
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
 

@@ -27,14 +27,17 @@ class PooledASGIHandler(ASGIHandler):
     hands its database connection back to the pool before the response is sent.
     """
 
-    def __init__(self, threads: int) -> None:
+    def __init__(self, threads: int, write_threads: int | None = None) -> None:
         super().__init__()
         # Rebuild the chain as plain sync code: the pool threads call it directly.
         self.load_middleware(is_async=False)
         pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="http")
         # Writes have a pool of their own: a command waits seconds for its robot's reply while
-        # holding its thread, and a burst of them must not leave reads queued behind.
-        write_pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="http-write")
+        # holding its thread, and a burst of them must not leave reads queued behind. A larger one:
+        # with as many threads as reads, commands to silent robots queued the next ones past their
+        # own wait, until the robot had left (409 after a minute instead of 504 after the wait).
+        # A waiting command holds no database connection (robots.api.commands.relay).
+        write_pool = ThreadPoolExecutor(max_workers=write_threads or threads, thread_name_prefix="http-write")
         # Through asgiref, so async_to_sync in a view (commands relayed over the channel
         # layer) runs on the server's event loop, not on a new loop per thread.
         self._in_pool = lambda function: sync_to_async(function, thread_sensitive=False, executor=pool)

@@ -340,6 +340,8 @@ BRIDGEOS = {
     "CLOUD_ROS_MASTER": env_str("BRIDGEOS_CLOUD_ROS_MASTER", ""),
     # Threads serving HTTP requests in each server process (each holds a pooled DB connection).
     "HTTP_THREADS": env_int("BRIDGEOS_HTTP_THREADS", 8),
+    # Threads serving HTTP writes: a command holds one while it waits on its robot, with no DB connection.
+    "HTTP_WRITE_THREADS": env_int("BRIDGEOS_HTTP_WRITE_THREADS", 64),
     # Robot state JSON kept per server process; every read revalidates it against the database.
     "STATE_CACHE_BYTES": env_int("BRIDGEOS_STATE_CACHE_BYTES", 64 * 1024 * 1024),
     # Cloud orchestration (skills.cloud): what runs cloud components and how robots reach them.

@@ -55,11 +55,12 @@ class Event(models.Model):
 
 
 class IngestedFrame(models.Model):
-    """A robot's `metrics` frame whose points were committed: written in the same transaction as them.
+    """A robot's acked frame whose effects were committed: written in the same transaction as them.
 
-    A robot resends a frame whose ack it never got (the cloud killed, a store restarted); with its
-    id here, committed with the rows, the resent copy is recognised and not stored twice, whatever
-    happened to the consumers' in-memory and Redis windows meanwhile.
+    Metrics frames claim their ids with their rows (ingest), every other report with what its
+    handler writes (`robots.dbthreads.sync`). A robot resends a frame whose ack it never got (the
+    cloud killed, a store restarted); with its id here the resent copy is recognised and not
+    applied twice, whatever happened to the consumers' in-memory and Redis windows meanwhile.
     """
 
     robot_id = models.CharField(max_length=64)

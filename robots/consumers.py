@@ -7,6 +7,7 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
+from contextlib import nullcontext
 from typing import Any
 
 from django.conf import settings
@@ -26,11 +27,11 @@ from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
 from skills.cloud.reporting import cloud_reports_for
-from skills.cloud.volumes import CloudVolumes, QuotaExceeded
+from skills.cloud.volumes import CloudVolumes
 
 from . import dedup, rotation, services
 from .bridges import RobotBridges, deliver, register_local
-from .dbthreads import sync
+from .dbthreads import AlreadyApplied, applying, sync
 from .dedup import applied_ids
 from .presence import get_presence
 
@@ -40,6 +41,7 @@ REQUEST_TTL = 120.0
 VOLUME_SCAN_S = 1.0
 CHUNK_WAIT_S = 30.0
 MAX_OPEN_REQUESTS = 1000
+OWN_DEDUP = frozenset({Event.METRICS, Event.VOLUME_CHANGES})
 CLOSE_REPLACED = 4009
 CLOSE_REVOKED = 4004
 # How the agent's encoder starts a bridge event: such frames skip the robot's report rate limit.
@@ -94,6 +96,7 @@ class RobotConsumer(ProtocolConsumer):
         self.volumes: CloudVolumes | None = None
         self.volume_scanner: asyncio.Future | None = None
         self.chunk_requests: dict[str, asyncio.Future[Envelope]] = {}
+        self.volume_writes: dict[str, set[asyncio.Future]] = {}  # per Skill: volume changes, and what waits on them
         self.bridges = RobotBridges("")
         register_local(self)
         await super().connect()
@@ -177,7 +180,12 @@ class RobotConsumer(ProtocolConsumer):
             await self.ack(envelope)
             return
         try:
-            ack_now = await self.handlers[event](self, envelope, payload)
+            # Metrics and volume changes are kept from applying twice by their own stores.
+            with applying(self.robot_id, envelope.id) if needs_ack and event not in OWN_DEDUP else nullcontext():
+                ack_now = await self.handlers[event](self, envelope, payload)
+        except AlreadyApplied:
+            prometheus.dedup_hit()
+            ack_now = True
         except NotFound as exc:
             self.dedup.forget(envelope.id)
             await self.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
@@ -526,54 +534,7 @@ async def on_authentication_again(consumer: RobotConsumer, envelope: Envelope, p
     return False
 
 
-@handles(Event.VOLUME_CHANGES)
-async def on_volume_changes(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
-    # Applied in the background (it asks the robot for chunks); acked once written.
-    consumer.scan_volumes()
-
-    async def apply() -> None:
-        try:
-            await consumer.volumes.receive(p, consumer.ask_chunks)
-        except NotFound as exc:
-            consumer.dedup.forget(envelope.id)
-            await consumer.fail(exc.message, reply_to=envelope.id, field=exc.field, code="not_found")
-        except QuotaExceeded as exc:
-            consumer.dedup.forget(envelope.id)
-            await consumer.fail(exc.message, reply_to=envelope.id, field=exc.field, code="quota_exceeded")
-        except Exception as exc:
-            consumer.dedup.forget(envelope.id)
-            log.warning("robot %s: volume %s/%s not synced: %s", consumer.robot_id, p.skill, p.volume, exc)
-            message = "volume changes not applied, send again later"
-            await consumer.fail(message, reply_to=envelope.id, code="unavailable")
-        else:
-            applied_ids().add(consumer.robot_id, envelope.id)
-            await consumer.ack_applied(envelope)
-
-    consumer.spawn(apply())
-    return False
-
-
-@handles(Event.VOLUME_CHUNKS_GET)
-async def on_volume_chunks_get(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
-    await consumer.answer(envelope, Event.VOLUME_CHUNKS, await consumer.volumes.chunks(p))
-    return False
-
-
-@handles(Event.VOLUME_CHUNKS)
-async def on_volume_chunks(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
-    # A late answer to a chunk request that timed out: nothing waits for it any more.
-    return False
-
-
 @handles(Event.BRIDGE_FRAME, Event.BRIDGE_CLOSE)
 async def on_bridge(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
     await consumer.bridges.from_robot(envelope.event, p)
     return False
-
-
-@handles(Event.COMPONENT_START, Event.COMPONENT_STOP)
-async def on_cloud_component_request(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
-    # The robot asks the cloud to run (or stop) the cloud side of a component.
-    action = "start" if envelope.event == Event.COMPONENT_START else "stop"
-    await sync(skills.request_cloud_component)(consumer.robot_id, p.skill, p.component, action)
-    return True

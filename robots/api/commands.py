@@ -7,6 +7,7 @@ from typing import Any
 
 from asgiref.sync import async_to_sync
 from django.conf import settings
+from django.db import connection
 from rest_framework import status
 from rest_framework.exceptions import ValidationError
 from rest_framework.request import Request
@@ -33,6 +34,12 @@ def wait_seconds(request: Request) -> float:
     return wait
 
 
+def release_connection() -> None:
+    """Give this thread's database connection back before waiting seconds on robots."""
+    if not connection.in_atomic_block:
+        connection.close()
+
+
 def _result(robot_id: str, event: Event, reply: Envelope) -> dict[str, Any]:
     return {
         "robot": robot_id,
@@ -44,6 +51,7 @@ def _result(robot_id: str, event: Event, reply: Envelope) -> dict[str, Any]:
 
 def relay(robot_id: str, event: Event, data: dict[str, Any], wait: float) -> Response:
     """Relay one command to a robot and answer with its reply, 409 if offline, 504 on timeout."""
+    release_connection()
     try:
         reply = async_to_sync(services.relay_command)(robot_id, event, data, wait=wait)
     except ProtocolError as exc:
@@ -73,5 +81,7 @@ def relay_to_fleet(robot_ids: list[str], event: Event, wait: float) -> Response:
 
     async def all_robots() -> list[dict[str, Any]]:
         return list(await asyncio.gather(*(one(robot_id) for robot_id in robot_ids)))
+
+    release_connection()
 
     return Response({"results": async_to_sync(all_robots)()})

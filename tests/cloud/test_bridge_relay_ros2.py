@@ -65,6 +65,8 @@ def ros2_robot(cloud: Server, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
         running.result(30)
         loop.stop()
         nodes.kill_all()
+        # Its disconnect written before the tables are flushed: the two deadlock otherwise.
+        wait_until(lambda: not Robot.objects.filter(connected=True).exists(), what="the robot recorded offline")
 
 
 def test_roslibpy_subscribes_and_calls_a_service_of_a_ros2_robot_through_the_cloud(cloud, ros2_robot) -> None:

@@ -41,3 +41,28 @@ async def test_reads_answer_at_once_while_more_commands_than_threads_wait_on_a_s
     # The robot never answers: commands time out (504), or find it gone once the test let it go (409).
     statuses = sorted(answer.status_code for answer in answers)
     assert statuses.count(504) >= 8 and set(statuses) <= {504, 409}, statuses
+
+
+async def test_a_command_answers_after_its_wait_while_more_commands_than_read_threads_wait_on_another_robot(
+    daphne_server,
+):
+    owner, key = await make_owner("pools2")
+    silent = await robot_link(daphne_server, "silent-a", await make_robot(owner, "silent-a"))
+    other = await robot_link(daphne_server, "silent-b", await make_robot(owner, "silent-b"))
+    silent.auto_ack = other.auto_ack = False
+    try:
+        async with async_client(daphne_server, key) as http:
+            # Half again as many as the server's 8 read threads, each waiting 6 s on robot a.
+            waiting = [asyncio.create_task(http.post("/api/robot/silent-a/stop?wait=6", timeout=60)) for _ in range(12)]
+            await asyncio.sleep(0.5)
+            started = time.monotonic()
+            answer = await http.post("/api/robot/silent-b/stop?wait=1", timeout=60)
+            elapsed = time.monotonic() - started
+            statuses = [response.status_code for response in await asyncio.gather(*waiting)]
+    finally:
+        await silent.close()
+        await other.close()
+    # Robot b answered nothing: 504 once its own wait is over, not once a thread came free.
+    assert answer.status_code == 504, answer.text
+    assert elapsed < 2.5, f"a 1 s command answered after {elapsed:.1f} s"
+    assert statuses == [504] * 12

@@ -228,6 +228,8 @@ class Placement:
         """Forward a cloud-side launch to the cloud; with ``wait``, return once it runs there, raise if not."""
         controller = self.controller
         data = {"skill": record.config.skill_id, "component": name, "location": "cloud"}
+        # The Skill's volumes as they are now go ahead of the start: the cloud starts the copy once written.
+        await controller.volumes.flush(record.config.skill_id)
         if wait is None:
             record.locations[name] = "cloud"
             self._route_first(record, name, "cloud")

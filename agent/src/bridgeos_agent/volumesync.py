@@ -306,6 +306,7 @@ class VolumeSync:
         self._unreachable: set[tuple[str, str]] = set()
         self._failures: dict[tuple[str, str], LogOnce] = {}  # per volume: a scan failing every second is said once
         self.chunks_sent = 0  # chunks read for the cloud: what volume sync cost in data
+        self._scanning: dict[tuple[str, str], Any] = {}  # one scan of a volume at a time (its index)
 
     async def run(self) -> None:
         """Scan the volumes of every running Skill that may have a cloud copy, for as long as the agent runs."""
@@ -325,6 +326,13 @@ class VolumeSync:
                     continue
                 for volume in record.config.volumes:
                     await self._sync(skill_id, volume)
+
+    async def flush(self, skill_id: str) -> None:
+        """Send a Skill's volume changes now: a cloud copy about to start reads them first."""
+        record = self.host.skills.get(skill_id)
+        if record is not None and self.host.settings.volume_sync_interval > 0:
+            for volume in record.config.volumes:
+                await self._sync(skill_id, volume)
 
     async def _sync(self, skill_id: str, volume: str) -> None:
         """Announce one volume's changes; a failure is said once until it syncs again, and retried next scan."""
@@ -347,9 +355,11 @@ class VolumeSync:
         replica = await self.replica(skill_id, volume)
         if replica is None:
             return 0
-        changes = await asyncio.to_thread(replica.scan)
-        for batch in change_frames(changes):
-            await self.host.emit(Event.VOLUME_CHANGES, {"skill": skill_id, "volume": volume, "changes": batch})
+        lock = self._scanning.setdefault((skill_id, volume), asyncio.Lock())
+        async with lock:
+            changes = await asyncio.to_thread(replica.scan)
+            for batch in change_frames(changes):
+                await self.host.emit(Event.VOLUME_CHANGES, {"skill": skill_id, "volume": volume, "changes": batch})
         return len(changes)
 
     async def receive(self, payload: Any) -> int:
