@@ -12,6 +12,7 @@ from typing import Any
 from channels.db import database_sync_to_async
 from django.conf import settings
 from django.db import connection, transaction
+from django.utils import timezone
 
 from monitoring.models import IngestedFrame
 
@@ -19,7 +20,8 @@ _REPORT_THREADS: ThreadPoolExecutor | None = None
 # The acked frame whose handler is running: its database work claims the frame's id as it commits.
 _APPLYING: ContextVar[tuple[str, str] | None] = ContextVar("applying_frame", default=None)
 _CLAIM_SQL = (
-    f"INSERT INTO {IngestedFrame._meta.db_table} (robot_id, frame_id, created) VALUES (%s, %s, now()) "
+    # Plain SQL both PostgreSQL and SQLite (make run's) take; the time from Python, not the SQL dialect.
+    f"INSERT INTO {IngestedFrame._meta.db_table} (robot_id, frame_id, created) VALUES (%s, %s, %s) "
     "ON CONFLICT DO NOTHING RETURNING 1"
 )
 
@@ -66,7 +68,7 @@ def _once(frame: tuple[str, str], function: Callable[..., Any], *args: Any, **kw
     # let a resent copy through. The id committed with the frame's effects closes that gap.
     with transaction.atomic():
         with connection.cursor() as cursor:
-            cursor.execute(_CLAIM_SQL, list(frame))
+            cursor.execute(_CLAIM_SQL, [*frame, timezone.now()])
             if cursor.fetchone() is None:
                 raise AlreadyApplied(frame[1])
         return function(*args, **kwargs)
