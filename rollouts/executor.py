@@ -244,7 +244,12 @@ def _install(rollout: Rollout, member: RolloutRobot, skill: Skill | None, now: d
 
 def _stop_then_start(rollout: Rollout, member: RolloutRobot, skill: Skill | None, now: datetime) -> None:
     """Stop the version the robot runs (the next steps start the release once it stopped), or start at once."""
-    if skill is not None and skill.status in (SkillStatusName.RUNNING, SkillStatusName.STARTING):
+    beside = rollout.release.config.get("update", {}).get("strategy") == "beside"
+    if beside and skill is not None and skill.status == SkillStatusName.RUNNING:
+        # The Skill's own choice: the robot starts the release beside the running version, and stops
+        # the old copies once the new ones run (or replaces it, when it cannot afford both).
+        _start(rollout.release.config, member, now)
+    elif skill is not None and skill.status in (SkillStatusName.RUNNING, SkillStatusName.STARTING):
         member.step = "stopping"
         Skill.objects.filter(pk=skill.pk).update(status=SkillStatusName.STOPPING)
         _push(member.robot_id, Event.SKILL_STOP, {"skill": skill.skill_id})

@@ -27,6 +27,7 @@ from bridgeos_agent.bridges.recorder import Recordings
 from bridgeos_agent.bridges.relay import BridgeRelay
 from bridgeos_agent.cloudrole import CloudRole
 from bridgeos_agent.delivery import DeliveryRates
+from bridgeos_agent.handover import hand_over
 from bridgeos_agent.logonce import LogOnce
 from bridgeos_agent.metrics import AgentMetrics
 from bridgeos_agent.monitor import RESOURCES, Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
@@ -425,13 +426,16 @@ class RobotController:
     async def start_skill(self, config: SkillConfig, *, starting: Iterable[str] | None = None) -> SkillRecord:
         """Launch a Skill: place each component (Algorithm 1) and start it where it goes."""
         record = self.skills.get(config.skill_id)
+        if record is not None and record.status == SS.RUNNING and config.update.strategy == "beside":
+            if record.config != config and starting is None:
+                return await hand_over(self, record, config)
         if record is None:
             record = self.skills[config.skill_id] = SkillRecord(config=config)
         else:
             record.config = config
         for component in config.components:
             record.locations.setdefault(component, None)
-        await self._set_skill_status(record, SS.STARTING)
+        await self.set_skill_status(record, SS.STARTING)
         if record.supervisor is None:
             record.supervisor = SkillSupervisor(
                 config.skill_id, on_failure=functools.partial(self._plugin_failed, record)
@@ -452,22 +456,22 @@ class RobotController:
             f"{name}: {result}" for name, result in zip(names, results, strict=True) if isinstance(result, Exception)
         ]
         if failures and len(failures) == len(names):
-            await self._set_skill_status(record, SS.FAILED, "; ".join(failures)[:1900])
+            await self.set_skill_status(record, SS.FAILED, "; ".join(failures)[:1900])
         else:
-            await self._set_skill_status(record, SS.RUNNING, "; ".join(failures)[:1900] or None)
+            await self.set_skill_status(record, SS.RUNNING, "; ".join(failures)[:1900] or None)
         return record
 
     async def stop_skill(self, skill_id: str) -> None:
         """Stop a Skill's components on the robot and in the cloud."""
         record = find_skill(self.skills, skill_id)
-        await self._set_skill_status(record, SS.STOPPING)
+        await self.set_skill_status(record, SS.STOPPING)
         await self.placement.stop_components(record, list(record.config.components))
         if record.supervisor is not None:
             await record.supervisor.close()
             record.supervisor = None
-        await self._set_skill_status(record, SS.STOPPED)
+        await self.set_skill_status(record, SS.STOPPED)
 
-    async def _set_skill_status(self, record: SkillRecord, status: SS, message: str | None = None) -> None:
+    async def set_skill_status(self, record: SkillRecord, status: SS, message: str | None = None) -> None:
         record.status = status
         data: dict[str, Any] = {"skill": record.config.skill_id, "status": str(status)}
         if message:
@@ -476,7 +480,7 @@ class RobotController:
         self.save_soon()
 
     def _plugin_failed(self, record: SkillRecord, name: str, message: str) -> None:
-        self.spawn(self._set_skill_status(record, SS.FAILED, message))
+        self.spawn(self.set_skill_status(record, SS.FAILED, message))
 
     # ------------------------------------------------------------------ components (placement's doors)
 

@@ -71,6 +71,7 @@ __all__ = [
     "ServiceRoute",
     "SkillConfig",
     "TopicRoute",
+    "UpdateConfig",
     "config_issues",
     "load_sample_skill_config",
     "parse_skill_config",
@@ -278,6 +279,28 @@ class ComponentConfig(StrictModel):
         return self.robot if location == "robot" else self.cloud
 
 
+class UpdateConfig(StrictModel):
+    """Say how a new version of the Skill takes over from the running one on a robot (balena's update strategies)."""
+
+    strategy: Literal["replace", "beside"] = Field(
+        default="replace",
+        description=(
+            "replace: the running version stops, then the new one starts. beside: the new version's robot "
+            "components start beside the running ones, which stop once the new ones run (a hand-over), where "
+            "the robot has the memory for both; else it replaces."
+        ),
+    )
+    settle_s: float = Field(
+        default=2.0,
+        ge=0,
+        le=300,
+        description=(
+            "beside: how long every new component must run, with no crash or restart, before the old "
+            "copies stop; a new version that does not puts the old copies back."
+        ),
+    )
+
+
 class SkillConfig(StrictModel):
     """Validate a whole Skill configuration file (thesis Table 4.1)."""
 
@@ -296,6 +319,7 @@ class SkillConfig(StrictModel):
     )
     manager: ManagerConfig = Field(default_factory=ManagerConfig)
     router: RouterConfig = Field(default_factory=RouterConfig)
+    update: UpdateConfig = Field(default_factory=UpdateConfig)
     components: dict[Slug, ComponentConfig] = Field(
         min_length=1, description="Components of the Skill, keyed by component id."
     )

@@ -148,6 +148,16 @@ class ComponentGroup:
         self.directories = dict(directories)  # controller -> directory ("" for v2)
         self.limits = limits
 
+    def rename(self, suffix: str, *, back: bool = False) -> None:
+        """Move the group, its processes with it, to its name plus ``suffix`` (or back from there)."""
+        moved = {}
+        for key, directory in self.directories.items():
+            target = directory.with_name(directory.name.removesuffix(suffix) if back else directory.name + suffix)
+            with contextlib.suppress(FileNotFoundError):
+                target.rmdir()  # an empty group left there (a launch that failed, an agent killed): never a live one
+            moved[key] = directory.rename(target)
+        self.directories = moved
+
     def create(self) -> None:
         """Make the group (idempotent) and write its limits."""
         for directory in self.directories.values():

@@ -52,7 +52,6 @@ from bridgeos_agent.runtime.base import (
     ComponentSpec,
     ComponentState,
     RestartBudget,
-    RestartPolicy,
     RuntimeFailure,
     Status,
     StatusCallback,
@@ -62,7 +61,7 @@ from bridgeos_agent.runtime.base import (
 from bridgeos_agent.runtime.engine import LABEL_ROBOT, DeathFollower, Deaths, open_client
 from bridgeos_agent.runtime.images import ImagePuller, Progress, RegistryLogin
 from bridgeos_agent.runtime.lifecycle import Supervised, SupervisedRuntime
-from bridgeos_agent.runtime.usage import MIB, docker_usage, get_json
+from bridgeos_agent.runtime.usage import MIB, docker_usage, get_json, policy_from_label, sample_stats
 
 __all__ = ["LABEL_MANAGED", "LABEL_ROBOT", "MIN_CPUS", "MIN_MEMORY", "VOLUMES_MOUNT", "DockerRuntime"]
 
@@ -237,7 +236,7 @@ class DockerRuntime(SupervisedRuntime[_Container]):
                     restarts=int(entry.get("restarts") or 0) if same else 0,
                     started_at=(entry.get("started_at") if same else None) or float(container.get("Created", 0)),
                 ),
-                budget=RestartBudget(_policy_from_label(labels.get(LABEL_RESTART))),
+                budget=RestartBudget(policy_from_label(labels.get(LABEL_RESTART))),
                 container_id=container_id,
                 exited=self._deaths.expect(container_id),
             )
@@ -483,7 +482,7 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         # later, whatever one_shot says; so ask for all containers at once, straight on
         # the unix socket, rather than a pool's worth of threads per second.
         if self._socket_path is None:
-            return await self._call(_sample_stats, api, container_id)
+            return await self._call(sample_stats, api, container_id)
         url = f"/v{api.api_version}/containers/{container_id}/stats?stream=0&one-shot=1"
         async with self._stats_slots:
             raw = await get_json(self._socket_path, url)
@@ -576,23 +575,14 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         """Return the container's command (docker-init runs it: a missing one shows as exit 127)."""
         return rec.command
 
+    async def _aside(self, rec: _Container, aside: bool) -> None:
+        """Rename the container, so that a new version's can take its name (or take the name back)."""
+        if rec.container_id is not None:
+            name = self.container_name(rec.state.skill, rec.state.component)
+            api = await self._connect()
+            await self._call(api.rename, rec.container_id, f"{name}-aside" if aside else name)
+
     async def _end(self, rec: _Container, timeout: float) -> None:
         """Stop and remove the container."""
         if rec.container_id is not None:
             rec.state.exit_code = await self._stop_container(rec.container_id, timeout)
-
-
-def _policy_from_label(text: str | None) -> RestartPolicy:
-    """Read the restart policy a container was created with."""
-    if not text:
-        return RestartPolicy()
-    try:
-        return RestartPolicy(**json.loads(text))
-    except (TypeError, ValueError):
-        return RestartPolicy()
-
-
-def _sample_stats(api: APIClient, container_id: str) -> tuple[dict[str, Any], float]:
-    """Take one stats sample without Docker's one-second second sample."""
-    raw = api.stats(container_id, stream=False, one_shot=True)
-    return raw, time.time()

@@ -69,6 +69,7 @@ class SupervisedRuntime(Runtime, Generic[R]):
     ) -> None:
         super().__init__(robot, data_dir=data_dir, on_status=on_status)
         self._records: dict[tuple[str, str], R] = {}
+        self._set_aside: list[R] = []  # old copies running beside their new ones (set_aside)
         self._rng = rng  # None: the random module's own generator
 
     # --- what a backend says -------------------------------------------------------------
@@ -104,6 +105,9 @@ class SupervisedRuntime(Runtime, Generic[R]):
     @abstractmethod
     async def _read_logs(self, skill: str, component: str, tail: int) -> list[str]:
         """Return the last ``tail`` (> 0) lines a component wrote."""
+
+    async def _aside(self, rec: R, aside: bool) -> None:
+        """Free the name a running component holds (a container's), or take it back."""
 
     def _guard(self, rec: R) -> AbstractAsyncContextManager[Any]:
         """Return what serialises the operations on one component (nothing by default)."""
@@ -192,6 +196,39 @@ class SupervisedRuntime(Runtime, Generic[R]):
             return []
         return await self._read_logs(skill, component, tail)
 
+    can_set_aside = True
+
+    async def set_aside(self, skill: str, component: str) -> R | None:
+        """Keep a running component running but out of its name's way (see Runtime.set_aside)."""
+        rec = self._records.get((skill, component))
+        if rec is None or rec.state.status is not Status.RUNNING or rec.stop_done is not None:
+            return None
+        async with self._guard(rec):
+            if rec.supervisor is not None:
+                # Its exit (the hand-over's stop, a ROS name clash) is no crash to relaunch.
+                rec.supervisor.cancel()
+                await asyncio.wait([rec.supervisor])
+                rec.supervisor = None
+            await self._aside(rec, True)
+        del self._records[(skill, component)]
+        self._set_aside.append(rec)
+        return rec
+
+    async def stop_aside(self, aside: R, timeout: float = 10.0) -> None:
+        """End a copy set aside, unreported."""
+        async with self._guard(aside):
+            await self._end(aside, timeout)
+            await self._finished(aside)
+        self._set_aside.remove(aside)
+
+    async def restore_aside(self, aside: R) -> None:
+        """Put a copy set aside back under its name and supervise it again."""
+        async with self._guard(aside):
+            await self._aside(aside, False)
+        self._set_aside.remove(aside)
+        self._records[(aside.state.skill, aside.state.component)] = aside
+        self._watch(aside)
+
     def get_state(self) -> dict[str, Any]:
         """Return what a restarted agent needs to re-adopt the running components."""
         components = []
@@ -214,6 +251,7 @@ class SupervisedRuntime(Runtime, Generic[R]):
         """Stop supervising; stop the components too if asked, else leave them running."""
         if stop_components:
             await asyncio.gather(*(self.stop(*key) for key, rec in self._records.items() if rec.state.status in ACTIVE))
+            await asyncio.gather(*(self.stop_aside(rec) for rec in list(self._set_aside)))
         tasks = [rec.supervisor for rec in self._records.values() if rec.supervisor is not None]
         tasks += self._background()
         for task in tasks:

@@ -301,6 +301,17 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         if rec.group is not None:
             await rec.group.remove()
 
+    async def _aside(self, rec: _Component, aside: bool) -> None:
+        """Move the component's control group out of the way of a new version's (or back)."""
+        if rec.group is None:
+            return
+        try:
+            rec.group.rename(".aside", back=not aside)
+        except OSError as exc:
+            # Shared with the new version's then: its limits hold both, and it is left in place at the stop.
+            logger.warning("control group of %s/%s not set aside: %s", rec.spec.skill, rec.spec.component, exc)
+            rec.group = None
+
     async def _finished(self, rec: _Component) -> None:
         """Delete the control group of a component that will not be relaunched."""
         if rec.group is not None:

@@ -9,15 +9,16 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import time
 from collections import defaultdict
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import psutil
 
-from bridgeos_agent.runtime.base import RuntimeFailure, Usage
+from bridgeos_agent.runtime.base import RestartPolicy, RuntimeFailure, Usage
 
-__all__ = ["MIB", "CpuSeen", "cpu_share", "docker_usage", "get_json", "measure"]
+__all__ = ["MIB", "CpuSeen", "cpu_share", "docker_usage", "get_json", "measure", "policy_from_label", "sample_stats"]
 
 MIB = 1024 * 1024
 
@@ -144,3 +145,19 @@ def _children_map() -> Callable[[int], list[int]]:
     for process in psutil.process_iter(["ppid"]):
         children[process.info["ppid"]].append(process.pid)
     return lambda pid: children.get(pid, [])
+
+
+def policy_from_label(text: str | None) -> RestartPolicy:
+    """Read the restart policy a container was created with."""
+    if not text:
+        return RestartPolicy()
+    try:
+        return RestartPolicy(**json.loads(text))
+    except (TypeError, ValueError):
+        return RestartPolicy()
+
+
+def sample_stats(api: Any, container_id: str) -> tuple[dict[str, Any], float]:
+    """Take one stats sample of a container without Docker's one-second second sample."""
+    raw = api.stats(container_id, stream=False, one_shot=True)
+    return raw, time.time()
