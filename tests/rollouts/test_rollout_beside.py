@@ -31,10 +31,10 @@ from tests.rollouts.test_rollout_agents import (
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
-# Notes "VERSION start NS" and, told to stop, "VERSION stop NS"; serves in between.
+# Notes "VERSION start NS" (its stop trap set by then) and, told to stop, "VERSION stop NS"; serves in between.
 NOTING = (
-    'f="$BRIDGEOS_VOLUMES/data/lives.log"; echo "VERSION start $(date +%s%N)" >> "$f"; '
-    'trap \'echo "VERSION stop $(date +%s%N)" >> "$f"; exit 0\' TERM; while true; do sleep 0.05; done'
+    'f="$BRIDGEOS_VOLUMES/data/lives.log"; trap \'echo "VERSION stop $(date +%s%N)" >> "$f"; exit 0\' TERM; '
+    'echo "VERSION start $(date +%s%N)" >> "$f"; while true; do sleep 0.05; done'
 )
 
 
@@ -78,9 +78,14 @@ def fleet_of(count: int, config: dict[str, Any]) -> tuple[Any, list[tuple[str, s
     return owner, robots
 
 
-async def old_version_reported(robots: list[tuple[str, str]]) -> None:
-    """Wait until the cloud has heard every robot's old version run: a rollout reads it to choose beside."""
+async def old_version_reported(robots: list[tuple[str, str]], controllers: list[RobotController]) -> None:
+    """Wait until every old version noted its start and the cloud heard it run (a rollout reads that to choose)."""
     from skills.models import Skill
+
+    for _ in range(100):
+        if all(("v1", "start") in lives(c) for c in controllers):
+            break
+        await asyncio.sleep(0.05)
 
     ids = [robot_id for robot_id, _ in robots]
     for _ in range(100):
@@ -107,7 +112,7 @@ async def test_a_release_starts_beside_the_running_version_and_the_old_one_stops
     async with agents(cloud, robots, tmp_path) as controllers:
         await old_version_running(robots)
         await running_everywhere(controllers, "v1")
-        await old_version_reported(robots)
+        await old_version_reported(robots, controllers)
         rollout = await start_rollout(owner, made, "site=lab", strategy={"first": 1, "soak_s": 1, "pause_s": 0})
         done = await tick_until(rollout.id, {"succeeded", "rolled_back", "paused"}, timeout=90)
         assert done.state == "succeeded", done.reason
@@ -129,13 +134,13 @@ async def test_a_robot_without_room_for_both_versions_replaces_the_running_one(c
     async with agents(cloud, robots, tmp_path) as controllers:
         await old_version_running(robots)
         await running_everywhere(controllers, "v1")
-        await old_version_reported(robots)
+        await old_version_reported(robots, controllers)
         rollout = await start_rollout(owner, made, "site=lab", strategy={"first": 1, "soak_s": 1})
         done = await tick_until(rollout.id, {"succeeded", "rolled_back", "paused"}, timeout=90)
         assert done.state == "succeeded", done.reason
         await running_everywhere(controllers, "v2", timeout=5)
         life = lives(controllers[0])
-        assert life[("v1", "stop")] < life[("v2", "start")], life
+        assert life.get(("v1", "stop"), float("inf")) < life.get(("v2", "start"), 0), life
     assert "the new version replaces the running one: the robot cannot run both versions at once (ram" in caplog.text
 
 
