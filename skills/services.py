@@ -146,7 +146,7 @@ def _announce(robot_id: str, event: Event, data: dict[str, Any]) -> None:
 
 def report_skill_status(robot_id: str, skill_id: str, status: str, message: str | None = None) -> None:
     """Record the status a robot reports for one of its skills."""
-    with transaction.atomic():
+    with transaction.atomic(savepoint=False):  # no savepoint inside a frame's claim (robots.dbthreads)
         # One UPDATE in SQL (its row lock as a SELECT FOR UPDATE's), as a component's status is.
         with connection.cursor() as cursor:
             cursor.execute(
@@ -191,7 +191,7 @@ def report_component_status(
     robot_id: str, skill_id: str, component_id: str, status: str, location: str | None, message: str | None = None
 ) -> None:
     """Record the status a robot reports for a component."""
-    with transaction.atomic():
+    with transaction.atomic(savepoint=False):
         # The reason goes with the status it explains: a component that runs again has none.
         if not _set_component_status(robot_id, skill_id, component_id, status, message or "", location):
             _skill(robot_id, skill_id)
@@ -216,7 +216,7 @@ def report_component_status(
 
 def report_component_location(robot_id: str, skill_id: str, component_id: str, location: str) -> None:
     """Record where a component now runs."""
-    with transaction.atomic():
+    with transaction.atomic(savepoint=False):
         component = _component(robot_id, skill_id, component_id)
         if component.location not in (location, Location.EITHER):
             raise NotFound(
@@ -243,7 +243,7 @@ def report_component_information(
 ) -> None:
     """Record what a robot reports about a component's container."""
     container = storable(container)  # the robot's own text: a NUL in it must not fail the frame
-    with transaction.atomic():
+    with transaction.atomic(savepoint=False):
         component = _component(robot_id, skill_id, component_id)
         previous = component.container.get(location) or {}
         running = component.status == ComponentStatusName.RUNNING and component.active_location == location
@@ -267,7 +267,7 @@ def _fetched_ahead(container: dict[str, Any]) -> bool:
 def report_offloading_decision(robot_id: str, decision: OffloadingDecision) -> None:
     """Log a move a Skill Manager decided (and how it went), and show it to clients."""
     data = decision.model_dump(mode="json", exclude={"robot"})
-    with transaction.atomic():
+    with transaction.atomic(savepoint=False):
         _component(robot_id, decision.skill, decision.component)
         moved = decision.outcome == "moved"
         where = f"component {decision.component} from the {decision.location} to the {decision.target}"
@@ -287,7 +287,7 @@ def report_offloading_decision(robot_id: str, decision: OffloadingDecision) -> N
 
 def report_skill_connect(robot_id: str, skill_id: str, manager_url: str | None) -> None:
     """Record that a Skill Manager connected to its Robot Controller."""
-    with transaction.atomic():
+    with transaction.atomic(savepoint=False):
         _skill(robot_id, skill_id)
         record_event(
             f"Manager of skill {skill_id} connected",
