@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import SkillStatusName as SS
+from bridgeos_agent.runtime.lifecycle import SupervisedRuntime
 from bridgeos_agent.skillconfig import SkillConfig
 
 if TYPE_CHECKING:
@@ -29,7 +30,7 @@ __all__ = ["hand_over", "why_not_beside"]
 
 def why_not_beside(controller: RobotController, record: SkillRecord, config: SkillConfig) -> str | None:
     """Say why the new version cannot start beside the running one here, or None when it can."""
-    if not getattr(controller.runtime, "can_set_aside", False):
+    if not isinstance(controller.runtime, SupervisedRuntime):
         return f"the {controller.runtime.name} runtime cannot run two copies of a component"
     old = record.config
     if (old.router, old.manager) != (config.router, config.manager):
@@ -49,7 +50,8 @@ async def hand_over(controller: RobotController, record: SkillRecord, config: Sk
     """Start the new version beside the running one and stop the old copies once it runs (or replace)."""
     skill_id = config.skill_id
     reason = why_not_beside(controller, record, config)
-    if reason is not None:
+    runtime = controller.runtime
+    if reason is not None or not isinstance(runtime, SupervisedRuntime):
         controller.say(f"skill {skill_id}: the new version replaces the running one: {reason}")
         await controller.stop_skill(skill_id)
         return await controller.start_skill(config)
@@ -57,7 +59,7 @@ async def hand_over(controller: RobotController, record: SkillRecord, config: Sk
     aside: dict[str, Any] = {}
     for name, where in old_locations.items():
         if where == "robot":
-            copy = await controller.runtime.set_aside(skill_id, name)
+            copy = await runtime.set_aside(skill_id, name)
             if copy is not None:
                 aside[name] = copy
                 record.locations[name] = None
@@ -73,12 +75,12 @@ async def hand_over(controller: RobotController, record: SkillRecord, config: Sk
     if not failed:
         failed = await _unsettled(controller, record, config.update.settle_s)
     if failed:
-        await _keep_the_old_version(controller, record, old_config, old_locations, aside)
+        await _keep_the_old_version(controller, runtime, record, old_config, old_locations, aside)
         message = f"the new version did not start ({'; '.join(failed)}); the old version runs on"
         await controller.set_skill_status(record, SS.FAILED, message[:1900])
         return record
     for copy in aside.values():
-        await controller.runtime.stop_aside(copy)
+        await runtime.stop_aside(copy)
     await controller.set_skill_status(record, SS.RUNNING)
     controller.say(f"skill {skill_id}: the new version took over from the old one, started beside it")
     controller.save_soon()
@@ -105,6 +107,7 @@ async def _unsettled(controller: RobotController, record: SkillRecord, settle_s:
 
 async def _keep_the_old_version(
     controller: RobotController,
+    runtime: SupervisedRuntime[Any],
     record: SkillRecord,
     old_config: SkillConfig,
     old_locations: dict[str, str | None],
@@ -116,7 +119,7 @@ async def _keep_the_old_version(
     record.config = old_config
     record.locations = dict.fromkeys(old_config.components)
     for name, copy in aside.items():
-        await controller.runtime.restore_aside(copy)
+        await runtime.restore_aside(copy)
         record.locations[name] = "robot"
         await controller.placement.set_status(record, name, CS.RUNNING, "robot")
     for name, where in old_locations.items():

@@ -234,24 +234,6 @@ class Runtime(ABC):
     async def close(self, stop_components: bool = False) -> None:
         """Release the runtime; components keep running unless ``stop_components``."""
 
-    can_set_aside: ClassVar[bool] = False  # whether set_aside can keep a copy running beside a new one
-
-    async def set_aside(self, skill: str, component: str) -> Any | None:
-        """Keep a running component running but out of its name's way; None when this runtime cannot.
-
-        A new version then starts under the name; the copy set aside is no longer supervised,
-        reported or saved, and ends with `stop_aside` (or comes back with `restore_aside`).
-        """
-        return None
-
-    async def stop_aside(self, aside: Any, timeout: float = 10.0) -> None:
-        """End a copy set aside."""
-        raise NotImplementedError(f"the {self.name} runtime sets nothing aside")
-
-    async def restore_aside(self, aside: Any) -> None:
-        """Put a copy set aside back under its name, supervised again (the name must be free)."""
-        raise NotImplementedError(f"the {self.name} runtime sets nothing aside")
-
     def _notify(self, state: ComponentState) -> None:
         """Tell the owner about a status change without letting its errors reach us."""
         if self.on_status is None:

@@ -196,10 +196,12 @@ class SupervisedRuntime(Runtime, Generic[R]):
             return []
         return await self._read_logs(skill, component, tail)
 
-    can_set_aside = True
-
     async def set_aside(self, skill: str, component: str) -> R | None:
-        """Keep a running component running but out of its name's way (see Runtime.set_aside)."""
+        """Keep a running component running but out of its name's way; None when none runs.
+
+        A new version then starts under the name; the copy set aside is no longer supervised,
+        reported or saved, and ends with `stop_aside` (or comes back with `restore_aside`).
+        """
         rec = self._records.get((skill, component))
         if rec is None or rec.state.status is not Status.RUNNING or rec.stop_done is not None:
             return None
