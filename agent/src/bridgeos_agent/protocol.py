@@ -45,9 +45,14 @@ __all__ = [
     "BRIDGE_KINDS",
     "BRIDGE_PART_CHARS",
     "COMMANDS",
+    "CRASH_LOG_LINES",
     "DIRECTIONS",
     "EVENTS",
+    "LOG_LEVELS",
     "MAX_FRAME_BYTES",
+    "MAX_LOG_LINES_PER_FRAME",
+    "MAX_LOG_LINE_CHARS",
+    "MAX_LOG_TAIL",
     "MAX_METRICS_PER_FRAME",
     "PAYLOADS",
     "RECORDING_CHUNK_BYTES",
@@ -63,6 +68,8 @@ __all__ = [
     "BridgeFrame",
     "BridgeOpen",
     "ComponentInformation",
+    "ComponentLogs",
+    "ComponentLogsGet",
     "ComponentLocation",
     "ComponentMigrate",
     "ComponentStart",
@@ -82,6 +89,9 @@ __all__ = [
     "ErrorMessage",
     "Event",
     "IdGenerator",
+    "LogLine",
+    "LogsSubscribe",
+    "LogsUnsubscribe",
     "Location",
     "MetricPoint",
     "MetricsGet",
@@ -138,6 +148,8 @@ __all__ = [
 
 MAX_FRAME_BYTES = 1_048_576
 MAX_METRICS_PER_FRAME = 10_000
+# The lines of its log a crashed component's status report and event carry.
+CRASH_LOG_LINES = 50
 # The longest a robot's updates may be held (a rollout installs past the deadline anyway).
 MAX_HOLD_S = 7 * 24 * 3600.0
 
@@ -205,6 +217,11 @@ class Event(enum.StrEnum):
     ROBOT_REKEY = "robot_rekey"
     # rollouts: a component holds its robot's updates while it is busy (the Components API's /hold).
     UPDATE_HOLD = "update_hold"
+    # component logs: what components print, shipped by robots, kept by the cloud, tailed by clients (issue 36).
+    COMPONENT_LOGS = "component_logs"
+    COMPONENT_LOGS_GET = "component_logs_get"
+    LOGS_SUBSCRIBE = "logs_subscribe"
+    LOGS_UNSUBSCRIBE = "logs_unsubscribe"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -563,6 +580,8 @@ class ComponentStatus(RobotScoped):
     status: ComponentStatusName
     location: Target | None = None
     message: Message | None = None
+    # A crash's report carries the component's last lines (issue 36), so its event shows what it printed.
+    last_lines: Annotated[list[LogLine], Field(max_length=CRASH_LOG_LINES)] | None = None
 
 
 class ComponentStatusGet(RobotScoped):
@@ -744,6 +763,76 @@ class LogEvent(RobotScoped):
     component: LabelValue
     message: Annotated[str, StringConstraints(max_length=4000)]
     data: dict[str, Any]
+
+
+# --------------------------------------------------------------------------- component logs
+
+MAX_LOG_LINE_CHARS = 16 * 1024  # a longer line is cut there (and says so: "…[cut]")
+MAX_LOG_LINES_PER_FRAME = 5000
+MAX_LOG_TAIL = 1000
+LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
+LogLevel = Literal["debug", "info", "warning", "error", "critical"]
+LogStream = Literal["stdout", "stderr"]
+
+
+class LogLine(Payload):
+    """Carry one line a component printed: its place in its component's log, when, where and what."""
+
+    # Counts up per component and location for as long as the robot keeps its data (restarts included):
+    # (robot, skill, component, location, seq) names a line once, so a line sent twice is stored once.
+    seq: Annotated[int, Strict(), Field(ge=1)]
+    ts: Timestamp
+    stream: LogStream
+    level: LogLevel | None = None  # when the line says one (ROS's [INFO], Python logging, JSON lines)
+    text: Annotated[str, StringConstraints(max_length=MAX_LOG_LINE_CHARS)]
+
+
+class ComponentLogs(RobotScoped):
+    """Ship, answer or push lines of one component's log, oldest first."""
+
+    skill: Slug
+    component: Slug
+    location: Target = Location.ROBOT
+    lines: Annotated[list[LogLine], Field(max_length=MAX_LOG_LINES_PER_FRAME)]
+    # Lines of this component not shipped (over the robot's rate or byte cap, or overwritten in
+    # its ring) since the previous frame: counted, never silently lost.
+    dropped: Annotated[int, Strict(), Field(ge=0)] = 0
+
+
+class ComponentLogsGet(RobotScoped):
+    """Ask a robot for lines of its ring: those after ``after_seq`` (never shipped, say), oldest first."""
+
+    skill: Slug
+    component: Slug
+    after_seq: Annotated[int, Strict(), Field(ge=0)] = 0
+    limit: Annotated[int, Strict(), Field(ge=1, le=MAX_LOG_LINES_PER_FRAME)] = MAX_LOG_TAIL
+
+
+class LogsSubscribe(RobotScoped):
+    """Start a client's live tail of a robot, one of its Skills or one component.
+
+    Answered by one ``component_logs`` frame per component with its last ``tail`` stored lines
+    (``reply_to`` this request), then pushed ``component_logs`` frames as lines arrive. ``ring``
+    also asks the robot for the lines of its ring the cloud never received.
+    """
+
+    skill: Slug | None = None
+    component: Slug | None = None
+    tail: Annotated[int, Strict(), Field(ge=0, le=MAX_LOG_TAIL)] = 100
+    ring: bool = False
+
+    @model_validator(mode="after")
+    def _component_needs_skill(self) -> LogsSubscribe:
+        if self.component is not None and self.skill is None:
+            raise ValueError("a component is named within its skill: give data.skill too")
+        return self
+
+
+class LogsUnsubscribe(RobotScoped):
+    """End a client's live tail (the same robot, skill and component it subscribed with)."""
+
+    skill: Slug | None = None
+    component: Slug | None = None
 
 
 # --------------------------------------------------------------------------- recordings
@@ -1026,6 +1115,11 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.RECORDING_STATUS: RecordingStatus,
     Event.UPDATE_HOLD: UpdateHold,
     Event.ROBOT_REKEY: RobotRekey,
+    # component logs
+    Event.COMPONENT_LOGS: ComponentLogs,
+    Event.COMPONENT_LOGS_GET: ComponentLogsGet,
+    Event.LOGS_SUBSCRIBE: LogsSubscribe,
+    Event.LOGS_UNSUBSCRIBE: LogsUnsubscribe,
 }
 
 
@@ -1089,6 +1183,11 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.RECORDING_STATUS: frozenset({_R2C}),
     Event.UPDATE_HOLD: frozenset({_R2C}),
     Event.ROBOT_REKEY: frozenset({_C2R}),
+    # component logs: robots ship and answer them, clients subscribe and are pushed them
+    Event.COMPONENT_LOGS: frozenset({_R2C, _C2K}),
+    Event.COMPONENT_LOGS_GET: frozenset({_C2R}),
+    Event.LOGS_SUBSCRIBE: frozenset({_K2C}),
+    Event.LOGS_UNSUBSCRIBE: frozenset({_K2C}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,
@@ -1124,6 +1223,8 @@ REQUIRES_ACK: frozenset[Event] = frozenset(
         Event.RECORDING_STATUS,
         Event.ROBOT_REKEY,
         Event.UPDATE_HOLD,
+        # a shipped batch stays unshipped in the robot's ring until acked
+        Event.COMPONENT_LOGS,
     }
 )
 
@@ -1168,6 +1269,9 @@ REPLIES: Mapping[str, frozenset[Event]] = {
     Event.METRICS_GET: _answered_by(Event.METRICS),
     Event.VOLUME_CHUNKS_GET: _answered_by(Event.VOLUME_CHUNKS),
     Event.COMPONENTS_API: _answered_by(Event.COMPONENTS_API_REPLY),
+    Event.COMPONENT_LOGS_GET: _answered_by(Event.COMPONENT_LOGS),
+    Event.LOGS_SUBSCRIBE: _answered_by(Event.COMPONENT_LOGS),
+    Event.LOGS_UNSUBSCRIBE: frozenset({Event.ACK, Event.ERROR_MESSAGE}),
     **{command: _COMMAND_REPLIES for command in COMMANDS},
 }
 
