@@ -52,10 +52,11 @@ def partition(apps, schema_editor):
         )
         cursor.execute(f"CREATE INDEX componentlog_robot_ts ON {TABLE} (robot_id, ts)")
         if trigrams:
-            # A larger pending list than the default 4 MB: a flood of lines pays the index's upkeep in fewer, bigger steps.
+            # A 64 MB pending list, not the default 4 MB: a flood of lines pays the index's upkeep in fewer, bigger
+            # steps (one robot's flood: ~16,000 lines/s stored with 16 MB, ~21,000 with 64 MB).
             cursor.execute(
                 f"CREATE INDEX componentlog_text_trgm ON {TABLE} USING gin (text gin_trgm_ops)"
-                " WITH (gin_pending_list_limit = 16384)"
+                " WITH (gin_pending_list_limit = 65536)"
             )
         cursor.execute(f"CREATE TABLE {partitions.DEFAULT_PARTITION} PARTITION OF {TABLE} DEFAULT")
     partitions.ensure_partitions(connection=connection)
