@@ -10,7 +10,8 @@ two workers never collect one copy at once.
   `stdout`), read from a byte offset; a rotation (the file copied to `.log.1` and truncated, or
   renamed) is followed by finishing the older part first. Lines get the time they were read.
 - docker and swarm: Docker's log stream of the container or service, each stream on its own,
-  with Docker's timestamps, from the newest timestamp collected.
+  with Docker's timestamps, from the newest timestamp collected (lines of the last second wait a
+  round, so the two streams' lines are in before it moves on).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ log = logging.getLogger(__name__)
 # One collection reads at most this much of a copy: the rest waits for the next round.
 READ_BYTES = 4 * 1024 * 1024
 CUT = "…[cut]"
+SETTLE_NS = 1_000_000_000
 
 # (ts, stream, text) of one line of output.
 Output = tuple[float, str, str]
@@ -117,6 +119,10 @@ def read_docker_output(
     """Return what a container (or Swarm service) printed after ``position``, both streams in time order."""
     api = api or _docker_api()
     since_ns = int(position.get("since_ns", 0))
+    # Docker stamps each stream's lines as its own reader gets them: a line of one stream may reach the
+    # log a moment after a later-stamped line of the other. Lines younger than this wait for the next round,
+    # so the newest timestamp collected never passes a line still on its way.
+    settled_ns = time.time_ns() - SETTLE_NS
     found: list[tuple[int, str, str]] = []
     for stream in ("stdout", "stderr"):
         options = {"stdout": stream == "stdout", "stderr": stream == "stderr", "timestamps": True}
@@ -128,7 +134,7 @@ def read_docker_output(
         text = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else raw
         for row in text.splitlines():
             parsed = parse_docker_line(row)
-            if parsed is not None and parsed[0] > since_ns:
+            if parsed is not None and since_ns < parsed[0] <= settled_ns:
                 found.append((parsed[0], stream, parsed[1]))
     found.sort(key=lambda item: item[0])
     found = found[:MAX_LOG_LINES_PER_FRAME]
