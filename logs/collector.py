@@ -93,10 +93,11 @@ def read_process_output(path: Path, position: dict[str, Any]) -> tuple[list[Outp
 
 
 def _docker_api() -> Any:
-    import docker
+    import docker.utils
+    from docker.api import APIClient
 
-    # The engine the cloud runtimes drive: the environment's (DOCKER_HOST), else the local socket.
-    return docker.from_env(timeout=10).api
+    # The engine the cloud runtimes drive (bridgeos_agent.runtime.engine.open_client): DOCKER_HOST, else its socket.
+    return APIClient(**{"version": "auto", "timeout": 10, **docker.utils.kwargs_from_env()})
 
 
 def parse_docker_line(raw: str) -> tuple[int, str] | None:
@@ -125,7 +126,7 @@ def read_docker_output(
     settled_ns = time.time_ns() - SETTLE_NS
     found: list[tuple[int, str, str]] = []
     for stream in ("stdout", "stderr"):
-        options = {"stdout": stream == "stdout", "stderr": stream == "stderr", "timestamps": True}
+        options: dict[str, Any] = {"stdout": stream == "stdout", "stderr": stream == "stderr", "timestamps": True}
         if since_ns:
             options["since"] = since_ns // 1_000_000_000  # whole seconds: the rest is filtered below
         raw = api.service_logs(name, **options) if service else api.logs(name, **options)
