@@ -22,14 +22,18 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import docker.utils
 from django.conf import settings
 from django.db import transaction
+from docker.api import APIClient
 
-from bridgeos_agent.protocol import MAX_LOG_LINE_CHARS, MAX_LOG_LINES_PER_FRAME
+from bridgeos_agent.protocol import CRASH_LOG_LINES, MAX_LOG_LINE_CHARS, MAX_LOG_LINES_PER_FRAME
+from skills.cloud.runtime import object_name, runtime_name
+from skills.models import CloudInstance
 
 from .levels import parse_level
 from .models import CloudLogCursor
-from .services import store_lines
+from .services import line_dict, store_lines, tail_lines
 
 log = logging.getLogger(__name__)
 
@@ -93,9 +97,6 @@ def read_process_output(path: Path, position: dict[str, Any]) -> tuple[list[Outp
 
 
 def _docker_api() -> Any:
-    import docker.utils
-    from docker.api import APIClient
-
     # The engine the cloud runtimes drive (bridgeos_agent.runtime.engine.open_client): DOCKER_HOST, else its socket.
     return APIClient(**{"version": "auto", "timeout": 10, **docker.utils.kwargs_from_env()})
 
@@ -152,8 +153,6 @@ def read_output(
     """Read a copy's new output from the runtime it runs on."""
     if runtime == "process":
         return read_process_output(process_log_path(robot, skill, component), position)
-    from skills.cloud.runtime import object_name
-
     try:
         return read_docker_output(object_name(robot, skill, component), position, service=runtime == "swarm")
     except Exception as exc:
@@ -191,9 +190,6 @@ def collect_copy(runtime: str, robot: str, skill: str, component: str) -> int:
 
 def collect_all() -> int:
     """Collect the output of every copy the cloud should run now; return the lines stored."""
-    from skills.cloud.runtime import runtime_name
-    from skills.models import CloudInstance
-
     runtime = runtime_name()
     copies = CloudInstance.objects.filter(desired=CloudInstance.Desired.RUNNING).values_list(
         "component__skill__robot_id", "component__skill__skill_id", "component__component_id"
@@ -206,3 +202,13 @@ def collect_all() -> int:
             # One copy's engine trouble must not keep the others' lines from being collected.
             log.warning("collecting the output of %s/%s/%s failed", robot, skill, component, exc_info=True)
     return stored
+
+
+def crash_lines(robot: str, skill: str, component: str) -> list[dict[str, Any]]:
+    """Collect a crashed copy's last output, then return its last lines as LogLine dicts, oldest first."""
+    try:
+        collect_copy(runtime_name(), robot, skill, component)
+    except Exception:
+        # The crash is recorded anyway, with the lines collected before.
+        log.warning("collecting the last output of %s/%s/%s failed", robot, skill, component, exc_info=True)
+    return [line_dict(row) for row in tail_lines(robot, skill, component, "cloud", CRASH_LOG_LINES)]

@@ -18,6 +18,7 @@ from django.utils import timezone
 
 from bridgeos_agent.protocol import LogLine
 from monitoring.services import storable
+from skills.models import Component
 
 from . import partitions
 from .choices import LEVEL_NAME, LEVEL_RANK, UNLEVELLED_RANK
@@ -293,8 +294,6 @@ def newest_seq(robot_id: str, skill: str, component: str, location: str) -> int:
 
 def known_components(robot_id: str, skill: str | None, component: str | None) -> list[tuple[str, str]]:
     """Return the robot's (skill, component) pairs matching a tail's subscription, as its Skills declare them."""
-    from skills.models import Component
-
     components = Component.objects.filter(skill__robot_id=robot_id)
     if skill is not None:
         components = components.filter(skill__skill_id=skill)
