@@ -23,7 +23,7 @@ from skills.models import Component
 from . import partitions
 from .choices import LEVEL_NAME, LEVEL_RANK, UNLEVELLED_RANK
 from .live import publish_lines_on_commit
-from .models import ComponentLog, DroppedLines
+from .models import CloudLogCursor, ComponentLog, DroppedLines
 
 TABLE = ComponentLog._meta.db_table
 # The batch travels as one JSON parameter: json.dumps and PostgreSQL's json_to_recordset take a few
@@ -331,10 +331,11 @@ def prune_logs(older_than: timedelta | None = None, *, now: datetime | None = No
 
 
 def forget_robot(robot_id: str) -> None:
-    """Delete every line and drop count of a robot (it was deleted: its id may be given to another)."""
+    """Delete every line, drop count and cloud cursor of a robot (it was deleted: its id may be given to another)."""
     with transaction.atomic():
         ComponentLog.objects.filter(robot_id=robot_id)._raw_delete(ComponentLog.objects.db)
         DroppedLines.objects.filter(robot_id=robot_id).delete()
+        CloudLogCursor.objects.filter(robot_id=robot_id).delete()
 
 
 def valid_regex(pattern: str) -> str | None:
