@@ -10,6 +10,7 @@ from django.utils import timezone
 
 from logs import partitions, services
 from logs.models import ComponentLog
+from tests.conftest import wait_until
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
@@ -66,3 +67,16 @@ def test_a_deleted_robots_lines_go_with_it():
     Robot.objects.get(id="lp-gone").delete()
     assert not ComponentLog.objects.filter(robot_id="lp-gone").exists()
     assert services.dropped_count("lp-gone", services.LogFilters()) == 0
+
+
+def test_a_flooded_day_is_analyzed_before_the_next_query():
+    now = timezone.now()
+    partitions.ensure_partitions(now)
+    today = partitions.partition_name(partitions.day_of(now))
+    lines = [line(n, now, f"flood {n}") for n in range(1, services.STALE_LINES + 1001)]
+    services.store_lines("lp-flood", "sk", "cam", "robot", lines)
+    # Statistics counters reach the shared view within a second or so of the inserting transaction's end.
+    assert today in wait_until(services.analyze_if_stale, timeout=10, what="the day seen as stale")
+    assert services.analyze_if_stale() == []
+    rows, _ = services.page_of_lines("lp-flood", services.LogFilters(q="flood 7"), limit=5)
+    assert [row.text for row in rows] and all("flood 7" in row.text for row in rows)
