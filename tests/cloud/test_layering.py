@@ -16,7 +16,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 # Lowest first: everything records events and metrics (monitoring); robots own identities and
 # links; networks serve robots; skills run on robots; the dashboard shows all of it.
-LAYERS = ["monitoring", "robots", "network", "skills", "recordings", "dashboard"]
+LAYERS = ["monitoring", "robots", "network", "skills", "recordings", "logs", "dashboard"]
 BASE = "bridgeos_cloud"
 # The project's wiring: settings, URL and WebSocket routes, the ASGI entry point.
 WIRING = {"settings", "urls", "routing", "asgi"}
