@@ -304,11 +304,13 @@ function setup(root) {
     updateState();
   }
 
+  let previousTop = 0;
   linesNode.addEventListener("scroll", () => {
-    // The reader scrolled up: stop following; back at the end: follow again.
-    if (followBox.checked && linesNode.scrollTop < lastAutoTop - 4 && !atBottom()) followBox.checked = false;
-    else if (!followBox.checked && atBottom() && linesNode.scrollTop > lastAutoTop) followBox.checked = true;
-    lastAutoTop = followBox.checked ? linesNode.scrollTop : lastAutoTop;
+    // The reader scrolled up: stop following; scrolled back down to the end: follow again.
+    const top = linesNode.scrollTop;
+    if (followBox.checked && top < lastAutoTop - 2 && !atBottom()) followBox.checked = false;
+    else if (!followBox.checked && tailing && top > previousTop && atBottom()) followBox.checked = true;
+    previousTop = top;
   });
   followBox.addEventListener("change", () => followBox.checked && scrollToEnd());
   pauseButton.addEventListener("click", () => setPaused(!paused));

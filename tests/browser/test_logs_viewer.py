@@ -184,6 +184,24 @@ def test_follow_keeps_the_newest_line_in_view_and_pause_holds_lines_until_resume
     expect(lines.locator(".log-line.lv-error")).to_have_count(1)
 
 
+def test_a_chatty_component_keeps_at_most_5000_lines_in_the_page(browser):
+    alice = make_user("alice")
+    make_robot(alice, "lv-chatty")
+    printer = Printer("lv-chatty")
+    browser.login("alice")
+    page = open_viewer(browser, "/robots/lv-chatty/logs/")
+    for burst in range(6):
+        printer.lines("sampler", *[f"sample {burst * 1000 + i}" for i in range(1000)])
+    lines = pane(page).locator(".log-line")
+    expect(pane(page)).to_contain_text("sample 5999")
+    expect(lines).to_have_count(5000)
+    texts = shown(page)
+    assert texts[0] == "sample 1000" and texts[-1] == "sample 5999"
+    assert texts == [f"sample {n}" for n in range(1000, 6000)], "in order, each once"
+    # What left the page is one click away again.
+    expect(page.get_by_role("button", name="Load older lines")).to_be_visible()
+
+
 def test_level_text_and_time_filters_narrow_the_lines_and_the_download(browser):
     alice = make_user("alice")
     make_robot(alice, "lv-filter")
