@@ -120,20 +120,23 @@ function setup(root) {
   function draw({ appended, inserted, evicted }, { keepBottom = false } = {}) {
     const source = !(filters.skill && filters.component);
     const fromBottom = linesNode.scrollHeight - linesNode.scrollTop;
+    const gone = new Set(evicted);
     for (const line of evicted) nodes.get(line)?.remove();
-    for (const [line, next] of inserted) {
-      const node = lineNode(line, { source });
-      nodes.set(line, node);
-      linesNode.insertBefore(node, nodes.get(next) ?? null);
-    }
-    if (appended.length) {
-      const fragment = document.createDocumentFragment();
-      for (const line of appended) {
+    const fresh = new Set([...appended, ...inserted.map(([line]) => line)].filter((line) => !gone.has(line)));
+    // From the newest back, each new line goes before the line after it, which is in place by then:
+    // lines of several components interleave in time, and a late one costs no redraw.
+    let next = null;
+    for (let i = buffer.lines.length - 1, left = fresh.size; i >= 0 && left > 0; i--) {
+      const line = buffer.lines[i];
+      if (fresh.has(line)) {
         const node = lineNode(line, { source });
         nodes.set(line, node);
-        fragment.append(node);
+        linesNode.insertBefore(node, next);
+        left--;
+        next = node;
+      } else {
+        next = nodes.get(line);
       }
-      linesNode.append(fragment);
     }
     if (followBox.checked && !keepBottom) scrollToEnd();
     else if (keepBottom) linesNode.scrollTop = linesNode.scrollHeight - fromBottom; // older lines above: stay put

@@ -12,9 +12,10 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 import pytest
+from django.db import connections
 
-from logs.services import store_lines as store_lines_here  # noqa
-from monitoring.services import record_event as record_event_here
+from logs.services import store_lines as store_lines_here
+from skills.services import report_component_status
 
 from .conftest import ROOT, make_robot, make_user
 
@@ -45,8 +46,16 @@ SCROLL_GAP = "(pane) => pane.scrollHeight - pane.scrollTop - pane.clientHeight"
 
 def in_thread(fn, *args, **kwargs):
     """Call a service as the cloud does: from a thread without an event loop (Playwright runs one here)."""
+
+    def call() -> Any:
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            # Each call runs in a new thread: its connection goes back to the pool, or the pool runs dry.
+            connections.close_all()
+
     with ThreadPoolExecutor(1) as pool:
-        return pool.submit(fn, *args, **kwargs).result()
+        return pool.submit(call).result()
 
 
 class Printer:
@@ -55,12 +64,15 @@ class Printer:
     def __init__(self, robot_id: str) -> None:
         self.robot_id = robot_id
         self.seqs: dict[tuple[str, str], int] = {}
+        self.last_ts = 0.0
 
     def lines(self, component: str, *texts: str | tuple[str, str | None], ts: float | None = None, **kw: Any) -> int:
         """Store lines (text, or (text, level)) of one component, spread over the last instants before ts."""
         skill = kw.pop("skill", SKILL)
         location = kw.pop("location", "robot")
-        now = ts if ts is not None else time.time()
+        # A component's lines follow each other in time, however fast the test stores them.
+        now = max(ts if ts is not None else time.time(), self.last_ts + len(texts) * 0.001)
+        self.last_ts = now
         batch = []
         for i, item in enumerate(texts):
             text, level = item if isinstance(item, tuple) else (item, None)
@@ -282,18 +294,8 @@ def test_level_text_and_time_filters_narrow_the_lines_and_the_download(browser):
 
 
 def record_crash(robot_id: str, component: str, lines: list[dict[str, Any]]) -> None:
-    """Record a component's crash as the cloud does for a status report with last_lines."""
-    in_thread(
-        record_event_here,
-        f"Component {component} is failed on the robot",
-        robot_id=robot_id,
-        level="error",
-        source="robot",
-        kind="component_status",
-        skill=SKILL,
-        component=component,
-        data={"status": "failed", "message": "exited with 3", "lines": lines},
-    )
+    """Report a component's crash with its last lines, as the robot door does for a status report."""
+    in_thread(report_component_status, robot_id, SKILL, component, "failed", "robot", "exited with 3", last_lines=lines)
 
 
 def test_a_crash_event_shows_its_last_lines_one_click_away(browser):
