@@ -10,32 +10,37 @@ two workers never collect one copy at once.
   `stdout`), read from a byte offset; a rotation (the file copied to `.log.1` and truncated, or
   renamed) is followed by finishing the older part first. Lines get the time they were read.
 - docker and swarm: Docker's log stream of the container or service, each stream on its own,
-  with Docker's timestamps, from the newest timestamp collected.
+  with Docker's timestamps, from the newest timestamp collected (lines of the last second wait a
+  round, so the two streams' lines are in before it moves on).
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import time
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import docker.utils
 from django.conf import settings
 from django.db import transaction
+from docker.api import APIClient
 
-from bridgeos_agent.protocol import MAX_LOG_LINE_CHARS, MAX_LOG_LINES_PER_FRAME
+from bridgeos_agent.protocol import CRASH_LOG_LINES, MAX_LOG_LINE_CHARS, MAX_LOG_LINES_PER_FRAME
+from skills.cloud.runtime import object_name, runtime_name
+from skills.models import CloudInstance
 
 from .levels import parse_level
 from .models import CloudLogCursor
-from .services import store_lines
+from .services import line_dict, store_lines, tail_lines
 
 log = logging.getLogger(__name__)
 
 # One collection reads at most this much of a copy: the rest waits for the next round.
 READ_BYTES = 4 * 1024 * 1024
 CUT = "…[cut]"
+SETTLE_NS = 1_000_000_000
 
 # (ts, stream, text) of one line of output.
 Output = tuple[float, str, str]
@@ -92,9 +97,8 @@ def read_process_output(path: Path, position: dict[str, Any]) -> tuple[list[Outp
 
 
 def _docker_api() -> Any:
-    import docker
-
-    return docker.APIClient(base_url=os.environ.get("DOCKER_HOST") or "unix:///var/run/docker.sock", timeout=10)
+    # The engine the cloud runtimes drive (bridgeos_agent.runtime.engine.open_client): DOCKER_HOST, else its socket.
+    return APIClient(**{"version": "auto", "timeout": 10, **docker.utils.kwargs_from_env()})
 
 
 def parse_docker_line(raw: str) -> tuple[int, str] | None:
@@ -117,9 +121,13 @@ def read_docker_output(
     """Return what a container (or Swarm service) printed after ``position``, both streams in time order."""
     api = api or _docker_api()
     since_ns = int(position.get("since_ns", 0))
+    # Docker stamps each stream's lines as its own reader gets them: a line of one stream may reach the
+    # log a moment after a later-stamped line of the other. Lines younger than this wait for the next round,
+    # so the newest timestamp collected never passes a line still on its way.
+    settled_ns = time.time_ns() - SETTLE_NS
     found: list[tuple[int, str, str]] = []
     for stream in ("stdout", "stderr"):
-        options = {"stdout": stream == "stdout", "stderr": stream == "stderr", "timestamps": True}
+        options: dict[str, Any] = {"stdout": stream == "stdout", "stderr": stream == "stderr", "timestamps": True}
         if since_ns:
             options["since"] = since_ns // 1_000_000_000  # whole seconds: the rest is filtered below
         raw = api.service_logs(name, **options) if service else api.logs(name, **options)
@@ -128,7 +136,7 @@ def read_docker_output(
         text = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else raw
         for row in text.splitlines():
             parsed = parse_docker_line(row)
-            if parsed is not None and parsed[0] > since_ns:
+            if parsed is not None and since_ns < parsed[0] <= settled_ns:
                 found.append((parsed[0], stream, parsed[1]))
     found.sort(key=lambda item: item[0])
     found = found[:MAX_LOG_LINES_PER_FRAME]
@@ -145,8 +153,6 @@ def read_output(
     """Read a copy's new output from the runtime it runs on."""
     if runtime == "process":
         return read_process_output(process_log_path(robot, skill, component), position)
-    from skills.cloud.runtime import object_name
-
     try:
         return read_docker_output(object_name(robot, skill, component), position, service=runtime == "swarm")
     except Exception as exc:
@@ -184,9 +190,6 @@ def collect_copy(runtime: str, robot: str, skill: str, component: str) -> int:
 
 def collect_all() -> int:
     """Collect the output of every copy the cloud should run now; return the lines stored."""
-    from skills.cloud.runtime import runtime_name
-    from skills.models import CloudInstance
-
     runtime = runtime_name()
     copies = CloudInstance.objects.filter(desired=CloudInstance.Desired.RUNNING).values_list(
         "component__skill__robot_id", "component__skill__skill_id", "component__component_id"
@@ -199,3 +202,13 @@ def collect_all() -> int:
             # One copy's engine trouble must not keep the others' lines from being collected.
             log.warning("collecting the output of %s/%s/%s failed", robot, skill, component, exc_info=True)
     return stored
+
+
+def crash_lines(robot: str, skill: str, component: str) -> list[dict[str, Any]]:
+    """Collect a crashed copy's last output, then return its last lines as LogLine dicts, oldest first."""
+    try:
+        collect_copy(runtime_name(), robot, skill, component)
+    except Exception:
+        # The crash is recorded anyway, with the lines collected before.
+        log.warning("collecting the last output of %s/%s/%s failed", robot, skill, component, exc_info=True)
+    return [line_dict(row) for row in tail_lines(robot, skill, component, "cloud", CRASH_LOG_LINES)]

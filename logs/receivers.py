@@ -9,7 +9,9 @@ from django.db.models.signals import post_delete
 from django.dispatch import receiver
 
 from robots.models import Robot
+from skills.cloud.reporting import copy_crashed
 
+from .collector import crash_lines
 from .services import forget_robot
 
 
@@ -18,3 +20,11 @@ def forget_deleted_robot(sender: Any, instance: Robot, **kw: Any) -> None:
     """Delete a deleted robot's lines (its id may later name another owner's robot)."""
     robot_id = instance.pk
     transaction.on_commit(lambda: forget_robot(robot_id), robust=True)
+
+
+@receiver(copy_crashed, dispatch_uid="logs-crash-lines")
+def last_lines_of_crashed_copy(
+    sender: Any, robot_id: str, skill: str, component: str, **kw: Any
+) -> list[dict[str, Any]]:
+    """Answer a crashed cloud copy's last lines, collected from its runtime first."""
+    return crash_lines(robot_id, skill, component)

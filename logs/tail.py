@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from channels.db import database_sync_to_async
 from django.conf import settings
@@ -22,8 +22,19 @@ from robots import services as robots
 from . import services
 from .live import frames_data, group_name
 
-if TYPE_CHECKING:
-    from dashboard.consumers import ClientConsumer
+
+class TailOwner(Protocol):
+    """What a LogTail needs of the client connection owning it (dashboard.consumers.ClientConsumer)."""
+
+    channel_layer: Any
+    channel_name: str
+
+    async def ack(self, envelope: Envelope) -> None: ...
+
+    async def send_text(self, text: str) -> None: ...
+
+    async def sees(self, robot_id: str, *, recheck: bool = False) -> bool: ...
+
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +78,7 @@ def matches(subscriptions: set[Subscription], skill: str, component: str) -> boo
 class LogTail:
     """The live tails of one client connection."""
 
-    def __init__(self, consumer: ClientConsumer) -> None:
+    def __init__(self, consumer: TailOwner) -> None:
         self.consumer = consumer
         self.subscriptions: dict[str, set[Subscription]] = {}
 

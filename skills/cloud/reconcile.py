@@ -38,7 +38,7 @@ from .orchestration import (
     with_runtime,
 )
 from .relay import reconcile_relays
-from .reporting import announce, cloud_is_active, fail, record_running, tell_robot
+from .reporting import announce, cloud_is_active, crash_lines, fail, record_running, tell_robot
 from .runtime import (
     KIND_COMPONENT,
     KIND_ROS2_DISCOVERY,
@@ -168,6 +168,7 @@ def _on_crash(instance: CloudInstance, seen: Observed | None, now: float) -> str
     """Log a crash with the copy's last output and schedule its restart, or give up after too many."""
     robot_id, skill_id, component_id = who(instance)
     logs = with_runtime(robot_id, lambda runtime: runtime.logs(skill_id, component_id, LOG_TAIL))
+    lines = crash_lines(robot_id, skill_id, component_id)
     window = settings.BRIDGEOS["CLOUD_RESTART_WINDOW_S"]
     crashes = [t for t in instance.crashes if now - t <= window] + [now]
     code = seen.exit_code if seen is not None else None
@@ -206,7 +207,13 @@ def _on_crash(instance: CloudInstance, seen: Observed | None, now: float) -> str
             kind="cloud_component_crashed",
             skill=skill_id,
             component=component_id,
-            data={"exit_code": code, "logs": logs[-LOG_TAIL:], "restart": len(crashes), "delay_s": delay},
+            data={
+                "exit_code": code,
+                "logs": logs[-LOG_TAIL:],
+                "lines": lines,  # its last stored log lines (issue 36), as a robot's crash event carries them
+                "restart": len(crashes),
+                "delay_s": delay,
+            },
         )
         tell_robot(robot_id, Event.COMPONENT_STATUS, status)
     return "crashed"

@@ -6,6 +6,7 @@ import logging
 from typing import Any
 
 from django.db import transaction
+from django.dispatch import Signal
 from django.utils import timezone
 
 from bridgeos_agent.protocol import ComponentStatusName as CS
@@ -20,6 +21,20 @@ from ..models import CloudInstance, Component
 from .orchestration import LOG_TAIL, STOPPED, who, with_runtime
 
 logger = logging.getLogger(__name__)
+
+# Sent with robot_id=, skill=, component= when a cloud copy crashed or failed, before it is removed; a
+# receiver may answer the copy's last log lines (LogLine dicts, oldest first) for the event that records it.
+copy_crashed = Signal()
+
+
+def crash_lines(robot_id: str, skill_id: str, component_id: str) -> list[dict[str, Any]]:
+    """Return a crashed cloud copy's last log lines, as the receivers of copy_crashed answer them."""
+    for _, answer in copy_crashed.send_robust(None, robot_id=robot_id, skill=skill_id, component=component_id):
+        if isinstance(answer, list):
+            return answer
+        if isinstance(answer, Exception):
+            logger.warning("the last lines of %s/%s/%s: %r", robot_id, skill_id, component_id, answer)
+    return []
 
 
 # --------------------------------------------------------------------------- recording outcomes
@@ -87,6 +102,7 @@ def fail(instance: CloudInstance, reason: str, *, logs: list[str] | None = None)
             logs = with_runtime(robot_id, lambda runtime: runtime.logs(skill_id, component_id, LOG_TAIL))
         except RuntimeFailure:
             pass
+    lines = crash_lines(robot_id, skill_id, component_id)  # before the stop removes a container and its log
     try:
         with_runtime(robot_id, lambda runtime: runtime.stop(skill_id, component_id))
     except RuntimeFailure as exc:
@@ -110,7 +126,7 @@ def fail(instance: CloudInstance, reason: str, *, logs: list[str] | None = None)
             kind="cloud_component_failed",
             skill=skill_id,
             component=component_id,
-            data={"logs": logs[-LOG_TAIL:]},
+            data={"logs": logs[-LOG_TAIL:], "lines": lines},
         )
         status = {
             "skill": skill_id,

@@ -171,3 +171,16 @@ def test_the_download_is_the_filtered_lines_oldest_first_as_text(logs_fleet):
     assert rows[0].endswith(" robot stdout ERROR people-detection/detector: CUDA out of memory")
     assert rows[1].endswith(" robot stderr CRITICAL people-detection/detector: fatal: giving up")
     assert rows[0][:24].endswith("Z") and rows[0][19] == "."
+
+
+def test_text_matches_come_in_order_page_after_page(logs_fleet):
+    # Pages of one line: the first ones are found among the newest lines, the last one through the index.
+    seen, params = [], {"limit": 1, "q": "FRAME", "order": "asc"}
+    with client(logs_fleet["server"], logs_fleet["alice"]) as http:
+        url = "/api/robot/lg-alice/logs"
+        while url:
+            body = http.get(url, params=params).json()
+            params = None
+            seen.extend(row["text"] for row in body["results"])
+            url = body["next"]
+    assert seen == ["frame 17 slow: 250 ms", "debugging frame 18"]

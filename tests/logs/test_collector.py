@@ -5,11 +5,15 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import time
 
 import pytest
 
+from bridgeos_agent.protocol import CRASH_LOG_LINES
 from logs.collector import collect_all, parse_docker_line, process_log_path
 from logs.models import ComponentLog
+from monitoring.models import Event
+from skills.cloud.reconcile import _on_crash
 from skills.models import CloudInstance, Component
 from tests.cloud.apiutil import robot_of, user_with_token
 
@@ -63,3 +67,23 @@ def test_dockers_timestamped_lines_are_parsed_to_the_nanosecond():
     assert parse_docker_line("2026-12-04T19:00:00.123456789Z hello world") == (1796410800123456789, "hello world")
     assert parse_docker_line("2026-12-04T19:00:01Z x") == (1796410801000000000, "x")
     assert parse_docker_line("not a timestamp") is None
+
+
+def test_a_crashed_process_copys_event_carries_its_last_lines(settings):
+    owner, _ = user_with_token("lc-crash-owner")
+    robot_of(owner, "lc-crash")
+    component = Component.objects.get(skill__robot_id="lc-crash", component_id="detector")
+    instance = CloudInstance.objects.create(
+        component=component, desired=CloudInstance.Desired.RUNNING, status="running"
+    )
+    settings.BRIDGEOS = {**settings.BRIDGEOS, "CLOUD_RUNTIME": "process"}
+    run_copy(process_log_path("lc-crash", SKILL, "detector"), *[f"step {n}" for n in range(1, 61)], "ERROR: boom")
+
+    # What the reconciler does when it finds the copy's process gone: the crash's event names its last lines.
+    assert _on_crash(instance, None, time.time()) == "crashed"
+
+    event = Event.objects.filter(robot_id="lc-crash", kind="cloud_component_crashed").get()
+    lines = event.data["lines"]
+    assert len(lines) == CRASH_LOG_LINES
+    assert [line["text"] for line in lines[-2:]] == ["step 60", "ERROR: boom"]
+    assert lines[-1]["level"] == "error" and lines[-1]["seq"] == 61
