@@ -12,6 +12,8 @@ const clock = new Intl.DateTimeFormat(undefined, {
   hourCycle: "h23",
 });
 const day = new Intl.DateTimeFormat(undefined, { month: "short", day: "numeric" });
+// Five characters at most, so the text column starts at one place on every line.
+const SHORT_LEVEL = { debug: "DEBUG", info: "INFO", warning: "WARN", error: "ERROR", critical: "CRIT" };
 
 /** Render one line: time, level, where it came from (unless the view is one component's), text. */
 export function lineNode(line, { source = true } = {}) {
@@ -21,7 +23,7 @@ export function lineNode(line, { source = true } = {}) {
     "div",
     { class: `log-line${level ? ` lv-${level}` : ""}${line.stream === "stderr" ? " stderr" : ""}` },
     el("time", { datetime: date.toISOString(), title: `${day.format(date)} ${clock.format(date)}` }, clock.format(date)),
-    el("span", { class: "lv" }, level ? level.slice(0, 4).toUpperCase() : ""),
+    el("span", { class: "lv", title: level }, SHORT_LEVEL[level] ?? ""),
     source ? el("span", { class: `src loc-${line.location}` }, `${line.skill}/${line.component}`) : null,
     el("span", { class: "txt" }, line.text),
   );
