@@ -32,7 +32,7 @@ export function lineNode(line, { source = true } = {}) {
 /** Read a crash event's lines: the robot's LogLines (data.lines), or a cloud copy's plain output (data.logs). */
 export function crashLines(event) {
   const data = event.data || {};
-  const where = data.location || (event.kind === "cloud_component_crashed" ? "cloud" : "robot");
+  const where = data.location || (event.kind?.startsWith("cloud_component_") ? "cloud" : "robot");
   const base = { skill: event.skill, component: event.component, location: where, stream: "stdout", level: null };
   if (Array.isArray(data.lines)) {
     return data.lines.map((line, i) => ({

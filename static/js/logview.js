@@ -10,7 +10,7 @@ import { el, errorText, fmtTime, frameBatcher, isoSeconds, setText } from "./uti
 const MAX_LINES = 5000;
 const PAGE = 500;
 const CRASHES_SHOWN = 5;
-const CRASH_KINDS = ["component_status", "cloud_component_crashed"];
+const CRASH_KINDS = ["component_status", "cloud_component_crashed", "cloud_component_failed"];
 
 const root = document.getElementById("log-viewer");
 if (root) setup(root);
