@@ -11,6 +11,7 @@ app_name = "dashboard"
 urlpatterns = [
     path("", views.fleet, name="index"),
     path("robots/<slug:robot_id>/", views.robot, name="robot"),
+    path("robots/<slug:robot_id>/logs/", views.robot_logs, name="robot-logs"),
     path("skills/", views.skills, name="skills"),
     path("images/", views.images, name="images"),
     path("events/", views.events, name="events"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from typing import get_args
 
 from django.conf import settings
 from django.contrib.auth.decorators import login_required
@@ -11,11 +12,15 @@ from django.shortcuts import render
 from django.views.decorators.http import require_POST
 
 from bridgeos_agent.errors import NON_FIELD
+from bridgeos_agent.protocol import LogLevel
 from monitoring.choices import Level
 from registry import services as registry_services
 from robots.access import actor_of
 
 from . import services
+
+# The levels a log line may carry, lowest first: the viewer's "level at least" picker.
+LOG_LEVELS = get_args(LogLevel)
 
 
 @login_required
@@ -48,7 +53,19 @@ def robot(request: HttpRequest, robot_id: str) -> HttpResponse:
             "choices": services.robot_config_choices(),
             "recordings": services.robot_recordings(robot_id),
             "recording_limits": services.recording_limits(),
+            "log_levels": LOG_LEVELS,
         },
+    )
+
+
+@login_required
+def robot_logs(request: HttpRequest, robot_id: str) -> HttpResponse:
+    """Show one robot's log viewer, filtered by the address (a component's logs: ?skill=..&component=..)."""
+    state = services.robot_state(actor_of(request), robot_id)
+    if state is None:
+        raise Http404("No such robot.")
+    return render(
+        request, "dashboard/logs.html", {"page": "fleet", "robot": state, "full": True, "log_levels": LOG_LEVELS}
     )
 
 

@@ -2,6 +2,7 @@
 
 import { get, seg } from "./api.js";
 import { startLive } from "./live.js";
+import { crashDetails } from "./loglines.js";
 import { coalesce, el, errorText, fmtDateTime, fmtTime, isoSeconds } from "./util.js";
 
 const PAGE = 100;
@@ -63,7 +64,8 @@ function row(event, fresh) {
     el("td", {}, event.skill || ""),
     el("td", {}, event.component || ""),
     el("td", {}, el("code", {}, event.kind || "—")),
-    el("td", { class: "c-message" }, event.message, details),
+    // A crash's last lines one click away (data.lines), with the log viewer at that time.
+    el("td", { class: "c-message" }, event.message, details, crashDetails(event)),
   );
 }
 

@@ -209,7 +209,7 @@ function renderComponent(sid, component) {
   const row = el(
     "tr",
     { dataset: { component: key } },
-    el("th", { scope: "row" }, el("span", {}, cid), el("span", { class: "sub" }, component.name ?? ""), image),
+    el("th", { scope: "row" }, el("span", {}, cid), el("span", { class: "sub" }, component.name ?? ""), image, logsLink(sid, cid)),
     el("td", { dataset: { label: "May run" } }, ALLOWED[allowed] ?? allowed),
     el("td", { dataset: { label: "Location" } }, location),
     el("td", { dataset: { label: "Status" } }, status, reason, pull),
@@ -224,6 +224,9 @@ function renderComponent(sid, component) {
   updateComponent(sid, cid);
   return row;
 }
+
+// A component's logs: the robot's log viewer filtered to it, at an address of its own.
+const logsLink = (sid, cid) => el("a", { class: "logs-link", href: `/robots/${seg(robotId)}/logs/?${new URLSearchParams({ skill: sid, component: cid })}`, "aria-label": `Logs of ${cid}` }, "logs");
 
 function updateComponent(sid, cid) {
   const key = `${sid}/${cid}`;
