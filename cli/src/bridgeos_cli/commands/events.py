@@ -109,6 +109,7 @@ def follow_events(filters: dict[str, Any], limit: int, *, as_json: bool) -> None
 
     try:
         with LiveClient(state().api().login) as live:
+            click.echo("Following the event log (Ctrl-C stops).", err=True)
             for event in stored(filters, limit):
                 emit(event)
             for envelope in live.frames():
