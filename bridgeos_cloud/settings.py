@@ -82,6 +82,7 @@ INSTALLED_APPS = [
     "teams.apps.TeamsConfig",
     "audit.apps.AuditConfig",
     "rollouts.apps.RolloutsConfig",
+    "logs.apps.LogsConfig",
 ]
 
 MIDDLEWARE = [
@@ -251,6 +252,17 @@ CELERY_BEAT_SCHEDULE = {
         "task": "monitoring.tasks.ensure_metric_partitions",
         "schedule": 3600.0,
     },
+    # Component logs past BRIDGEOS_LOG_RETENTION_DAYS go (whole day partitions), the coming days' are created.
+    "prune-logs": {
+        "task": "logs.tasks.prune_logs",
+        "schedule": 3600.0,
+    },
+    # What the cloud copies printed since the last round, stored like robots' lines (location "cloud").
+    "collect-cloud-logs": {
+        "task": "logs.tasks.collect_cloud_logs",
+        "schedule": env_float("BRIDGEOS_CLOUD_LOG_COLLECT_S", 2.0),
+        "options": {"expires": env_float("BRIDGEOS_CLOUD_LOG_COLLECT_S", 2.0)},
+    },
     # Desired cloud components vs what runs: restart the crashed, remove orphans, collect stats.
     "reconcile-cloud": {
         "task": "skills.tasks.reconcile_cloud",
@@ -312,6 +324,8 @@ BRIDGEOS = {
     "AUDIT_RETENTION_DAYS": env_float("BRIDGEOS_AUDIT_RETENTION_DAYS", 365.0),
     # Daily metric partitions (PostgreSQL) kept created this many days ahead of today.
     "METRIC_PARTITION_AHEAD_DAYS": env_int("BRIDGEOS_METRIC_PARTITION_AHEAD_DAYS", 7),
+    # Component log lines older than this are dropped (hourly, whole day partitions on PostgreSQL).
+    "LOG_RETENTION_DAYS": env_float("BRIDGEOS_LOG_RETENTION_DAYS", 7.0),
     # Per WebSocket connection: frames per second on average, and the burst allowed above it.
     "ROBOT_FRAMES_PER_S": env_float("BRIDGEOS_ROBOT_FRAMES_PER_S", 200.0),
     "ROBOT_FRAME_BURST": env_float("BRIDGEOS_ROBOT_FRAME_BURST", 1000.0),

@@ -30,6 +30,7 @@ urlpatterns = [
     path("api/", include("teams.api.urls")),
     path("api/", include("audit.api.urls")),
     path("api/", include("rollouts.api.urls")),
+    path("api/", include("logs.api.urls")),
     path("api/schema/", SpectacularAPIView.as_view(), name="schema"),
     path("api/docs/", SpectacularSwaggerView.as_view(url_name="schema"), name="docs"),
 ]

@@ -16,6 +16,7 @@ from bridgeos_agent import protocol
 from bridgeos_agent.protocol import Dedup, Direction, Envelope, Event
 from bridgeos_cloud.consumers import CLOSE_AUTH_FAILED, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
+from logs.tail import LogTail
 from monitoring import prometheus
 from monitoring.live import LIVE_GROUP
 from robots import access
@@ -44,6 +45,8 @@ RELAYED = frozenset(
 # Config changes are stored first, so an offline robot receives them when it reconnects.
 STORED_THEN_RELAYED = frozenset({Event.ROBOT_CONFIG_UPDATE, Event.OFFLOADING})
 IGNORED = frozenset({Event.ACK, Event.ERROR_MESSAGE})
+# Live tails of component logs: served by the connection's LogTail (a read, as every other).
+LOG_TAILS = frozenset({Event.LOGS_SUBSCRIBE, Event.LOGS_UNSUBSCRIBE})
 NEEDED = {Right.READ: "viewer", Right.COMMAND: "operator", Right.ADMINISTER: "admin"}
 
 
@@ -70,6 +73,7 @@ class ClientConsumer(ProtocolConsumer):
         self.visible: set[str] | None = set()
         self.visible_loaded_at = 0.0
         self.dedup = Dedup(capacity=1000)
+        self.log_tail = LogTail(self)
         await super().connect()
 
     async def authenticate(self, envelope: Envelope) -> bool:
@@ -131,6 +135,7 @@ class ClientConsumer(ProtocolConsumer):
         self.spawn(self.handle(envelope))
 
     async def closed(self, code: int) -> None:
+        await self.log_tail.close()
         if self.user is not None:
             prometheus.LIVE_CLIENTS.dec()
             await self.channel_layer.group_discard(LIVE_GROUP, self.channel_name)
@@ -180,6 +185,10 @@ class ClientConsumer(ProtocolConsumer):
         if allowed:
             await self.send_text(json.dumps(message["frame"], separators=(",", ":")))
 
+    async def logs_lines(self, message: dict[str, Any]) -> None:
+        """Pass on new log lines of the components this client tails."""
+        await self.log_tail.push(message)
+
     async def live_events(self, message: dict[str, Any]) -> None:
         """Pass on many state changes published together (a connect storm), each as live_event would."""
         for event in message["events"]:
@@ -215,6 +224,8 @@ class ClientConsumer(ProtocolConsumer):
                 outcome = await self.relay(envelope, robot_id, stored=True)
             elif envelope.event in RELAYED:
                 outcome = await self.relay(envelope, robot_id)
+            elif envelope.event in LOG_TAILS:
+                await self.log_tail.handle(envelope, robot_id, payload)
             else:
                 event, data = await database_sync_to_async(services.answer_from_database)(
                     envelope.event, robot_id, payload

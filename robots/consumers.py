@@ -41,7 +41,8 @@ REQUEST_TTL = 120.0
 VOLUME_SCAN_S = 1.0
 CHUNK_WAIT_S = 30.0
 MAX_OPEN_REQUESTS = 1000
-OWN_DEDUP = frozenset({Event.METRICS, Event.VOLUME_CHANGES})
+# Metrics, volume changes and log lines are kept from applying twice by their own stores (log lines by their key).
+OWN_DEDUP = frozenset({Event.METRICS, Event.VOLUME_CHANGES, Event.COMPONENT_LOGS})
 CLOSE_REPLACED = 4009
 CLOSE_REVOKED = 4004
 # How the agent's encoder starts a bridge event: such frames skip the robot's report rate limit.
@@ -444,7 +445,10 @@ async def on_skill_status(consumer: RobotConsumer, envelope: Envelope, p: Any) -
 
 @handles(Event.COMPONENT_STATUS)
 async def on_component_status(consumer: RobotConsumer, envelope: Envelope, p: Any) -> bool:
-    await sync(skills.report_component_status)(consumer.robot_id, p.skill, p.component, p.status, p.location, p.message)
+    last_lines = None if p.last_lines is None else [line.model_dump(mode="json") for line in p.last_lines]
+    await sync(skills.report_component_status)(
+        consumer.robot_id, p.skill, p.component, p.status, p.location, p.message, last_lines=last_lines
+    )
     return True
 
 

@@ -188,9 +188,16 @@ def _set_component_status(
 
 
 def report_component_status(
-    robot_id: str, skill_id: str, component_id: str, status: str, location: str | None, message: str | None = None
+    robot_id: str,
+    skill_id: str,
+    component_id: str,
+    status: str,
+    location: str | None,
+    message: str | None = None,
+    *,
+    last_lines: list[dict[str, Any]] | None = None,
 ) -> None:
-    """Record the status a robot reports for a component."""
+    """Record the status a robot reports for a component (a crash's last lines go into its event's data)."""
     with transaction.atomic(savepoint=False):
         # The reason goes with the status it explains: a component that runs again has none.
         if not _set_component_status(robot_id, skill_id, component_id, status, message or "", location):
@@ -204,7 +211,11 @@ def report_component_status(
             kind=Event.COMPONENT_STATUS,
             skill=skill_id,
             component=component_id,
-            data={"status": status, "message": message} if message else {"status": status},
+            data={
+                "status": status,
+                **({"message": message} if message else {}),
+                **({"lines": last_lines} if last_lines is not None else {}),
+            },
         )
         data = {"skill": skill_id, "component": component_id, "status": status}
         if location:
