@@ -9,10 +9,13 @@ So the CLI runs with exactly its declared dependencies and nothing else: no Djan
 
 from __future__ import annotations
 
+import queue
 import shutil
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -157,3 +160,34 @@ def cli(bridgeos: Path, tmp_path: Path) -> Cli:
         "TERM": "dumb",
     }
     return Cli(bridgeos, home, env)
+
+
+def lines_of(process: subprocess.Popen) -> queue.Queue[str]:
+    """Wait until a `-f` command says it follows (on stderr); return a queue of the lines it prints on stdout."""
+    received: queue.Queue[str] = queue.Queue()
+    said = process.stderr.readline()
+    assert said.startswith("Following"), f"{said}{process.stderr.read() if process.poll() is not None else ''}"
+
+    def read() -> None:
+        for line in process.stdout:
+            received.put(line)
+
+    threading.Thread(target=read, daemon=True).start()
+    return received
+
+
+def next_line(received: queue.Queue[str], process: subprocess.Popen, match: Callable[[str], bool], timeout=15) -> str:
+    """Return the first line printed that matches, or fail with what the process said."""
+    try:
+        while True:
+            line = received.get(timeout=timeout)
+            if match(line):
+                return line
+    except queue.Empty:
+        process.terminate()
+        raise AssertionError(f"no matching line within {timeout} s; stderr: {process.communicate()[1]}") from None
+
+
+def stop(process: subprocess.Popen) -> None:
+    process.terminate()
+    process.wait(timeout=10)

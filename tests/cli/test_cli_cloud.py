@@ -3,11 +3,7 @@
 from __future__ import annotations
 
 import json
-import queue
 import stat
-import subprocess
-import threading
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -22,6 +18,7 @@ from robots.services import create_robot
 from skills.models import Skill
 from teams.services import personal_organization
 from tests.browser.conftest import start_agent, stop_agent
+from tests.cli.conftest import lines_of, next_line, stop
 from tests.conftest import ROOT, wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
@@ -29,37 +26,6 @@ pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
 PASSWORD = "cli-pass-123!"
 SAMPLE = ROOT / "agent" / "src" / "bridgeos_agent" / "samples" / "demo_telemetry.json"
 SKILL = "cli-r1/demo-telemetry"
-
-
-def lines_of(process: subprocess.Popen) -> queue.Queue[str]:
-    """Wait until a `-f` command says it follows (on stderr); return a queue of the lines it prints on stdout."""
-    received: queue.Queue[str] = queue.Queue()
-    said = process.stderr.readline()
-    assert said.startswith("Following"), f"{said}{process.stderr.read() if process.poll() is not None else ''}"
-
-    def read() -> None:
-        for line in process.stdout:
-            received.put(line)
-
-    threading.Thread(target=read, daemon=True).start()
-    return received
-
-
-def next_line(received: queue.Queue[str], process: subprocess.Popen, match: Callable[[str], bool], timeout=15) -> str:
-    """Return the first line printed that matches, or fail with what the process said."""
-    try:
-        while True:
-            line = received.get(timeout=timeout)
-            if match(line):
-                return line
-    except queue.Empty:
-        process.terminate()
-        raise AssertionError(f"no matching line within {timeout} s; stderr: {process.communicate()[1]}") from None
-
-
-def stop(process: subprocess.Popen) -> None:
-    process.terminate()
-    process.wait(timeout=10)
 
 
 @pytest.fixture
@@ -89,6 +55,9 @@ def test_login_keeps_a_token_only_its_user_reads_and_logout_forgets_it(cli, ann,
 
     me = cli("whoami", "--json")
     assert me.code == 0 and me.json()["robots"] == 0, me
+    # $XDG_CONFIG_HOME, when set, is where the login lives: there is none there.
+    elsewhere = cli("whoami", XDG_CONFIG_HOME=str(cli.home / "elsewhere"))
+    assert elsewhere.code == 3 and "Not logged in" in elsewhere.err, elsewhere
     # The environment overrides the stored login: a wrong token is refused in the API's words.
     bogus = cli("robots", "ls", BRIDGEOS_TOKEN="not-a-token")
     assert bogus.code == 3 and "Invalid or expired token" in bogus.err and "bridgeos login" in bogus.err, bogus
