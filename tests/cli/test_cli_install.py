@@ -29,6 +29,14 @@ def test_help_lists_every_command_with_examples_and_exit_codes_fast(cli):
     assert "Examples:" in runs[0].out and "Exit codes:" in runs[0].out
     # The benchmark's cli_start_ms is the wall time of `bridgeos --help`; its goal is 300 ms.
     assert statistics.median(run.seconds for run in runs) < 0.3, [run.seconds for run in runs]
+    timed = subprocess.run(
+        [cli.script.parent / "python", "-c", "from bridgeos_cli.timing import cli_start_ms; print(cli_start_ms())"],
+        env=cli.env,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert 0 < float(timed.stdout) < 300, timed
 
 
 @pytest.mark.parametrize(

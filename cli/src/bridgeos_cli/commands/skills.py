@@ -106,6 +106,7 @@ def skills_add(robot: str, config_file: str | None, template: int | None) -> Non
 
 @skills.command("remove")
 @click.argument("path", metavar="ROBOT/SKILL")
+@json_option
 def skills_remove(path: str) -> None:
     """Remove a stopped Skill from its robot.
 
@@ -115,7 +116,7 @@ def skills_remove(path: str) -> None:
     """
     robot, skill = split_path(path, least=2, most=2, what="ROBOT/SKILL")
     state().api().post(f"/api/robot/{url_path(robot)}/skill/remove", {"skill": skill})
-    click.echo(f"Skill {skill} removed from {robot}.")
+    show({"robot": robot, "removed": skill}, lambda _: click.echo(f"Skill {skill} removed from {robot}."))
 
 
 @skills.command("start")
