@@ -16,7 +16,6 @@ two workers never collect one copy at once.
 from __future__ import annotations
 
 import logging
-import os
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -94,7 +93,8 @@ def read_process_output(path: Path, position: dict[str, Any]) -> tuple[list[Outp
 def _docker_api() -> Any:
     import docker
 
-    return docker.APIClient(base_url=os.environ.get("DOCKER_HOST") or "unix:///var/run/docker.sock", timeout=10)
+    # The engine the cloud runtimes drive: the environment's (DOCKER_HOST), else the local socket.
+    return docker.from_env(timeout=10).api
 
 
 def parse_docker_line(raw: str) -> tuple[int, str] | None:

