@@ -43,6 +43,10 @@ def test_a_wrong_password_is_refused_with_the_apis_words_and_keeps_nothing(cli, 
     assert wrong.code == 3, wrong
     assert "Login refused: Invalid username/password." in wrong.err, wrong
     assert not cli.config_file.exists()
+    # A URL that is no bridgeOS cloud: its status and where, not the page it served.
+    astray = cli("login", daphne_server.url + "/nothing", "-u", "cli-ann", "--password", PASSWORD)
+    assert astray.code == 4 and f"HTTP 404 Not Found from {daphne_server.url}/nothing/api/auth" in astray.err, astray
+    assert not cli.config_file.exists()
 
 
 def test_login_keeps_a_token_only_its_user_reads_and_logout_forgets_it(cli, ann, daphne_server):

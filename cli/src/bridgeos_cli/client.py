@@ -31,7 +31,8 @@ def raise_for(response: httpx.Response) -> None:
     try:
         body: Any = response.json()
     except ValueError:
-        body = response.text.strip() or response.reason_phrase
+        # Not the API's JSON (a proxy's page, a wrong URL): say the status and where, not the page.
+        body = f"HTTP {response.status_code} {response.reason_phrase} from {response.request.url}"
     message = api_message(body)
     if response.status_code == 401:
         message = f"{message}\nThe cloud refused the credentials: run `bridgeos login` again."

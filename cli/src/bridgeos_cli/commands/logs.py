@@ -128,7 +128,8 @@ def logs(
     everything = tail is None and (since is not None or until is not None)
     count = DEFAULT_TAIL if tail is None else tail
     if follow:
-        follow_logs(robot, filters, count, matcher(level, query, regex, location), ring=ring, as_json=as_json)
+        matches = matcher(level, query, regex, location)
+        follow_logs(robot, filters, None if everything else count, matches, ring=ring, as_json=as_json)
         return
     lines = stored_lines(robot, filters, None if everything else count)
     if as_json:
@@ -177,7 +178,13 @@ def _pages(path: str, filters: dict[str, Any], order: str, count: int | None = N
 
 
 def follow_logs(
-    robot: str, filters: dict[str, Any], count: int, matches: Callable[[dict], bool], *, ring: bool, as_json: bool
+    robot: str,
+    filters: dict[str, Any],
+    count: int | None,
+    matches: Callable[[dict], bool],
+    *,
+    ring: bool,
+    as_json: bool,
 ) -> None:
     """Subscribe first, then print the stored tail, then every pushed line not printed yet."""
     from ..live import LiveClient
@@ -187,6 +194,7 @@ def follow_logs(
     newest: dict[Key, int] = {}
 
     def emit(line: dict[str, Any]) -> None:
+        line = {"robot": robot, **line}  # stored lines as pushed ones: each names its robot
         key = (line["skill"], line["component"], line["location"])
         if line["seq"] <= newest.get(key, 0):
             return
