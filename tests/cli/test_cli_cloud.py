@@ -65,6 +65,8 @@ def test_login_keeps_a_token_only_its_user_reads_and_logout_forgets_it(cli, ann,
     # The environment overrides the stored login: a wrong token is refused in the API's words.
     bogus = cli("robots", "ls", BRIDGEOS_TOKEN="not-a-token")
     assert bogus.code == 3 and "Invalid or expired token" in bogus.err and "bridgeos login" in bogus.err, bogus
+    live = cli("events", "-f", BRIDGEOS_TOKEN="not-a-token")
+    assert live.code == 3 and "The cloud refused the token" in live.err, live
 
     assert cli("logout").code == 0 and not cli.config_file.exists()
     assert cli("robots", "ls").code == 3

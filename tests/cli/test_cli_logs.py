@@ -94,8 +94,9 @@ def test_logs_are_queried_by_component_level_text_time_and_pages(cli, robot):
     bad = cli("logs", ROBOT, "-g", "(", "-E")
     assert bad.code == 1 and bad.err.startswith("Error: q: "), bad
     for hidden in ("nobody", "cli-logs-foreign"):
-        missing = cli("logs", hidden)
-        assert missing.code == 4 and "Error:" in missing.err, missing
+        for follow in ([], ["-f"]):
+            missing = cli("logs", *follow, hidden)
+            assert missing.code == 4 and "Error:" in missing.err, missing
 
     # More lines than one page of the API: the command follows its cursors.
     robot.ship(*(f"flood {n}" for n in range(1, 1301)))

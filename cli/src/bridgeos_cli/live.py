@@ -58,7 +58,7 @@ class LiveClient:
             self.socket = connect(url, open_timeout=OPEN_TIMEOUT_S, max_size=2**24, close_timeout=1)
         except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as exc:
             raise CliError(f"Cannot open {url}: {exc}", CONNECTION) from None
-        reply = self.request("authentication_client", {"token": self.login.token}, until={"authentication_success"})
+        reply = self.request("authentication_client", {"token": self.login.token})
         if reply["event"] != "authentication_success":
             reason = reply["data"].get("reason") or reply["data"].get("message") or "refused"
             raise CliError(f"The cloud refused the token: {reason}. Run `bridgeos login` again.", AUTH)
@@ -81,31 +81,26 @@ class LiveClient:
         envelope: dict[str, Any] = json.loads(text)
         return envelope
 
-    def request(self, event: str, data: dict[str, Any], *, until: set[str]) -> dict[str, Any]:
-        """Send a request and return its reply (an event in ``until``, or a refusal) by its reply_to."""
+    def request(self, event: str, data: dict[str, Any]) -> dict[str, Any]:
+        """Send a request and return the frame answering it (by its reply_to); a refusal raises a CliError."""
         assert self.socket is not None
         frame_id, text = frame(event, data)
         self.socket.send(text)
         deadline = time.monotonic() + REPLY_TIMEOUT_S
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise CliError(f"The cloud did not answer {event} within {REPLY_TIMEOUT_S:g} s.", CONNECTION)
+        while (left := deadline - time.monotonic()) > 0:
             try:
                 envelope = self.receive(timeout=left)
             except TimeoutError:
-                continue
-            if envelope.get("reply_to") == frame_id:
+                break
+            # A refused authentication may come without reply_to (a timeout, a closed session).
+            if envelope.get("reply_to") == frame_id or envelope["event"] == "authentication_failure":
                 if envelope["event"] == "error_message":
                     raise refusal(envelope["data"])
-                if envelope["event"] in until or envelope["event"] in ("ack", "authentication_failure"):
-                    if envelope["event"] not in ("ack", "authentication_failure", "authentication_success"):
-                        self.early.append(envelope)
-                    return envelope
-            elif envelope["event"] == "authentication_failure":
+                if envelope["event"] == "component_logs":
+                    self.early.append(envelope)  # the answer to a subscription carries lines too
                 return envelope
-            else:
-                self.early.append(envelope)
+            self.early.append(envelope)
+        raise CliError(f"The cloud did not answer {event} within {REPLY_TIMEOUT_S:g} s.", CONNECTION)
 
     def frames(self) -> Iterator[dict[str, Any]]:
         """Yield every frame the cloud sends, those read early first."""

@@ -207,7 +207,7 @@ def follow_logs(
     try:
         with LiveClient(state().api().login) as live:
             # Subscribed before reading the stored tail: a line stored in between is pushed, not lost.
-            live.request("logs_subscribe", request, until={"component_logs"})
+            live.request("logs_subscribe", request)
             named = "/".join(part for part in (robot, filters["skill"], filters["component"]) if part)
             click.echo(f"Following the logs of {named} (Ctrl-C stops).", err=True)
             for line in stored_lines(robot, filters, count):
