@@ -29,7 +29,10 @@ CLI_REQUIRES = ("click", "httpx", "websockets")
 
 def requirement_closure(names: tuple[str, ...]) -> list[metadata.Distribution]:
     """Return the installed distributions these names need, transitively, for this interpreter (no extras)."""
-    from packaging.requirements import Requirement
+    try:
+        from packaging.requirements import Requirement
+    except ImportError:  # not every venv has packaging itself; pip always carries a copy
+        from pip._vendor.packaging.requirements import Requirement
 
     found: dict[str, metadata.Distribution] = {}
     pending = list(names)
