@@ -6,15 +6,15 @@ STAMP := $(VENV)/.installed-stamp
 
 .PHONY: run test test-fast services images lint docs bench chaos install clean deploy undeploy
 
-## Create .venv and install the cloud, the agent and the test tools (torch first: the CPU build on disk).
+## Create .venv and install the cloud, the agent, the `bridgeos` command line and the test tools (torch first: the CPU build on disk).
 install: $(STAMP)
-$(STAMP): pyproject.toml agent/pyproject.toml
+$(STAMP): pyproject.toml agent/pyproject.toml cli/pyproject.toml
 	@echo "== venv: installing into $(VENV)"
 	@start=$$(date +%s); \
 	test -x $(PY) || $(PYTHON) -m venv $(VENV); \
 	$(PY) -m pip install -q --upgrade pip setuptools wheel; \
 	$(PY) -m pip install -q torch==2.13.0; \
-	$(PY) -m pip install -q -e "./agent[ros2,rosbridge]" -e ".[test]"; \
+	$(PY) -m pip install -q -e "./agent[ros2,rosbridge]" -e ./cli -e ".[test]"; \
 	echo "== venv: ready in $$(( $$(date +%s) - start )) s"
 	@touch $@
 
