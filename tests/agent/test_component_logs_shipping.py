@@ -16,9 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import websockets
+from prometheus_client import generate_latest
 
 from bridgeos_agent import protocol
 from bridgeos_agent.controller import AgentSettings, RobotController
+from bridgeos_agent.metrics import controller_collector, registry_for
 from bridgeos_agent.protocol import Envelope, Event
 from bridgeos_agent.skillconfig import parse_skill_config
 from tests.conftest import eventually
@@ -161,6 +163,7 @@ async def test_lines_reach_the_cloud_in_order_once_and_the_ring_answers_for_them
         )
         unknown = await cloud.ask(Event.COMPONENT_LOGS_GET, {"skill": "chatty", "component": "nobody"})
         backlog = list(controller.outbox.backlog())
+        scraped = generate_latest(registry_for(controller_collector(controller))).decode()
 
     assert seqs(lines) == list(range(1, 3001))  # in order, none twice
     assert [line["text"] for line in lines] == [f"[INFO] line {i}" for i in range(3000)]
@@ -170,6 +173,8 @@ async def test_lines_reach_the_cloud_in_order_once_and_the_ring_answers_for_them
     assert answer.event == Event.COMPONENT_LOGS
     assert [line["text"] for line in answer.data["lines"]] == [f"[INFO] line {i}" for i in range(2990, 3000)]
     assert unknown.event == Event.ERROR_MESSAGE and "nobody" in unknown.data["message"]
+    assert 'bridgeos_agent_log_lines_shipped_total{robot="logs-ship-1"} 3000.0' in scraped
+    assert 'bridgeos_agent_log_lines_dropped_total{robot="logs-ship-1"} 0.0' in scraped
     # The ring is their store: no log frame was ever kept in the outbox.
     assert all('"component_logs"' not in text for _, _, text in backlog)
 
