@@ -144,7 +144,9 @@ class ImagePolicy(_Model):
 class LogsPolicy(_Model):
     """Say how a robot keeps its components' output and ships it to the cloud."""
 
-    enabled: bool = Field(default=True, description="Capture components' stdout and stderr and ship them to the cloud.")
+    enabled: bool = Field(
+        default=True, description="Ship components' stdout and stderr to the cloud (off: kept in the robot's rings)."
+    )
     ring_bytes: int = Field(
         default=8 * 1024 * 1024,
         ge=64 * 1024,

@@ -41,7 +41,8 @@ Entry = tuple[float, str, str | None, str]  # (unix time, "stdout"|"stderr", lev
 CUT_MARK = "…[cut]"
 # A line longer than this many bytes is cut there, even before its end has been written.
 MAX_LINE_BYTES = 4 * MAX_LOG_LINE_CHARS
-READ_CHUNK = 4 * 1024 * 1024  # bytes read from one file in one pass: big reads, few syscalls
+READ_CHUNK = 4 * 1024 * 1024  # bytes read from a file at once: big reads, few syscalls
+READ_CHUNKS = 4  # at most per file and pass: a backlog left while the agent was down is taken in parts
 
 _WORDS = {
     "trace": "debug",
@@ -189,7 +190,7 @@ class FileTail:
             elif info.st_size < offset:
                 offset = 0  # emptied by someone else
             inode = info.st_ino
-            while True:
+            for _ in range(READ_CHUNKS):
                 data = os.pread(fd, READ_CHUNK, offset)
                 taken, used = split_lines(data, final=final and len(data) < READ_CHUNK)
                 lines += taken

@@ -210,6 +210,7 @@ class Rings:
         self.max_bytes = max_bytes
         self._rings: dict[tuple[str, str], LogRing] = {}
         self._lock = threading.Lock()
+        self._found = False  # the rings an earlier agent left were looked for on disk
 
     def get(self, skill: str, component: str, *, create: bool = True) -> LogRing | None:
         """Return a component's ring, loading it from disk (or making it) on first use."""
@@ -224,8 +225,9 @@ class Rings:
             return ring
 
     def known(self) -> list[tuple[tuple[str, str], LogRing]]:
-        """Return the rings loaded or on disk, loading those on disk."""
-        if self.root.is_dir():
+        """Return every ring: those made since, and those an earlier agent left on disk (looked for once)."""
+        if not self._found and self.root.is_dir():
+            self._found = True
             for skill_dir in self.root.iterdir():
                 for component_dir in skill_dir.iterdir() if skill_dir.is_dir() else ():
                     if (component_dir / "state.json").exists():

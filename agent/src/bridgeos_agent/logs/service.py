@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from bridgeos_agent import protocol
 from bridgeos_agent.logonce import LogOnce
+from bridgeos_agent.logs.capture import LogSource
 from bridgeos_agent.logs.ring import RingLine, Rings
 from bridgeos_agent.logs.shipper import LogShipper, frame_data
 from bridgeos_agent.robotconfig import LogsPolicy
@@ -70,21 +71,22 @@ class ComponentLogService:
         self.shipper.enabled = policy.enabled
 
     async def run(self) -> None:
-        """Capture and ship until cancelled."""
+        """Capture and ship until cancelled (with ``enabled`` off the rings still fill; nothing is shipped)."""
         shipping = asyncio.ensure_future(self.shipper.run())
         try:
             while True:
                 await asyncio.sleep(self.poll)
-                if self.policy.enabled:
-                    await self.capture()
+                await self.capture()
         finally:
             shipping.cancel()
             await asyncio.gather(shipping, return_exceptions=True)
 
     async def capture(self, only: tuple[str, str] | None = None, *, final: bool = False) -> int:
         """Read every component's new output into its ring (in a thread); return the lines taken."""
+        # Asked on the loop: the runtime's records change there.
+        sources = {key: source for key, source in self.runtime.log_sources().items() if only in (None, key)}
         try:
-            taken = await asyncio.to_thread(self._capture, only, final)
+            taken = await asyncio.to_thread(self._capture, sources, final)
         except Exception as exc:  # a runtime's source failing in its own way: said once, tried next pass
             self._failures.failed(exc)
             return 0
@@ -93,12 +95,10 @@ class ComponentLogService:
             self.shipper.wake.set()
         return taken
 
-    def _capture(self, only: tuple[str, str] | None, final: bool) -> int:
+    def _capture(self, sources: dict[tuple[str, str], LogSource], final: bool) -> int:
         taken = 0
         with self._capturing:
-            for key, source in self.runtime.log_sources().items():
-                if only is not None and key != only:
-                    continue
+            for key, source in sources.items():
                 ring = self.rings.get(*key)
                 assert ring is not None
                 found, position = source.read(ring.source or None, final=final)

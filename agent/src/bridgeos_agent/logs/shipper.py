@@ -11,6 +11,7 @@ overwrote before they went are counted in the next frame's ``dropped``.
 from __future__ import annotations
 
 import asyncio
+import functools
 import itertools
 import logging
 import time
@@ -168,7 +169,7 @@ class LogShipper:
         budget = int(min(FRAME_BYTES, max(byte_floor, self.bytes.available())))
         built = await asyncio.to_thread(self._build, flow, limit, budget)
         if built is None:
-            return 0.0
+            return 0.05  # the ring was emptied meanwhile (made smaller): looked at again shortly
         frame_id, text, last, count, dropped = built
         self.lines.take(count)
         self.bytes.take(len(text))
@@ -176,7 +177,7 @@ class LogShipper:
         self._sent[frame_id] = (flow, self.clock())
         flow.frames.append(_Sent(frame_id=frame_id, last=last, lines=count, dropped=dropped))
         flow.sending = last
-        if not await self.session.send_unkept(frame_id, text, lambda code, f=frame_id: self._answered(f, code)):
+        if not await self.session.send_unkept(frame_id, text, functools.partial(self._answered, frame_id)):
             self._lost(flow)
             return 0.1
         self.frames_sent += 1
