@@ -110,6 +110,8 @@ def spec(component: str, code: str, *, skill: str = "chatty") -> ComponentSpec:
 class NoLink:
     """A session that never connects: these tests look at capture only."""
 
+    ws = None
+
     def idle(self, max_buffered: int) -> bool:
         return False
 
@@ -228,7 +230,7 @@ async def test_a_flood_keeps_its_file_small_loses_no_line_and_leaves_the_event_l
 
     texts = [line[4] for line in ring.lines_after(0, count + 10)]
     assert texts == [f"line {i}" for i in range(count)]
-    assert runtime.log_path("chatty", "flood").stat().st_size <= 4 * 256 * 1024
+    assert runtime.log_path("chatty", "flood").stat().st_blocks * 512 <= 2 * 256 * 1024  # read parts given back
     assert count / elapsed > 20_000, f"captured {count / elapsed:.0f} lines/s"
     lags.sort()
     assert lags[int(len(lags) * 0.95)] < 0.05, f"event loop p95 lag {lags[int(len(lags) * 0.95)]:.3f} s"

@@ -58,6 +58,8 @@ def spec(robot: str, component: str, script: str, restart: RestartPolicy | None 
 
 
 class NoLink:
+    ws = None
+
     def idle(self, max_buffered: int) -> bool:
         return False
 

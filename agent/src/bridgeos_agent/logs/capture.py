@@ -10,6 +10,7 @@ stream, level, text). Nothing here touches the event loop: the capture runs in a
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import json
 import os
 import re
@@ -42,7 +43,16 @@ CUT_MARK = "…[cut]"
 # A line longer than this many bytes is cut there, even before its end has been written.
 MAX_LINE_BYTES = 4 * MAX_LOG_LINE_CHARS
 READ_CHUNK = 4 * 1024 * 1024  # bytes read from a file at once: big reads, few syscalls
+PAGE = 4096
+RESTART_AT = (
+    1 << 30
+)  # a file's offsets past this: emptied (when quiet) rather than punched on, to stay far from its size limit
+_LIBC = ctypes.CDLL(None, use_errno=True)
+_KEEP_SIZE, _PUNCH_HOLE = 0x01, 0x02  # fallocate(2) modes
 READ_CHUNKS = 4  # at most per file and pass: a backlog left while the agent was down is taken in parts
+# Reads to the end and tries at emptying a file over its size, per pass: the window between the
+# last read and the truncation is then a few microseconds, so a line written just then is rare.
+EMPTY_TRIES = 8
 
 _WORDS = {
     "trace": "debug",
@@ -152,10 +162,13 @@ class LogSource(Protocol):
 
 
 class FileTail:
-    """Follow a process component's stdout and stderr files from a saved (inode, offset) each.
+    """Follow a process component's stdout and stderr files from a saved (inode, offset, freed) each.
 
-    Once it has read a file to its end and the file is over ``max_bytes``, it empties it in place
-    (the component appends at the new end), so the files stay small while the ring keeps the lines.
+    The ring keeps the lines, so the part of a file already read is given back to the disk once
+    it passes ``max_bytes``: punched out (the file's offsets stay, nothing the component writes
+    meanwhile is lost); where the file system cannot punch holes, or once the offsets pass
+    ``RESTART_AT``, the file is emptied in place when read to its very end (the component appends
+    at the new end; a line written in the microseconds between is lost, counted in ``emptied``).
     """
 
     def __init__(self, files: Mapping[str, Path], *, max_bytes: int, clock: Callable[[], float] = time.time) -> None:
@@ -163,6 +176,7 @@ class FileTail:
         self.max_bytes = max_bytes
         self.clock = clock
         self.emptied = 0  # how often a file was emptied with bytes written after its last read (lost)
+        self.punching = True  # until the file system says it cannot
 
     def read(self, position: Mapping[str, Any] | None, *, final: bool = False) -> tuple[list[Entry], dict[str, Any]]:
         """Return the lines written since ``position`` and the new position."""
@@ -175,33 +189,58 @@ class FileTail:
         return found, after
 
     def _read_file(self, path: Path, saved: Any, final: bool) -> tuple[list[str], list[int]]:
-        inode, offset = (int(saved[0]), int(saved[1])) if saved else (0, 0)
+        inode, offset, freed = (
+            (int(saved[0]), int(saved[1]), int(saved[2]) if len(saved) > 2 else 0) if saved else (0, 0, 0)
+        )
         try:
             fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
         except FileNotFoundError:
-            return [], [inode, offset]
+            return [], [inode, offset, freed]
         lines: list[str] = []
         try:
             info = os.fstat(fd)
             if inode and info.st_ino != inode:
                 # Replaced at a relaunch (the old file moved to .1): finish the old one first.
                 lines += self._finish_backup(path, inode, offset)
-                offset = 0
+                offset = freed = 0
             elif info.st_size < offset:
-                offset = 0  # emptied by someone else
+                offset = freed = 0  # emptied by someone else
             inode = info.st_ino
-            for _ in range(READ_CHUNKS):
+            for _ in range(READ_CHUNKS + EMPTY_TRIES):
                 data = os.pread(fd, READ_CHUNK, offset)
                 taken, used = split_lines(data, final=final and len(data) < READ_CHUNK)
                 lines += taken
                 offset += used
-                if len(data) < READ_CHUNK or not used:
+                if len(data) == READ_CHUNK and used:
+                    continue  # more written than one read takes
+                if offset - freed <= self.max_bytes:
                     break
-            if offset > self.max_bytes and self._empty(path, fd, offset):
-                offset = 0
+                if offset < RESTART_AT and self.punching and self._punch(path, offset):
+                    freed = offset - offset % PAGE
+                    break
+                if self._empty(path, fd, offset):
+                    offset = freed = 0
+                    break
+                # Written to between the read and the emptying: read that too, then try again.
         finally:
             os.close(fd)
-        return lines, [inode, offset]
+        return lines, [inode, offset, freed]
+
+    def _punch(self, path: Path, offset: int) -> bool:
+        """Give the disk blocks of a file's read part back, its offsets unchanged (False: cannot here)."""
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CLOEXEC)
+        except OSError:
+            return False
+        try:
+            done = _LIBC.fallocate(
+                fd, _PUNCH_HOLE | _KEEP_SIZE, ctypes.c_int64(0), ctypes.c_int64(offset - offset % PAGE)
+            )
+        finally:
+            os.close(fd)
+        if done != 0:
+            self.punching = False  # e.g. EOPNOTSUPP: emptied in place from now on
+        return done == 0
 
     def _finish_backup(self, path: Path, inode: int, offset: int) -> list[str]:
         backup = path.with_name(path.name + ".1")
@@ -215,10 +254,10 @@ class FileTail:
             return []
 
     def _empty(self, path: Path, fd: int, offset: int) -> bool:
-        """Empty a file read to its end; one far over its size is emptied even if it grew meanwhile."""
+        """Empty a file read to its very end (a writer outpacing the reads far over its size: anyway, counted)."""
         size = os.fstat(fd).st_size
-        if size != offset and size < 4 * self.max_bytes:
-            return False  # written to since the read: emptied at a later pass, when it is quiet
+        if size != offset and size < 16 * self.max_bytes:
+            return False  # written to since the read
         if size != offset:
             self.emptied += 1
         try:

@@ -11,6 +11,7 @@ overwrote before they went are counted in the next frame's ``dropped``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import itertools
 import logging
@@ -144,10 +145,11 @@ class LogShipper:
             delay = await self.ship_once()
             if delay:
                 self.wake.clear()
-                try:
-                    await asyncio.wait_for(self.wake.wait(), delay)
-                except TimeoutError:
-                    pass
+                # asyncio.timeout, not wait_for: Python 3.11's wait_for can swallow a cancellation
+                # that comes as the wait ends, and the loop would outlive its owner's close.
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(delay):
+                        await self.wake.wait()
 
     async def ship_once(self) -> float:
         """Send one frame if one may go now; return how long to wait before trying again (0: at once)."""
@@ -155,7 +157,7 @@ class LogShipper:
         if not self.enabled or self._refused or len(self._sent) >= self.in_flight:
             return 0.5 if self._refused or not self.enabled else 0.1
         if not self.session.idle(SOCKET_BUFFERED):
-            return 0.02
+            return 0.02 if self.session.ws is not None else 0.25  # other frames first, or no link
         flow = self._next_flow()
         if flow is None:
             return 0.25

@@ -521,7 +521,8 @@ def _tail(paths: list[Path], count: int) -> list[str]:
                 chunk = _read_tail(file, count - len(lines))
         except FileNotFoundError:
             continue
-        lines = chunk.decode("utf-8", errors="replace").splitlines()[-(count - len(lines)) :] + lines
+        # A file the log capture punched holes in reads as NUL bytes there.
+        lines = chunk.lstrip(b"\0").decode("utf-8", errors="replace").splitlines()[-(count - len(lines)) :] + lines
         if len(lines) >= count:
             break
     return lines[-count:]
