@@ -111,7 +111,7 @@ async def test_a_crashed_containers_last_lines_are_read_to_its_end(robot: str, t
     service = ComponentLogService(tmp_path / "logs", runtime, NoLink())  # type: ignore[arg-type]
     task = asyncio.create_task(service.run())
     try:
-        script = "for i in $(seq 1 60); do echo step $i; done; echo 'Traceback: lidar gone' >&2; exit 4"
+        script = "for i in $(seq 1 60); do echo step $i; done; sleep 0.2; echo 'Traceback: lidar gone' >&2; exit 4"
         await runtime.start(spec(robot, "lidar", script, RestartPolicy(max_restarts=0)))
 
         async def failed() -> bool:
@@ -125,5 +125,8 @@ async def test_a_crashed_containers_last_lines_are_read_to_its_end(robot: str, t
         await runtime.close(stop_components=True)
 
     assert len(last) == 50
+    # In Docker's order: it copies stdout and stderr apart, stamping each line as it gets it (a line
+    # printed on stderr within a millisecond of stdout ones may come among them).
     assert last[-1]["text"] == "Traceback: lidar gone" and last[-1]["stream"] == "stderr"
     assert [line["text"] for line in last[:-1]] == [f"step {i}" for i in range(12, 61)]
+    assert [line["ts"] for line in last] == sorted(line["ts"] for line in last)

@@ -268,6 +268,8 @@ class FileTail:
 
 
 _HEADER = struct.Struct(">BxxxL")
+SEEN_NS = 2_000_000_000
+SEEN_MAX = 20_000
 _STREAMS = {1: "stdout", 2: "stderr"}
 
 
@@ -308,7 +310,11 @@ class DockerFollower:
         self.lost = 0
         self._pending: deque[tuple[int, Entry]] = deque()
         self._lock = threading.Lock()
-        self._since: int | None = None  # unix nanoseconds of the last entry taken
+        self._since: int | None = None  # unix nanoseconds of the newest entry taken
+        self._floor: int | None = None  # taken before an agent restart: entries up to it are skipped
+        # Entries taken lately, by (time, stream): Docker copies stdout and stderr apart, so a line can
+        # be stamped before one it follows in the log; a stream opened again starts SEEN_NS earlier.
+        self._seen: dict[tuple[int, str], None] = {}
         self._started = False
         self._closed = threading.Event()
         self.ended = threading.Event()  # the stream reached the container's end (it stopped)
@@ -318,13 +324,13 @@ class DockerFollower:
         """Return the lines Docker gave since the last read (from ``position`` at the first) and the new position."""
         if not self._started:
             since = (position or {}).get("since")
-            self._since = int(since) if since else None
+            self._since = self._floor = int(since) if since else None
             self._started = True
             threading.Thread(target=self._follow, name=f"bridgeos-logs-{self.container}", daemon=True).start()
         with self._lock:
             taken = list(self._pending)
             self._pending.clear()
-        since = taken[-1][0] if taken else (position or {}).get("since", self._since)
+        since = max((ns for ns, _ in taken), default=None) or (position or {}).get("since", self._since)
         return [entry for _, entry in taken], ({"since": since} if since else {})
 
     def close(self) -> None:
@@ -338,7 +344,10 @@ class DockerFollower:
     def _follow(self) -> None:
         while not self._closed.is_set():
             try:
-                self._stream()
+                self._stream(follow=True)
+                # The stream ends as the container stops, maybe before Docker logged its last lines.
+                self._closed.wait(0.1)
+                self._stream(follow=False)
             except Exception as exc:  # the daemon restarting, the container removed: tried again
                 if "404" in str(exc) or type(exc).__name__ == "NotFound":
                     self.ended.set()
@@ -347,15 +356,17 @@ class DockerFollower:
             self.ended.set()
             self._closed.wait(0.25)  # the container stopped: its next start is followed again
 
-    def _stream(self) -> None:
+    def _stream(self, *, follow: bool) -> None:
         api = self.api
-        params: dict[str, Any] = {"stdout": 1, "stderr": 1, "follow": 1, "timestamps": 1, "tail": "all"}
+        params: dict[str, Any] = {"stdout": 1, "stderr": 1, "follow": int(follow), "timestamps": 1, "tail": "all"}
         if self._since:
-            params["since"] = f"{self._since // 1_000_000_000}.{self._since % 1_000_000_000:09d}"
+            since = max(self._since - SEEN_NS, self._floor or 0)
+            params["since"] = f"{since // 1_000_000_000}.{since % 1_000_000_000:09d}"
         response = api._get(api._url("/containers/{0}/logs", self.container), params=params, stream=True)
         api._raise_for_status(response)
         self._response = response
-        self.ended.clear()
+        if follow:
+            self.ended.clear()
         buffer = bytearray()
         try:
             for chunk in response.raw.stream(65536, decode_content=False):
@@ -374,13 +385,17 @@ class DockerFollower:
                 ns = docker_ns(stamp.decode("ascii"))
             except ValueError:
                 ns, body = time.time_ns(), payload
-            if self._since is not None and ns <= self._since:
-                continue  # Docker's since is inclusive: this one was taken already (before a restart)
+            if (ns, stream) in self._seen or (self._floor is not None and ns <= self._floor):
+                continue  # taken already (Docker's since is inclusive and starts earlier on purpose)
+            self._seen[(ns, stream)] = None
             text = cut(body.decode("utf-8", errors="replace").removesuffix("\n").removesuffix("\r"))
             fresh.append((ns, (ns / 1e9, stream, parse_level(text), text)))
         if not fresh:
             return
-        self._since = fresh[-1][0]
+        self._since = max(self._since or 0, max(ns for ns, _ in fresh))
+        if len(self._seen) > SEEN_MAX:
+            horizon = self._since - SEEN_NS
+            self._seen = {key: None for key in self._seen if key[0] >= horizon}
         with self._lock:
             self._pending.extend(fresh)
             over = len(self._pending) - self.max_pending
