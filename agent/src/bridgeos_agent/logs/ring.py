@@ -1,8 +1,9 @@
 """Keep each component's last lines on disk, bounded in bytes, numbered, and marked as shipped or not.
 
 A ring is a directory of segment files (``<first seq>.seg``, one line per log line:
-``seq TAB ts TAB stream TAB level TAB text``) and ``state.json`` (the last seq given, the seq
-shipped up to, where its source was read up to). Appending writes one chunk to the newest
+``seq TAB ts TAB stream TAB level TAB text``), ``state.json`` (the last seq given, where its
+source was read up to) and ``shipped`` (the seq the cloud acked up to; a file of its own, so
+the loop writes it without waiting for an append in progress). Appending writes one chunk to the newest
 segment; once the segments pass the ring's size the oldest is deleted, whole. So a restarted
 agent finds the lines, numbers on from the last seq and ships from the cursor.
 """
@@ -76,7 +77,8 @@ class LogRing:
         state: dict[str, Any] = {}
         with contextlib.suppress(FileNotFoundError, ValueError, TypeError):
             state = dict(json.loads((self.directory / "state.json").read_text()))
-        self.shipped = int(state.get("shipped") or 0)
+        with contextlib.suppress(FileNotFoundError, ValueError):
+            self.shipped = int((self.directory / "shipped").read_text())
         self.source = dict(state.get("source") or {})
         seq = int(state.get("seq") or 0)
         for path in sorted(self.directory.glob("*.seg"), key=lambda p: int(p.stem) if p.stem.isdigit() else -1):
@@ -145,20 +147,21 @@ class LogRing:
             oldest.path.unlink(missing_ok=True)
 
     def mark_shipped(self, seq: int) -> None:
-        """Move the shipped cursor forward to ``seq`` (the cloud acked the lines up to it)."""
-        with self._lock:
-            if seq > self.shipped:
-                self.shipped = min(seq, self.seq)
-                self._save()
+        """Move the shipped cursor forward to ``seq`` (the cloud acked the lines up to it); from one thread."""
+        if seq > self.shipped:
+            self.shipped = min(seq, self.seq)
+            self._write("shipped", str(self.shipped))
 
     def _save(self) -> None:
-        state = {"seq": self.seq, "shipped": self.shipped, "source": self.source}
-        temporary = self.directory / "state.json.tmp"
+        self._write("state.json", json.dumps({"seq": self.seq, "source": self.source}))
+
+    def _write(self, name: str, text: str) -> None:
+        temporary = self.directory / f"{name}.tmp"
         try:
-            temporary.write_text(json.dumps(state))
-            os.replace(temporary, self.directory / "state.json")
-        except OSError as exc:  # a full disk: the lines are still there; the cursor is kept next time
-            logger.warning("cannot save the log ring state in %s: %s", self.directory, exc)
+            temporary.write_text(text)
+            os.replace(temporary, self.directory / name)
+        except OSError as exc:  # a full disk: the lines are still there; the state is saved next time
+            logger.warning("cannot save the log ring's %s in %s: %s", name, self.directory, exc)
 
     # --- reading --------------------------------------------------------------------
 
