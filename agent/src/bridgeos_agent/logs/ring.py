@@ -150,12 +150,12 @@ class LogRing:
         """Move the shipped cursor forward to ``seq`` (the cloud acked the lines up to it); from one thread."""
         if seq > self.shipped:
             self.shipped = min(seq, self.seq)
-            self._write("shipped", str(self.shipped))
+            self._keep("shipped", str(self.shipped))
 
     def _save(self) -> None:
-        self._write("state.json", json.dumps({"seq": self.seq, "source": self.source}))
+        self._keep("state.json", json.dumps({"seq": self.seq, "source": self.source}))
 
-    def _write(self, name: str, text: str) -> None:
+    def _keep(self, name: str, text: str) -> None:
         temporary = self.directory / f"{name}.tmp"
         try:
             temporary.write_text(text)
