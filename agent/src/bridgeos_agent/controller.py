@@ -29,6 +29,7 @@ from bridgeos_agent.cloudrole import CloudRole
 from bridgeos_agent.delivery import DeliveryRates
 from bridgeos_agent.handover import hand_over
 from bridgeos_agent.logonce import LogOnce
+from bridgeos_agent.logs.service import ComponentLogService
 from bridgeos_agent.metrics import AgentMetrics
 from bridgeos_agent.monitor import RESOURCES, Reporter, ResourceMonitor, SimulatedRobot, SystemRobot
 from bridgeos_agent.network import CloudNetwork
@@ -150,6 +151,8 @@ class RobotController:
             on_disconnect=self._on_disconnect,
         )
         self.connected = self.session.connected
+        # Every component's stdout and stderr: kept in rings on disk, shipped when the link is idle.
+        self.logs = ComponentLogService(self.data_dir / "logs", self.runtime, self.session)
         # The cloud's rosbridge/Foxglove clients of this robot, relayed over the link (bridges.relay).
         self.bridges = BridgeRelay(self.emit, self._bridge_graph, send_binary=self.session.send_raw)
         robot = (settings.simulated or SimulatedRobot()) if settings.simulate else SystemRobot()
@@ -175,6 +178,7 @@ class RobotController:
             (self.cloud_role.run(), "takeover"),
             (self._startup(), "startup"),
             (self.volumes.run(), "volumes"),
+            (self.logs.run(), "logs"),
         ):
             self._loops.append(loop.create_task(coroutine, name=name))
         await self.stopped.wait()
@@ -216,6 +220,7 @@ class RobotController:
             self.config = saved.config
             # The CA the cloud pinned, and its tunnel, serve from the first connection on.
             self.network.apply_config(saved.config)
+            self.logs.apply(saved.config.logs)
         self.skills.update(saved.skills)
         adopted = await self.runtime.load_state(saved.runtime)
         for component in adopted:
@@ -299,6 +304,7 @@ class RobotController:
     def _on_disconnect(self) -> None:
         """End the bridge sessions: their clients were on the link that dropped."""
         self.bridges.forget_blobs()  # now, not when the task runs: the next link may come first
+        self.logs.shipper.on_disconnect()
         self.spawn(self.bridges.close_sessions())
 
     async def _bridge_graph(self) -> BridgeGraph:
@@ -377,6 +383,7 @@ class RobotController:
         if source == "cloud":
             self.config_from_cloud.set()
         self.network.apply_config(config)
+        self.logs.apply(config.logs)
         images = getattr(self.runtime, "images", None)
         if images is not None:
             images.keep = config.images.keep_per_repository

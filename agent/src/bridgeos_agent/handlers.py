@@ -236,6 +236,13 @@ async def on_component_status_get(controller: RobotController, envelope: Envelop
     return Event.COMPONENT_STATUS, data
 
 
+@handles(Event.COMPONENT_LOGS_GET)
+async def on_component_logs_get(controller: RobotController, envelope: Envelope, p: Any) -> tuple[Event, dict]:
+    # Lines of the ring the cloud never received (a live tail asked for them): read, not shipped again.
+    find_component(controller.skills, p.skill, p.component)
+    return Event.COMPONENT_LOGS, await controller.logs.lines_after(p.skill, p.component, p.after_seq, p.limit)
+
+
 @handles(Event.ROBOT_STOP)
 async def on_robot_stop(controller: RobotController, envelope: Envelope, p: Any) -> None:
     for skill_id, record in list(controller.skills.items()):

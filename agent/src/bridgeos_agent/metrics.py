@@ -89,8 +89,10 @@ class AgentCollector(Collector):
         link: asyncio.Event,
         routers: Callable[[], Iterable[tuple[str, Any]]],
         points: Callable[[], tuple[int, int, int]] | None = None,
+        log_lines: Callable[[], tuple[int, int]] | None = None,
     ) -> None:
         self.points = points  # (metric points sent, dropped, unstored frames in flight) by the session
+        self.log_lines = log_lines  # (component log lines shipped, dropped) by the log shipper
         self.counts = counts
         self.outbox = outbox
         self.link = link
@@ -129,6 +131,19 @@ class AgentCollector(Collector):
             counts.image_bytes,
         )
         yield from self._routers(robot)
+        if self.log_lines is not None:
+            shipped, dropped = self.log_lines()
+            for name, doc, value in (
+                ("log_lines_shipped", "Component log lines the cloud acknowledged.", shipped),
+                (
+                    "log_lines_dropped",
+                    "Component log lines never shipped: over the cap, or overwritten in the ring.",
+                    dropped,
+                ),
+            ):
+                counter = CounterMetricFamily(f"{PREFIX}_{name}", doc, labels=["robot"])
+                counter.add_metric([robot], value)
+                yield counter
 
     def _outbox(self, robot: str) -> Iterator[Metric]:
         stats = self.outbox.stats()
@@ -235,7 +250,11 @@ def controller_collector(controller: RobotController) -> AgentCollector:
         session = controller.session
         return session.metric_points_sent, session.metric_points_dropped, session.unstored_in_flight
 
-    return AgentCollector(controller.metrics, controller.outbox, controller.connected, routers, points)
+    def log_lines() -> tuple[int, int]:
+        shipper = controller.logs.shipper
+        return shipper.shipped_lines, shipper.dropped_lines
+
+    return AgentCollector(controller.metrics, controller.outbox, controller.connected, routers, points, log_lines)
 
 
 def registry_for(collector: Collector) -> CollectorRegistry:

@@ -67,6 +67,9 @@ class Placement:
         self.controller = controller
         self._lock = asyncio.Lock()  # serialises placement decisions so two never claim the same headroom
         self._cloud_waiters: dict[tuple[str, str], asyncio.Future[tuple[str, str | None]]] = {}
+        # Each component's latest runtime report being sent: the next waits for it, so a crash report
+        # (slower: it reads the last lines first) never reaches the cloud after the relaunch's.
+        self._reports: dict[tuple[str, str], asyncio.Task[None]] = {}
 
     # ------------------------------------------------------------------ Algorithm 1
 
@@ -403,15 +406,24 @@ class Placement:
         return report
 
     async def set_status(
-        self, record: SkillRecord, name: str, status: CS, location: str | None, message: str | None = None
+        self,
+        record: SkillRecord,
+        name: str,
+        status: CS,
+        location: str | None,
+        message: str | None = None,
+        *,
+        crashed: bool = False,
     ) -> None:
-        """Record a component's status and report it to the cloud."""
+        """Record a component's status and report it to the cloud (a crash's with the last lines it printed)."""
         record.statuses[name] = status
         data: dict[str, Any] = {"skill": record.config.skill_id, "component": name, "status": str(status)}
         if location:
             data["location"] = location
         if message:
             data["message"] = message[:1900]
+        if crashed:
+            data["last_lines"] = await self.controller.logs.last_lines(record.config.skill_id, name)
         await self.controller.emit(Event.COMPONENT_STATUS, data)
 
     def on_runtime_status(self, state: ComponentState) -> None:
@@ -439,4 +451,23 @@ class Placement:
                 message += f": {state.message}"  # what the runtime knows more, e.g. killed over its memory limit
         elif state.status == Status.FAILED:
             message = f"crashed too often (exit code {state.exit_code}); gave up"
-        self.controller.spawn(self.set_status(record, state.component, mapped, "robot", message))
+        crashed = state.status in (Status.RESTARTING, Status.FAILED) and state.exit_code not in (None, 0)
+        record.statuses[state.component] = mapped
+        key = (state.skill, state.component)
+        report = self._report(self._reports.get(key), record, state.component, mapped, message, crashed)
+        task = self._reports[key] = self.controller.tasks.spawn(report)
+        task.add_done_callback(lambda done: self._reports.pop(key) if self._reports.get(key) is done else None)
+
+    async def _report(
+        self,
+        previous: asyncio.Task[None] | None,
+        record: SkillRecord,
+        name: str,
+        status: CS,
+        message: str | None,
+        crashed: bool,
+    ) -> None:
+        """Send a runtime report once the component's previous one went."""
+        if previous is not None:
+            await asyncio.wait([previous])
+        await self.set_status(record, name, status, "robot", message, crashed=crashed)

@@ -15,6 +15,7 @@ __all__ = [
     "Costs",
     "Heuristic",
     "HeuristicWeights",
+    "LogsPolicy",
     "Offloading",
     "RobotConfig",
     "RobotResources",
@@ -140,6 +141,29 @@ class ImagePolicy(_Model):
     )
 
 
+class LogsPolicy(_Model):
+    """Say how a robot keeps its components' output and ships it to the cloud."""
+
+    enabled: bool = Field(
+        default=True, description="Ship components' stdout and stderr to the cloud (off: kept in the robot's rings)."
+    )
+    ring_bytes: int = Field(
+        default=8 * 1024 * 1024,
+        ge=64 * 1024,
+        le=1024 * 1024 * 1024,
+        description="Bytes of each component's last lines kept on the robot's disk (its ring), shipped or not.",
+    )
+    rate_lines_per_s: int = Field(
+        default=25_000, ge=1, le=1_000_000, description="Lines a second the robot ships at most (all components)."
+    )
+    rate_bytes_per_s: int = Field(
+        default=4 * 1024 * 1024,
+        ge=1024,
+        le=1024 * 1024 * 1024,
+        description="Bytes a second of log frames the robot ships at most; lines over either cap are dropped, counted.",
+    )
+
+
 class Costs(_Model):
     """Price the resources used by the monetary policy and migration heuristics."""
 
@@ -181,6 +205,7 @@ class RobotConfig(_Model):
     subnets: Subnets | None = None
     vpn: Vpn = Field(default_factory=Vpn)
     images: ImagePolicy = Field(default_factory=ImagePolicy)
+    logs: LogsPolicy = Field(default_factory=LogsPolicy)
     tls_ca: str | None = Field(
         default=None,
         max_length=65536,

@@ -115,6 +115,9 @@ class Session:
         self._replies: dict[str, asyncio.Future[Envelope | None]] = {}
         self._tls_failure: str | None = None
         self._target: Target | None = None  # where the current connection attempts go
+        # Frames the outbox does not keep (component logs: their ring is their store): id -> told the
+        # cloud's answer (None: acked; else the error code, "disconnected" when the link dropped first).
+        self._unkept: dict[str, Callable[[str | None], None]] = {}
 
     @property
     def unstored_in_flight(self) -> int:
@@ -278,6 +281,9 @@ class Session:
             if not self.outbox.held(frame_id):
                 self.metric_points_dropped += points
         self._unstored.clear()
+        unkept, self._unkept = self._unkept, {}
+        for told in unkept.values():
+            told("disconnected")
         self._count_evicted()
         # Everything unacked is sent again, in order, from the outbox on the next connection.
         self.reliable = self._new_reliable()
@@ -367,6 +373,30 @@ class Session:
             await self.send(envelope)
         return envelope
 
+    def idle(self, max_buffered: int) -> bool:
+        """Say whether the link is up and nothing waits to go ahead of a low-priority frame.
+
+        Not while the outbox's backlog is replayed or the link moves, nor while the socket
+        holds more than ``max_buffered`` bytes not yet sent: metrics and state go first.
+        """
+        ws = self.ws
+        if ws is None or self._replaying or self._holding:
+            return False
+        transport = getattr(ws, "transport", None)
+        return transport is None or transport.get_write_buffer_size() <= max_buffered
+
+    async def send_unkept(self, frame_id: str, text: str, told: Callable[[str | None], None]) -> bool:
+        """Send a frame its sender keeps (not the outbox): once, now; ``told`` hears the cloud's ack or refusal."""
+        if self.ws is None:
+            return False
+        self._unkept[frame_id] = told
+        await self.send_raw(text)
+        return True
+
+    def forget_unkept(self, frame_id: str) -> None:
+        """Stop waiting for the answer to a frame its sender gave up on (it sends its content again)."""
+        self._unkept.pop(frame_id, None)
+
     async def send(self, envelope: Envelope) -> None:
         """Send a frame once, now, if connected."""
         await self.send_raw(protocol.encode(envelope))
@@ -408,6 +438,10 @@ class Session:
 
     def _receive(self, envelope: Envelope) -> None:
         event = envelope.event
+        if envelope.reply_to and envelope.reply_to in self._unkept and event in (Event.ACK, Event.ERROR_MESSAGE):
+            code = None if event == Event.ACK else str(getattr(protocol.parse_payload(envelope), "code", "refused"))
+            self._unkept.pop(envelope.reply_to)(code)
+            return
         if event == Event.ACK:
             if envelope.reply_to:
                 self._unstored.pop(envelope.reply_to, None)

@@ -201,6 +201,12 @@ class Runtime(ABC):
         self.robot = robot
         self.data_dir = Path(data_dir)
         self.on_status = on_status
+        # A component's last lines as the agent captured them (its log rings), when it captures them.
+        self.ring_lines: Callable[[str, str, int], list[str]] | None = None
+
+    def log_sources(self) -> Mapping[tuple[str, str], Any]:
+        """Return where each component's output is read from (a ``logs.capture.LogSource``), by (skill, component)."""
+        return {}
 
     @abstractmethod
     async def start(self, spec: ComponentSpec) -> ComponentState:

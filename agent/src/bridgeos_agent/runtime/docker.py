@@ -46,6 +46,7 @@ import requests
 from docker.api import APIClient
 from docker.types import DeviceRequest, IPAMConfig, IPAMPool, LogConfig, Mount
 
+from bridgeos_agent.logs.capture import DockerFollower, DockerFollowers
 from bridgeos_agent.runtime.base import (
     ACTIVE,
     VOLUMES_ENV,
@@ -142,6 +143,7 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         self._stats_slots = asyncio.Semaphore(STATS_CONCURRENCY)
         self.images = ImagePuller(registry, self._call, disk_reserve=int(disk_reserve_mb * MIB), connect=self._connect)
         self.on_pull: Callable[[str, str, str], Progress] | None = None  # (skill, component, image) -> progress
+        self._followers = DockerFollowers()  # each container's log stream, once the agent captures them
 
     # --- names ---------------------------------------------------------------------
 
@@ -163,6 +165,11 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         except docker.errors.NotFound:
             return []
         return raw.decode("utf-8", errors="replace").splitlines()[-tail:]
+
+    def log_sources(self) -> dict[tuple[str, str], DockerFollower]:
+        """Return a follower of each container's log stream (Docker's timestamps, stdout and stderr apart)."""
+        containers = {key: rec.container_id for key, rec in self._records.items() if rec.container_id}
+        return self._followers.follow(self._api, containers) if self._api is not None else {}
 
     async def stats(self) -> dict[tuple[str, str], Usage]:
         """Measure every running container with one-shot Docker stats."""
@@ -246,7 +253,8 @@ class DockerRuntime(SupervisedRuntime[_Container]):
         return adopted
 
     async def _release(self) -> None:
-        """Stop following deaths and release the client and its threads."""
+        """Stop following deaths and logs, and release the client and its threads."""
+        self._followers.close()
         if self._follower is not None:
             await self._follower.close()
         await asyncio.to_thread(self._executor.shutdown)

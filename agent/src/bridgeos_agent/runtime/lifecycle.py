@@ -194,6 +194,11 @@ class SupervisedRuntime(Runtime, Generic[R]):
         check_ids(skill, component)
         if tail <= 0:
             return []
+        if self.ring_lines is not None:
+            # What the agent captured, in the order it was printed (streams apart in the files).
+            lines = await asyncio.to_thread(self.ring_lines, skill, component, tail)
+            if lines:
+                return lines
         return await self._read_logs(skill, component, tail)
 
     async def set_aside(self, skill: str, component: str) -> R | None:

@@ -3,11 +3,15 @@
 Layout under ``data_dir``::
 
     work/<skill>/<component>/      the component's working directory
-    logs/<skill>/<component>.log   its stdout and stderr (and .log.1, the rotated older part)
+    logs/<skill>/<component>.log         its stdout (and .log.1, the rotated older part)
+    logs/<skill>/<component>.stderr.log  its stderr (likewise)
     volumes/<skill>/<volume>/      the skill's volumes; BRIDGEOS_VOLUMES names volumes/<skill>
 
 Each component is the leader of its own session, so stopping it signals its whole process
-group, and it outlives an agent restart; the next agent re-adopts it with load_state.
+group, and it outlives an agent restart; the next agent re-adopts it with load_state. Its
+output goes to files rather than to pipes the agent holds for the same reason: the agent's log
+capture (``bridgeos_agent.logs``) follows them from where it stopped, and then keeps them small
+itself (``log_sources``).
 
 The agent watches exits through pidfds in its event loop (``runtime.groups``: one file
 descriptor per component, no thread, no polling). asyncio's own subprocess support is not used
@@ -35,6 +39,7 @@ from typing import Any
 import psutil
 import pydantic
 
+from bridgeos_agent.logs.capture import FileTail
 from bridgeos_agent.runtime.base import (
     ACTIVE,
     VOLUMES_ENV,
@@ -143,6 +148,7 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         )
         self._base_env = _inherited_env()
         self._housekeeper: asyncio.Task[None] | None = None
+        self._tails: dict[tuple[str, str], FileTail] = {}  # followed by the agent's log capture
 
     # --- paths ---------------------------------------------------------------------
 
@@ -151,8 +157,12 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         return self.data_dir / "work" / skill / component
 
     def log_path(self, skill: str, component: str) -> Path:
-        """Return the file a component's stdout and stderr go to."""
+        """Return the file a component's stdout goes to."""
         return self.data_dir / "logs" / skill / f"{component}.log"
+
+    def stderr_path(self, skill: str, component: str) -> Path:
+        """Return the file a component's stderr goes to."""
+        return self.data_dir / "logs" / skill / f"{component}.stderr.log"
 
     def volumes_dir(self, skill: str) -> Path:
         """Return the directory holding a skill's volumes."""
@@ -161,9 +171,26 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
     # --- the interface ---------------------------------------------------------------
 
     async def _read_logs(self, skill: str, component: str, tail: int) -> list[str]:
-        """Return the last ``tail`` lines of a component's log, even after it stopped."""
-        path = self.log_path(skill, component)
-        return await asyncio.to_thread(_tail, [path, _backup(path)], tail)
+        """Return the last ``tail`` lines of a component's stdout, then stderr, even after it stopped.
+
+        The files do not say how the two streams interleave; the agent's log rings do (``ring_lines``).
+        """
+        out, err = self.log_path(skill, component), self.stderr_path(skill, component)
+        lines = await asyncio.to_thread(_tail, [out, _backup(out)], tail)
+        lines += await asyncio.to_thread(_tail, [err, _backup(err)], tail)
+        return lines[-tail:]
+
+    def log_sources(self) -> dict[tuple[str, str], FileTail]:
+        """Return the stdout and stderr files of every component, followed by the agent's log capture.
+
+        From then on the capture empties a file it has read once it passes ``log_max_bytes``, in
+        place of the housekeeper's copy and truncation, which would lose what it had not read yet.
+        """
+        for key in self._records:
+            if key not in self._tails:
+                files = {"stdout": self.log_path(*key), "stderr": self.stderr_path(*key)}
+                self._tails[key] = FileTail(files, max_bytes=self.log_max_bytes)
+        return {key: tail for key, tail in self._tails.items() if key in self._records}
 
     async def stats(self) -> dict[tuple[str, str], Usage]:
         """Measure every running component's process tree (see usage.measure)."""
@@ -343,15 +370,18 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
             )
         cwd = self.work_dir(spec.skill, spec.component)
         log = self.log_path(spec.skill, spec.component)
+        errors = self.stderr_path(spec.skill, spec.component)
         cwd.mkdir(parents=True, exist_ok=True)
         log.parent.mkdir(parents=True, exist_ok=True)
         for volume in spec.volumes:
             (self.volumes_dir(spec.skill) / volume).mkdir(parents=True, exist_ok=True)
         _rotate(log, self.log_max_bytes, copy=False)
+        _rotate(errors, self.log_max_bytes, copy=False)
         comp.group = self.cgroups.prepare(spec)
-        fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+        out = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+        fd = os.open(errors, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
         try:
-            popen = self._spawn(comp, command, fd, cwd)
+            popen = self._spawn(comp, command, out, fd, cwd)
         except FileNotFoundError:
             message = (
                 f"{who}: command {command[0]!r} not found (looked in PATH={self._base_env.get('PATH', '')!r}): "
@@ -372,6 +402,7 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
             _log_failure(fd, message)
             raise RuntimeFailure(message) from None
         finally:
+            os.close(out)
             os.close(fd)
         try:
             create_time = psutil.Process(popen.pid).create_time()
@@ -393,15 +424,15 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         state.started_at = time.time()
         return proc
 
-    def _spawn(self, comp: _Component, command: list[str], fd: int, cwd: Path) -> subprocess.Popen[bytes]:
+    def _spawn(self, comp: _Component, command: list[str], out: int, err: int, cwd: Path) -> subprocess.Popen[bytes]:
         """Start the command in a session of its own, inside the component's group when it has one."""
         for attempt in (1, 2):
             try:
                 return subprocess.Popen(
                     command,
                     stdin=subprocess.DEVNULL,
-                    stdout=fd,
-                    stderr=fd,
+                    stdout=out,
+                    stderr=err,
                     cwd=cwd,
                     env=self._env(comp.spec),
                     start_new_session=True,
@@ -434,12 +465,17 @@ class ProcessRuntime(SupervisedRuntime[_Component]):
         """Keep every running component's log under the size limit."""
         while True:
             await asyncio.sleep(self.log_check_interval)
-            paths = [self.log_path(*key) for key, comp in self._records.items() if comp.state.status in ACTIVE]
+            paths = [
+                path
+                for key, comp in self._records.items()
+                if comp.state.status in ACTIVE and key not in self._tails  # the capture keeps those small
+                for path in (self.log_path(*key), self.stderr_path(*key))
+            ]
             await asyncio.to_thread(_rotate_all, paths, self.log_max_bytes)
 
 
 def _log_failure(fd: int, message: str) -> None:
-    """Write why a launch failed into the component's log, where operators look."""
+    """Write why a launch failed into the component's stderr log, where operators look."""
     with contextlib.suppress(OSError):
         os.write(fd, f"[bridgeos] {message}\n".encode())
 
@@ -485,7 +521,8 @@ def _tail(paths: list[Path], count: int) -> list[str]:
                 chunk = _read_tail(file, count - len(lines))
         except FileNotFoundError:
             continue
-        lines = chunk.decode("utf-8", errors="replace").splitlines()[-(count - len(lines)) :] + lines
+        # A file the log capture punched holes in reads as NUL bytes there.
+        lines = chunk.lstrip(b"\0").decode("utf-8", errors="replace").splitlines()[-(count - len(lines)) :] + lines
         if len(lines) >= count:
             break
     return lines[-count:]
