@@ -181,9 +181,12 @@ class LogShipper:
             return min(wait, 0.5)
         limit = max(1, min(wanted, int(self.lines.available())))
         budget = int(min(FRAME_BYTES, max(byte_floor, self.bytes.available())))
+        start = flow.sending
         built = await asyncio.to_thread(self._build, flow, limit, budget)
         if built is None:
             return 0.05  # the ring was emptied meanwhile (made smaller): looked at again shortly
+        if flow.sending != start:
+            return 0.0  # the frames before it were lost meanwhile (the link dropped): sent again from the cursor
         frame_id, text, last, count, dropped = built
         self.lines.take(count)
         self.bytes.take(len(text))
