@@ -11,9 +11,11 @@ from pathlib import Path
 
 import pytest
 
+from bridgeos_agent import protocol
 from bridgeos_agent.logs.capture import CUT_MARK, FileTail, parse_level, split_lines
 from bridgeos_agent.logs.ring import LogRing
 from bridgeos_agent.logs.service import ComponentLogService
+from bridgeos_agent.logs.shipper import encode_frame, frame_data
 from bridgeos_agent.protocol import MAX_LOG_LINE_CHARS, LogLine
 from bridgeos_agent.robotconfig import LogsPolicy, parse_robot_config
 from bridgeos_agent.runtime import ComponentSpec, ProcessRuntime
@@ -233,6 +235,7 @@ async def test_a_flood_keeps_its_file_small_loses_no_line_and_leaves_the_event_l
     assert runtime.log_path("chatty", "flood").stat().st_blocks * 512 <= 2 * 256 * 1024  # read parts given back
     assert count / elapsed > 20_000, f"captured {count / elapsed:.0f} lines/s"
     lags.sort()
+    print(f"event loop lag p50 {lags[len(lags) // 2] * 1000:.1f} ms, p95 {lags[int(len(lags) * 0.95)] * 1000:.1f} ms")
     assert lags[int(len(lags) * 0.95)] < 0.05, f"event loop p95 lag {lags[int(len(lags) * 0.95)]:.3f} s"
 
 
@@ -261,3 +264,19 @@ def test_a_file_tail_finishes_a_file_moved_aside_at_a_relaunch(tmp_path: Path) -
 
     assert [entry[3] for entry in found + more] == ["one", "two", "three", "four"]
     assert found[0] == (5.0, "stdout", None, "one")
+
+
+def test_a_log_frame_is_a_valid_component_logs_frame_from_a_robot() -> None:
+    lines = [
+        (seq, 1_800_000_000.5, "stderr", None if seq % 2 else "error", f'say "{seq}"\t\x1b') for seq in range(7, 12)
+    ]
+
+    frame_id, text = encode_frame(frame_data("chatty", "driver", lines, dropped=6), now=1_800_000_001.0)
+
+    envelope = protocol.decode(text, direction=protocol.Direction.ROBOT_TO_CLOUD)
+    assert (envelope.id, envelope.event, envelope.reply_to) == (frame_id, "component_logs", None)
+    payload = protocol.parse_payload(envelope)
+    assert (payload.skill, payload.component, payload.location, payload.dropped) == ("chatty", "driver", "robot", 6)
+    assert [(line.seq, line.stream, line.level, line.text) for line in payload.lines] == [
+        (seq, stream, level, text) for seq, _, stream, level, text in lines
+    ]

@@ -42,7 +42,7 @@ Entry = tuple[float, str, str | None, str]  # (unix time, "stdout"|"stderr", lev
 CUT_MARK = "…[cut]"
 # A line longer than this many bytes is cut there, even before its end has been written.
 MAX_LINE_BYTES = 4 * MAX_LOG_LINE_CHARS
-READ_CHUNK = 4 * 1024 * 1024  # bytes read from a file at once: big reads, few syscalls
+READ_CHUNK = 1024 * 1024  # bytes read from a file at once: big reads, few syscalls, short GIL holds
 PAGE = 4096
 RESTART_AT = (
     1 << 30
