@@ -27,11 +27,11 @@ from django.conf import settings
 from django.db import transaction
 from docker.api import APIClient
 
+from bridgeos_agent.logs.capture import parse_level
 from bridgeos_agent.protocol import CRASH_LOG_LINES, MAX_LOG_LINE_CHARS, MAX_LOG_LINES_PER_FRAME
 from skills.cloud.runtime import object_name, runtime_name
 from skills.models import CloudInstance
 
-from .levels import parse_level
 from .models import CloudLogCursor
 from .services import line_dict, store_lines, tail_lines
 
