@@ -3,9 +3,10 @@
 - tail: a component prints a line carrying its own clock 20 times a second; a client of the
   cloud's /ws/client/ subscribed with `logs_subscribe` receives it: `tail_p95_ms` is printed
   to received (goal <= 250).
-- flood: the same robot's component prints 50,000 lines/s; `lines_per_s_stored` is the lines the cloud stored per second over the
-  window (goal >= 20,000; the robot's default cap is 25,000 lines/s, the rest is dropped and
-  counted). Meanwhile the robot's own metrics are timed from their sample to a live client:
+- flood: the same robot's component prints 50,000 lines/s; `lines_per_s_stored` is the lines
+  the cloud stored per second over the window (goal >= 20,000; the robot's default cap is
+  25,000 lines/s, the rest is dropped and counted). Meanwhile the robot's own metrics are
+  timed from their sample to a live client:
   `metrics_lag_under_flood_over_quiet` is their median lag under the flood over the median
   lag of the quiet window before it, in the same run (goal <= 1.2).
 - query: one million lines stored (written server-side), then `GET /api/robot/<id>/logs?q=`
