@@ -280,3 +280,35 @@ def test_a_log_frame_is_a_valid_component_logs_frame_from_a_robot() -> None:
     assert [(line.seq, line.stream, line.level, line.text) for line in payload.lines] == [
         (seq, stream, level, text) for seq, _, stream, level, text in lines
     ]
+
+
+def test_output_far_ahead_of_the_reads_is_passed_over_counted_and_the_ring_ships_the_gap_as_dropped(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "c.log"
+    total = 200_000  # about 2.3 MB unread: over the ring's 1 MiB
+    out.write_bytes("".join(f"line {n}\n" for n in range(1, total + 1)).encode())
+    tail = FileTail({"stdout": out}, max_bytes=64 * 1024)
+    ring = LogRing(tmp_path / "ring", max_bytes=1 << 20)
+    tail.keep_bytes = ring.max_bytes
+    ring.append([(1.0, "stdout", None, "before")])  # seq 1, shipped below
+
+    taken: list[str] = []
+    position = None
+    for _ in range(50):
+        found, position = tail.read(position)
+        ring.skip(tail.take_skipped())
+        ring.append(found, position)
+        taken += [entry[3] for entry in found]
+        if not found:
+            break
+
+    skipped = total - len(taken)
+    # Oldest first: what was passed over is the start, what was read is the end, in order.
+    assert skipped > 0 and taken == [f"line {n}" for n in range(skipped + 1, total + 1)]
+    assert ring.seq == 1 + total
+    after = ring.lines_after(1, 10)
+    assert after[0][0] == 2 + skipped and after[0][4] == f"line {skipped + 1}"
+    # A frame from the cursor starts after the gap: its `dropped` is the lines passed over.
+    data = frame_data("s", "c", after)
+    assert after[0][0] - 1 - 1 == skipped and data["lines"][0]["seq"] == 2 + skipped

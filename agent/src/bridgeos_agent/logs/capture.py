@@ -177,6 +177,11 @@ class FileTail:
         self.clock = clock
         self.emptied = 0  # how often a file was emptied with bytes written after its last read (lost)
         self.punching = True  # until the file system says it cannot
+        self.skipped = 0  # lines passed over unread since the last take_skipped (dropped, oldest first)
+        # Unread output past this many bytes is passed over, counted, down to its newest keep_bytes (the
+        # log service sets its ring's size: the ring would overwrite the rest anyway). A component printing
+        # faster than the passes read would otherwise fill the disk ahead of them.
+        self.keep_bytes: int | None = None
 
     def read(self, position: Mapping[str, Any] | None, *, final: bool = False) -> tuple[list[Entry], dict[str, Any]]:
         """Return the lines written since ``position`` and the new position."""
@@ -206,6 +211,8 @@ class FileTail:
             elif info.st_size < offset:
                 offset = freed = 0  # emptied by someone else
             inode = info.st_ino
+            if self.keep_bytes is not None and info.st_size - offset > self.keep_bytes:
+                offset = self._skip(fd, offset, info.st_size - self.keep_bytes)
             for _ in range(READ_CHUNKS + EMPTY_TRIES):
                 data = os.pread(fd, READ_CHUNK, offset)
                 taken, used = split_lines(data, final=final and len(data) < READ_CHUNK)
@@ -225,6 +232,28 @@ class FileTail:
         finally:
             os.close(fd)
         return lines, [inode, offset, freed]
+
+    def take_skipped(self) -> int:
+        """Return how many lines were passed over unread since the last call."""
+        skipped, self.skipped = self.skipped, 0
+        return skipped
+
+    def _skip(self, fd: int, offset: int, target: int) -> int:
+        """Pass over whole lines from ``offset`` to the first line end at or after ``target``; return the new offset."""
+        while offset < target:
+            data = os.pread(fd, min(READ_CHUNK, target - offset), offset)
+            if not data:
+                return offset
+            self.skipped += data.count(b"\n")
+            offset += len(data)
+        # Finish the line the target fell in, so reading resumes at a line's start.
+        while data := os.pread(fd, PAGE, offset):
+            end = data.find(b"\n")
+            if end >= 0:
+                self.skipped += 1
+                return offset + end + 1
+            offset += len(data)
+        return offset
 
     def _punch(self, path: Path, offset: int) -> bool:
         """Give the disk blocks of a file's read part back, its offsets unchanged (False: cannot here)."""

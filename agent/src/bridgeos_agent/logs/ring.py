@@ -130,6 +130,13 @@ class LogRing:
                 self._save()
             return self.seq
 
+    def skip(self, count: int) -> None:
+        """Give ``count`` seqs to lines never kept (passed over unread): the shipper counts the gap dropped."""
+        if count > 0:
+            with self._lock:
+                self.seq += count
+                self._save()
+
     def _write(self, first: int, data: bytes) -> None:
         segment_bytes = max(MIN_SEGMENT_BYTES, self.max_bytes // SEGMENTS)
         current = self._segments[-1] if self._segments else None

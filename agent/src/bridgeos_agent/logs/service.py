@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from bridgeos_agent import protocol
 from bridgeos_agent.logonce import LogOnce
-from bridgeos_agent.logs.capture import LogSource
+from bridgeos_agent.logs.capture import FileTail, LogSource
 from bridgeos_agent.logs.ring import RingLine, Rings
 from bridgeos_agent.logs.shipper import LogShipper, frame_data
 from bridgeos_agent.robotconfig import LogsPolicy
@@ -101,7 +101,11 @@ class ComponentLogService:
             for key, source in sources.items():
                 ring = self.rings.get(*key)
                 assert ring is not None
+                if isinstance(source, FileTail):
+                    source.keep_bytes = ring.max_bytes
                 found, position = source.read(ring.source or None, final=final)
+                if isinstance(source, FileTail):
+                    ring.skip(source.take_skipped())  # before this pass's lines: they were printed after
                 if found or position != ring.source:
                     ring.append(found, position)
                 taken += len(found)

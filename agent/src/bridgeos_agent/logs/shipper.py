@@ -221,6 +221,11 @@ class LogShipper:
             lines = flow.ring.lines_after(flow.sending, limit, budget)
             if not lines:
                 return None
+            # A frame ends before a gap in the seqs (lines passed over unread): the next one counts it dropped.
+            for index in range(1, len(lines)):
+                if lines[index][0] != lines[index - 1][0] + 1:
+                    lines = lines[:index]
+                    break
             # Lines between the cursor and the ring's oldest were overwritten before they went.
             dropped = max(0, lines[0][0] - flow.sending - 1)
             frame_id, text = encode_frame(frame_data(skill, component, lines, dropped), now=time.time())
