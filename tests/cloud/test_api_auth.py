@@ -88,6 +88,9 @@ ROUTES = [
     Route("GET", RECORDING, 200, 404, 200),
     Route("POST", RECORDING + "/stop", 400, 404, 400),
     Route("GET", RECORDING + "/download", 409, 404, 409),
+    # Component logs: read with the viewer role, another user's robot as if it did not exist.
+    Route("GET", ROBOT + "/logs", 200, 404, 200),
+    Route("GET", ROBOT + "/logs/download", 200, 404, 200),
     Route("DELETE", RECORDING, 204, 404, 204),
     # This cloud offers no VPN (BRIDGEOS_VPN_REMOTE unset): 409 to those who may ask.
     Route("GET", ROBOT + "/vpn", 409, 404, 409, robot=409),
