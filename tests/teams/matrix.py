@@ -79,6 +79,7 @@ HTTP_RULES: dict[str, Rule] = {
     # -- the dashboard's pages
     "": Rule("signed-in", {"GET": 200}, lists=True),
     "robots/<slug:robot_id>/": robot({"GET": 200}),
+    "robots/<slug:robot_id>/logs/": robot({"GET": 200}),
     "skills/": Rule("signed-in", {"GET": 200}),
     "images/": Rule("signed-in", {"GET": 200}),
     "events/": Rule("signed-in", {"GET": 200}),
@@ -155,6 +156,8 @@ HTTP_RULES: dict[str, Rule] = {
     ),
     "api/robot/<slug:robot_id>/recordings/<slug:recording_id>/stop": robot({"POST": 400}, {"POST": C}),
     "api/robot/<slug:robot_id>/recordings/<slug:recording_id>/download": robot({"GET": 409}),
+    "api/robot/<slug:robot_id>/logs": robot({"GET": 200}),
+    "api/robot/<slug:robot_id>/logs/download": robot({"GET": 200}),
     "api/registry/token": Rule("signed-in", {"GET": 200}, auth="basic"),
     "api/registry/events": Rule("secret", {"POST": 403}, audited=False),
     "api/registry/repositories": Rule("signed-in", {"GET": 200}),
@@ -204,6 +207,8 @@ CLIENT_EVENTS: dict[str, dict[str, Any]] = {
     "component_status_get": {"skill": SKILL, "component": COMPONENT},
     "component_migrate": {"skill": SKILL, "component": COMPONENT, "location": "cloud"},
     "metrics_get": {},
+    "logs_subscribe": {"tail": 0},
+    "logs_unsubscribe": {},
 }
 
 
