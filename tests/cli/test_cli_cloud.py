@@ -88,6 +88,7 @@ def test_every_command_against_a_live_cloud_and_a_real_agent(cli, ann, daphne_se
         robots_and_skills(cli, tmp_path)
         events(cli)
         metrics(cli)
+        printed_logs(cli, tmp_path)
     finally:
         stop_agent(agent, data_dir, log)
     recordings(cli, tmp_path)
@@ -197,6 +198,28 @@ def recordings(cli, tmp_path: Path) -> None:
     assert not (tmp_path / "downloaded.mcap.part").exists()
     gone = cli("recordings", "download", "cli-r1", "0" * 32)
     assert gone.code == 4, gone
+
+
+def printed_logs(cli, tmp_path: Path) -> None:
+    """`logs -f` prints a line a component on the real agent printed, shipped by the agent through the cloud."""
+    talk = ["sh", "-c", 'n=0; while true; do n=$((n + 1)); echo "[WARN] hello $n"; sleep 0.2; done']
+    component = {"name": "talk", "location": "robot", "ros": False, "resources": {"cpu": 0.1, "ram": 16}}
+    config = {
+        "skill": "Talker",
+        "skill_id": "talker",
+        "components": {"talk": {**component, "robot": {"command": talk}}},
+    }
+    (tmp_path / "talker.json").write_text(json.dumps(config))
+    assert cli("skills", "add", "cli-r1", "-f", str(tmp_path / "talker.json")).code == 0
+    follow = cli.popen("logs", "-f", "cli-r1/talker/talk", "-n", "0", "--level", "warning")
+    try:
+        received = lines_of(follow)
+        assert cli("skills", "start", "cli-r1/talker").code == 0
+        line = next_line(received, follow, lambda text: "hello" in text)
+        assert "robot" in line and "talker/talk: [WARN] hello " in line, line
+    finally:
+        stop(follow)
+    assert cli("skills", "stop", "cli-r1/talker").code == 0
 
 
 def images(cli, ann) -> None:
