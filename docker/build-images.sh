@@ -124,7 +124,7 @@ PARENT_ros2=base
 # listed from the pyproject files, so a code change rebuilds only the layers that copy code.
 AGENT_SOURCES=(../agent/pyproject.toml ../agent/src)
 # The cloud's Django project and apps: what its image copies, and what decides when it is rebuilt.
-CLOUD_TREES=(bridgeos_cloud robots skills monitoring dashboard network recordings registry teams audit rollouts templates static)
+CLOUD_TREES=(bridgeos_cloud robots skills monitoring dashboard network recordings registry teams audit rollouts logs templates static)
 CLOUD_SOURCES=(../pyproject.toml ../manage.py ../scripts/daphne "${CLOUD_TREES[@]/#/../}")
 
 requirements() {  # pyproject.toml: its [project] dependencies, one a line, without our own packages

@@ -161,6 +161,20 @@ SAMPLES: dict[Event, dict[str, Any]] = {
     Event.BRIDGE_OPEN: {"session": "s3ss10n-a", "kind": "foxglove", "bytes_per_s": 1_000_000},
     Event.BRIDGE_FRAME: {"session": "s3ss10n-a", "binary": "AAEC", "more": True},
     Event.BRIDGE_CLOSE: {"session": "s3ss10n-a", "reason": "the client left"},
+    # component logs
+    Event.COMPONENT_LOGS: {
+        "skill": "people-detector",
+        "component": "detector",
+        "location": "robot",
+        "lines": [
+            {"seq": 41, "ts": 1700000000.25, "stream": "stdout", "level": "info", "text": "[INFO] 3 people"},
+            {"seq": 42, "ts": 1700000000.5, "stream": "stderr", "level": None, "text": "a line with no level"},
+        ],
+        "dropped": 7,
+    },
+    Event.COMPONENT_LOGS_GET: {"skill": "people-detector", "component": "detector", "after_seq": 40, "limit": 500},
+    Event.LOGS_SUBSCRIBE: {"robot": "robot-1", "skill": "people-detector", "tail": 50, "ring": True},
+    Event.LOGS_UNSUBSCRIBE: {"robot": "robot-1", "skill": "people-detector"},
 }
 
 
@@ -182,11 +196,17 @@ def test_samples_cover_every_event_and_table() -> None:
     # Table 3.3's 31 events, ack, the three of Skill volume sync, the manager's decision log and the
     # cloud copies' Components API relay (request and reply), the event log's live entries, the three
     # of the bridges (a rosbridge/Foxglove client relayed over the robot's link), the four of MCAP
-    # recordings, a connected robot's new token and a component's hold on its robot's updates.
-    assert len(Event) == 48
+    # recordings, a connected robot's new token, a component's hold on its robot's updates, and the four
+    # of component logs (shipped, asked of a robot, a client's tail started and ended).
+    assert len(Event) == 52
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
-    # Requests are named *_get, but for the relayed Components API call, which may POST.
-    requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {Event.COMPONENTS_API}
+    # Requests are named *_get, but for the relayed Components API call, which may POST, and a client's
+    # live log tail, started and ended.
+    requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {
+        Event.COMPONENTS_API,
+        Event.LOGS_SUBSCRIBE,
+        Event.LOGS_UNSUBSCRIBE,
+    }
     assert all(name.endswith("_get") for name in requests)
 
 
