@@ -291,6 +291,10 @@ def moved(old_schema: Apps) -> Before:
     return before
 
 
+# The suite's one Celery worker may run a Skill's cloud-relay task (queued when an earlier test's Skill
+# went) while this test holds the schema at its pre-organizations state: that task then meets the old
+# tables. Nothing of this test's is wrong then; the task is retried and the reconciler covers it.
+@pytest.mark.log_errors(r"ensure_cloud_relay.*column robots_robot\.\w+ does not exist")
 def test_every_row_survives_and_every_user_is_admin_of_their_own_organization_holding_their_robots(moved):
     assert rows(models_now(), moved.fields) == moved.rows
     memberships = Membership.objects.values_list("user__username", "organization__personal_of__username", "role")
