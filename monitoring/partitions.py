@@ -14,7 +14,7 @@ The embedded SQLite default keeps a plain table: nothing here applies to it.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from datetime import UTC, date, datetime, timedelta
 from typing import Any
 
@@ -24,13 +24,6 @@ from django.db import transaction
 from django.utils import timezone
 
 TABLE = "monitoring_metric"
-DEFAULT_PARTITION = f"{TABLE}_default"
-PARTITION_PATTERN = re.compile(rf"^{TABLE}_p(\d{{8}})$")
-
-
-def partition_name(day: date) -> str:
-    """Return the name of the partition holding a UTC day."""
-    return f"{TABLE}_p{day:%Y%m%d}"
 
 
 def day_of(ts: datetime) -> date:
@@ -53,102 +46,124 @@ def expired_days(days: Iterable[date], cutoff: datetime) -> list[date]:
     return sorted(day for day in days if day_start(day + timedelta(days=1)) <= cutoff)
 
 
-def is_partitioned(connection: Any = default_connection) -> bool:
-    """Tell whether the metric table is a partitioned table here."""
-    if connection.vendor != "postgresql":
-        return False
-    with connection.cursor() as cursor:
-        cursor.execute("SELECT relkind FROM pg_class WHERE oid = to_regclass(%s)", [TABLE])
-        row = cursor.fetchone()
-    return row is not None and row[0] == "p"
+class DayPartitions:
+    """One table's day partitions: named, listed, created ahead and dropped whole (metrics', and logs')."""
 
+    def __init__(self, table: str, ahead_days: Callable[[], int]) -> None:
+        self.table = table
+        self.default_partition = f"{table}_default"
+        self.pattern = re.compile(rf"^{table}_p(\d{{8}})$")
+        self.ahead_days = ahead_days
 
-def _locked_and_absent(cursor: Any, name: str) -> bool:
-    """Take this transaction's lock on partition maintenance, then tell whether the partition is missing.
+    def partition_name(self, day: date) -> str:
+        """Return the name of the partition holding a UTC day."""
+        return f"{self.table}_p{day:%Y%m%d}"
 
-    Beat's hourly tasks, `prune_metrics` and several processes may create or drop the same day at
-    once; one at a time, each re-reading what exists, none fails on another's work.
-    """
-    cursor.execute("SELECT pg_advisory_xact_lock(hashtext(%s))", [TABLE])
-    # pg_class itself, not to_regclass: an advisory lock does not refresh the catalog cache,
-    # which may still hold a partition another process dropped.
-    cursor.execute(
-        "SELECT NOT EXISTS (SELECT FROM pg_class c JOIN pg_namespace n ON n.oid = c.relnamespace"
-        " WHERE c.relname = %s AND n.nspname = current_schema())",
-        [name],
-    )
-    return cursor.fetchone()[0]
+    def is_partitioned(self, connection: Any = default_connection) -> bool:
+        """Tell whether the table is a partitioned table here."""
+        if connection.vendor != "postgresql":
+            return False
+        with connection.cursor() as cursor:
+            cursor.execute("SELECT relkind FROM pg_class WHERE oid = to_regclass(%s)", [self.table])
+            row = cursor.fetchone()
+        return row is not None and row[0] == "p"
 
+    def _locked_and_absent(self, cursor: Any, name: str) -> bool:
+        """Take this transaction's lock on the table's partition maintenance; tell whether the partition is missing.
 
-def partition_days(connection: Any = default_connection) -> list[date]:
-    """Return the days that have a partition, oldest first."""
-    with connection.cursor() as cursor:
+        Beat's hourly tasks, the prunes and several processes may create or drop the same day at
+        once; one at a time, each re-reading what exists, none fails on another's work.
+        """
+        cursor.execute("SELECT pg_advisory_xact_lock(hashtext(%s))", [self.table])
+        # pg_class itself, not to_regclass: an advisory lock does not refresh the catalog cache,
+        # which may still hold a partition another process dropped.
         cursor.execute(
-            "SELECT c.relname FROM pg_inherits i JOIN pg_class c ON c.oid = i.inhrelid"
-            " WHERE i.inhparent = to_regclass(%s)",
-            [TABLE],
+            "SELECT NOT EXISTS (SELECT FROM pg_class c JOIN pg_namespace n ON n.oid = c.relnamespace"
+            " WHERE c.relname = %s AND n.nspname = current_schema())",
+            [name],
         )
-        names = [row[0] for row in cursor.fetchall()]
-    days = []
-    for name in names:
-        match = PARTITION_PATTERN.match(name)
-        if match:
-            digits = match.group(1)
-            days.append(date(int(digits[:4]), int(digits[4:6]), int(digits[6:])))
-    return sorted(days)
+        return cursor.fetchone()[0]
 
-
-def create_partitions(days: Iterable[date], connection: Any = default_connection) -> list[date]:
-    """Create the partitions of these days that are missing; return the days created."""
-    existing = set(partition_days(connection))
-    created = []
-    with connection.cursor() as cursor:
-        cursor.execute("SELECT to_regclass(%s) IS NOT NULL", [DEFAULT_PARTITION])
-        has_default = cursor.fetchone()[0]
-    for day in sorted(set(days) - existing):
-        name, start, end = partition_name(day), day_start(day), day_start(day + timedelta(days=1))
-        with transaction.atomic(using=connection.alias), connection.cursor() as cursor:
-            if not _locked_and_absent(cursor, name):
-                continue  # another process created it meanwhile
-            # Rows of this day that went to the default partition would make attaching it fail:
-            # build the partition beside the table, move them in, then attach it.
-            cursor.execute(f"CREATE TABLE {name} (LIKE {TABLE} INCLUDING DEFAULTS)")
-            if has_default:
-                cursor.execute(
-                    f"WITH moved AS (DELETE FROM {DEFAULT_PARTITION} WHERE ts >= %s AND ts < %s RETURNING *)"
-                    f" INSERT INTO {name} SELECT * FROM moved",
-                    [start, end],
-                )
-            # The check lets ATTACH skip scanning the new partition to prove its bounds.
+    def partition_days(self, connection: Any = default_connection) -> list[date]:
+        """Return the days that have a partition, oldest first."""
+        with connection.cursor() as cursor:
             cursor.execute(
-                f"ALTER TABLE {name} ADD CONSTRAINT {name}_bounds CHECK (ts >= %s AND ts < %s)", [start, end]
+                "SELECT c.relname FROM pg_inherits i JOIN pg_class c ON c.oid = i.inhrelid"
+                " WHERE i.inhparent = to_regclass(%s)",
+                [self.table],
             )
-            cursor.execute(f"ALTER TABLE {TABLE} ATTACH PARTITION {name} FOR VALUES FROM (%s) TO (%s)", [start, end])
-            cursor.execute(f"ALTER TABLE {name} DROP CONSTRAINT {name}_bounds")
-        created.append(day)
-    return created
+            names = [row[0] for row in cursor.fetchall()]
+        days = []
+        for name in names:
+            match = self.pattern.match(name)
+            if match:
+                digits = match.group(1)
+                days.append(date(int(digits[:4]), int(digits[4:6]), int(digits[6:])))
+        return sorted(days)
+
+    def create_partitions(self, days: Iterable[date], connection: Any = default_connection) -> list[date]:
+        """Create the partitions of these days that are missing; return the days created."""
+        existing = set(self.partition_days(connection))
+        created = []
+        table, default = self.table, self.default_partition
+        with connection.cursor() as cursor:
+            cursor.execute("SELECT to_regclass(%s) IS NOT NULL", [default])
+            has_default = cursor.fetchone()[0]
+        for day in sorted(set(days) - existing):
+            name, start, end = self.partition_name(day), day_start(day), day_start(day + timedelta(days=1))
+            with transaction.atomic(using=connection.alias), connection.cursor() as cursor:
+                if not self._locked_and_absent(cursor, name):
+                    continue  # another process created it meanwhile
+                # Rows of this day that went to the default partition would make attaching it fail:
+                # build the partition beside the table, move them in, then attach it.
+                cursor.execute(f"CREATE TABLE {name} (LIKE {table} INCLUDING DEFAULTS)")
+                if has_default:
+                    cursor.execute(
+                        f"WITH moved AS (DELETE FROM {default} WHERE ts >= %s AND ts < %s RETURNING *)"
+                        f" INSERT INTO {name} SELECT * FROM moved",
+                        [start, end],
+                    )
+                # The check lets ATTACH skip scanning the new partition to prove its bounds.
+                cursor.execute(
+                    f"ALTER TABLE {name} ADD CONSTRAINT {name}_bounds CHECK (ts >= %s AND ts < %s)", [start, end]
+                )
+                cursor.execute(
+                    f"ALTER TABLE {table} ATTACH PARTITION {name} FOR VALUES FROM (%s) TO (%s)", [start, end]
+                )
+                cursor.execute(f"ALTER TABLE {name} DROP CONSTRAINT {name}_bounds")
+            created.append(day)
+        return created
+
+    def ensure_partitions(self, now: datetime | None = None, connection: Any = default_connection) -> list[date]:
+        """Create the partitions of yesterday, today and the days ahead that are missing; return those created."""
+        if not self.is_partitioned(connection):
+            return []
+        today = day_of(now or timezone.now())
+        days = days_between(today - timedelta(days=1), today + timedelta(days=self.ahead_days()))
+        return self.create_partitions(days, connection)
+
+    def drop_expired_partitions(self, cutoff: datetime, connection: Any = default_connection) -> int:
+        """Drop every day partition wholly before the cutoff; return how many rows went with them."""
+        dropped = 0
+        for day in expired_days(self.partition_days(connection), cutoff):
+            name = self.partition_name(day)
+            with transaction.atomic(using=connection.alias), connection.cursor() as cursor:
+                if self._locked_and_absent(cursor, name):
+                    continue  # another process dropped it meanwhile
+                # Counted under the same lock as the drop, so the figure is what was dropped.
+                cursor.execute(f"LOCK TABLE {name} IN ACCESS EXCLUSIVE MODE")
+                cursor.execute(f"SELECT count(*) FROM {name}")
+                dropped += cursor.fetchone()[0]
+                cursor.execute(f"DROP TABLE {name}")
+        return dropped
 
 
-def ensure_partitions(now: datetime | None = None, connection: Any = default_connection) -> list[date]:
-    """Create the partitions of yesterday, today and the days ahead that are missing; return those created."""
-    if not is_partitioned(connection):
-        return []
-    today = day_of(now or timezone.now())
-    ahead = settings.BRIDGEOS["METRIC_PARTITION_AHEAD_DAYS"]
-    return create_partitions(days_between(today - timedelta(days=1), today + timedelta(days=ahead)), connection)
-
-
-def drop_expired_partitions(cutoff: datetime, connection: Any = default_connection) -> int:
-    """Drop every day partition wholly before the cutoff; return how many rows went with them."""
-    dropped = 0
-    for day in expired_days(partition_days(connection), cutoff):
-        name = partition_name(day)
-        with transaction.atomic(using=connection.alias), connection.cursor() as cursor:
-            if _locked_and_absent(cursor, name):
-                continue  # another process dropped it meanwhile
-            # Counted under the same lock as the drop, so the figure is what was dropped.
-            cursor.execute(f"LOCK TABLE {name} IN ACCESS EXCLUSIVE MODE")
-            cursor.execute(f"SELECT count(*) FROM {name}")
-            dropped += cursor.fetchone()[0]
-            cursor.execute(f"DROP TABLE {name}")
-    return dropped
+METRICS = DayPartitions(TABLE, lambda: settings.BRIDGEOS["METRIC_PARTITION_AHEAD_DAYS"])
+DEFAULT_PARTITION = METRICS.default_partition
+PARTITION_PATTERN = METRICS.pattern
+partition_name = METRICS.partition_name
+is_partitioned = METRICS.is_partitioned
+partition_days = METRICS.partition_days
+create_partitions = METRICS.create_partitions
+ensure_partitions = METRICS.ensure_partitions
+drop_expired_partitions = METRICS.drop_expired_partitions
