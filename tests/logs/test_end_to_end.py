@@ -230,7 +230,10 @@ def metric_samples(robot: str, since: float, until: float) -> int:
 @pytest.mark.parametrize(
     ("rate", "printed_at_least", "samples_kept"),
     [
-        pytest.param(50_000, 190_000, 0.8, id="50k-lines-per-s"),
+        # The flooding process and the agent's reads share two cores with the cloud: on a busy CI machine
+        # the agent's 0.2 s sampler itself is held back (4.0 samples/s once, against 5.0 quiet), so the
+        # floor is what says "still coming", not a timing figure; benchmarks/logs.py measures the lag.
+        pytest.param(50_000, 190_000, 0.65, id="50k-lines-per-s"),
         # As fast as Python prints (hundreds of thousands a second): far ahead of the robot's reads,
         # so most is passed over unread, counted too, and the disk does not fill ahead of the reads.
         # The flooding process takes one of the machine's two cores itself: fewer samples are taken.
