@@ -51,14 +51,20 @@ BRIDGE_FRAME_PREFIX = '{"event":"bridge_'
 saving_failures = LogOnce(log, "saving applied frame ids in Redis before acking", traceback=True)
 
 
-def connect_batch(logins: list[services.Login]) -> list[tuple[services.Connected, list[tuple[Event, dict[str, Any]]]]]:
-    """Authenticate and connect robots together, each with the reports about its cloud copies."""
+Reports = list[tuple[Event, dict[str, Any]]]
+
+
+def connect_batch(logins: list[services.Login]) -> list[tuple[services.Connected, Reports, bool]]:
+    """Authenticate and connect robots together: each outcome, its cloud copies' reports, whether it has volumes."""
     outcomes = services.connect_robots(logins)
     reports = cloud_reports_for([outcome.robot for outcome in outcomes if outcome.robot])
-    return [(outcome, reports.get(outcome.robot or "", [])) for outcome in outcomes]
+    return [
+        (outcome, reports.get(outcome.robot or "", []), bool(outcome.robot) and CloudVolumes(outcome.robot).exists())
+        for outcome in outcomes
+    ]
 
 
-def login_queue() -> Batcher[services.Login, tuple[services.Connected, list[tuple[Event, dict[str, Any]]]]]:
+def login_queue() -> Batcher[services.Login, tuple[services.Connected, Reports, bool]]:
     """Return this event loop's queue of robot logins, batched so a connect storm shares its round trips."""
     return loop_object(
         "robot logins",
@@ -240,7 +246,7 @@ class RobotConsumer(ProtocolConsumer):
             ros2,
             credentials.labels or None,
         )
-        connected, reports = await login_queue().submit(login)
+        connected, reports, has_volumes = await login_queue().submit(login)
         if connected.blocked_s:
             await self.refuse("too many failed attempts; try again later", envelope.id, CLOSE_TOO_MANY_FAILURES)
             return False
@@ -275,7 +281,7 @@ class RobotConsumer(ProtocolConsumer):
         for event, data in reports:
             await self.send_reliably(protocol.make(event, data, now=time.time()))
         self.volumes = CloudVolumes(connected.robot)
-        if await asyncio.to_thread(self.volumes.exists):
+        if has_volumes:
             self.scan_volumes()
         return True
 
@@ -378,8 +384,9 @@ class RobotConsumer(ProtocolConsumer):
     async def closed(self, code: int) -> None:
         if self.retransmit_timer is not None:
             self.retransmit_timer.cancel()
-        for reply_channel, _ in self.requests.values():
-            await self.channel_layer.send(reply_channel, {"type": "robot.reply", "offline": True})
+        for request_id, (reply_channel, _) in self.requests.items():
+            # The id: one relay waits on one reply channel for many robots' answers.
+            await self.channel_layer.send(reply_channel, {"type": "robot.reply", "offline": True, "id": request_id})
         self.requests.clear()
         await self.bridges.robot_left()
         if self.robot_id is not None:

@@ -35,6 +35,7 @@ class AppliedIds:
         self._unsaved: dict[str, list[str]] = defaultdict(list)
         self._flusher: asyncio.TimerHandle | None = None
         self._tasks: set[asyncio.Task] = set()
+        self._loads: list[tuple[str, asyncio.Future[list[str]]]] = []
         # Frames accepted but not yet applied (metrics wait for their commit), by robot and id:
         # a copy resent over a new connection meanwhile must wait for the first, not be applied twice.
         self._in_flight: dict[tuple[str, str], asyncio.Future] = {}
@@ -64,8 +65,33 @@ class AppliedIds:
         await self.flush()
         if self._redis is None:
             return list(self._local[robot_id])
-        newest_first = await self._redis.lrange(KEY.format(robot_id), 0, WINDOW - 1)
-        return [raw.decode() for raw in reversed(newest_first)]
+        # The loads asked for in one turn of the loop share one pipeline: a connect storm's
+        # thousands of robots cost a few round trips to Redis, not one each.
+        future: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
+        self._loads.append((robot_id, future))
+        if len(self._loads) == 1:
+            task = asyncio.get_running_loop().create_task(self._load_queued())
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+        return await future
+
+    async def _load_queued(self) -> None:
+        await asyncio.sleep(0)  # let the rest of this turn's loads join
+        loads, self._loads = self._loads, []
+        assert self._redis is not None
+        try:
+            async with self._redis.pipeline(transaction=False) as pipe:
+                for robot_id, _ in loads:
+                    pipe.lrange(KEY.format(robot_id), 0, WINDOW - 1)
+                answers = await pipe.execute()
+        except Exception as exc:
+            for _, future in loads:
+                if not future.done():
+                    future.set_exception(exc)
+            return
+        for (_, future), newest_first in zip(loads, answers, strict=True):
+            if not future.done():
+                future.set_result([raw.decode() for raw in reversed(newest_first)])
 
     def add(self, robot_id: str, frame_id: str) -> None:
         """Note that a frame was applied; it is saved within two seconds."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import secrets
 import time
@@ -10,7 +9,6 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any, Literal
 
-from asgiref.sync import sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
@@ -19,7 +17,7 @@ from django.db.models import Q
 from django.utils import timezone
 
 from bridgeos_agent import protocol
-from bridgeos_agent.protocol import Envelope, Event
+from bridgeos_agent.protocol import Event
 from bridgeos_agent.robotconfig import merge_config_changes
 from bridgeos_cloud import bruteforce
 from bridgeos_cloud.layersync import layer_sync
@@ -33,6 +31,7 @@ from teams.services import personal_organization
 from .access import API_TOKEN_PREFIX, BRIDGE_TICKET_PREFIX
 from .choices import RobotStatus
 from .models import ApiToken, BridgeTicket, Robot, hash_token, token_matches
+from .relay import CommandTimeout, RobotOffline, relay_command, relay_to_many  # noqa: F401 (the API of this module)
 from .rotation import revoke_on_commit
 from .signals import cloud_relays_wanted, ros2_discovery_wanted, ros_master_wanted
 
@@ -60,14 +59,6 @@ def create_robot(
 
 
 # --------------------------------------------------------------------------- connections
-
-
-class RobotOffline(Exception):
-    """The robot is not connected, so a command cannot reach it."""
-
-
-class CommandTimeout(Exception):
-    """The robot did not answer a command in time."""
 
 
 def authenticate_robot(robot_id: str, token: str) -> Robot | None:
@@ -352,12 +343,6 @@ def push_to_robots(orders: list[tuple[str, Event, dict[str, Any]]]) -> int:
     return len(messages)
 
 
-def robot_channel(robot_id: str) -> str | None:
-    """Return the channel of a connected robot's consumer, or None if it is offline."""
-    row = Robot.objects.filter(id=robot_id, connected=True).values_list("channel", flat=True).first()
-    return row or None
-
-
 def report_shutdown(robot_id: str, reason: str | None) -> None:
     """Record that a robot announced its permanent shutdown."""
     with transaction.atomic():
@@ -390,45 +375,6 @@ def update_robot_config(robot_id: str, changes: dict[str, Any]) -> dict[str, Any
 def client_frame(event: Event, data: dict[str, Any]) -> dict[str, Any]:
     """Build a frame for clients as a JSON-ready dict."""
     return json.loads(protocol.encode(protocol.make(event, data, now=time.time())))
-
-
-async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any], *, wait: float = 5.0) -> Envelope:
-    """Send a command to a robot through its consumer and return the robot's reply.
-
-    Raises ProtocolError for a malformed command, RobotOffline when the robot is not
-    connected and CommandTimeout when no reply came within ``wait`` seconds.
-    """
-    started = time.monotonic()
-    envelope = protocol.make(event, data, now=time.time())
-    channel = await sync_to_async(robot_channel)(robot_id)
-    if channel is None:
-        prometheus.command_finished("offline", started)
-        raise RobotOffline(robot_id)
-    layer = get_channel_layer()
-    # The default prefix matters: channels-redis reads all of a process's channels of one prefix
-    # in one loop, and a second prefix would wait behind that loop's blocking read.
-    reply_channel = await layer.new_channel()
-    await layer.send(
-        channel,
-        {
-            "type": "robot.command",
-            "id": envelope.id,
-            "frame": protocol.encode(envelope),
-            "reply_channel": reply_channel,
-        },
-    )
-    try:
-        async with asyncio.timeout(wait):
-            message = await layer.receive(reply_channel)
-    except TimeoutError:
-        prometheus.command_finished("timeout", started)
-        raise CommandTimeout(f"robot {robot_id} did not answer {event} within {wait:g} s") from None
-    if message.get("offline"):
-        prometheus.command_finished("offline", started)
-        raise RobotOffline(robot_id)
-    reply = protocol.decode(message["frame"])
-    prometheus.command_finished("refused" if reply.event == Event.ERROR_MESSAGE else "accepted", started)
-    return reply
 
 
 def issue_api_token(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 from asgiref.sync import async_to_sync
@@ -67,21 +66,17 @@ def relay(robot_id: str, event: Event, data: dict[str, Any], wait: float) -> Res
 
 def relay_to_fleet(robot_ids: list[str], event: Event, wait: float) -> Response:
     """Relay one command to many robots at once and report each robot's outcome."""
-
-    async def one(robot_id: str) -> dict[str, Any]:
-        try:
-            reply = await services.relay_command(robot_id, event, {}, wait=wait)
-        except services.RobotOffline:
-            return {"robot": robot_id, "accepted": False, "error": "offline"}
-        except services.CommandTimeout:
-            return {"robot": robot_id, "accepted": False, "error": f"no answer within {wait:g} s"}
-        result = _result(robot_id, event, reply)
-        del result["event"]
-        return result
-
-    async def all_robots() -> list[dict[str, Any]]:
-        return list(await asyncio.gather(*(one(robot_id) for robot_id in robot_ids)))
-
     release_connection()
-
-    return Response({"results": async_to_sync(all_robots)()})
+    outcomes = async_to_sync(services.relay_to_many)(robot_ids, event, {}, wait=wait)
+    results = []
+    for robot_id in robot_ids:
+        outcome = outcomes[robot_id]
+        if isinstance(outcome, services.RobotOffline):
+            results.append({"robot": robot_id, "accepted": False, "error": "offline"})
+        elif isinstance(outcome, services.CommandTimeout):
+            results.append({"robot": robot_id, "accepted": False, "error": f"no answer within {wait:g} s"})
+        else:
+            result = _result(robot_id, event, outcome)
+            del result["event"]
+            results.append(result)
+    return Response({"results": results})

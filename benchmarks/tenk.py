@@ -1,0 +1,295 @@
+"""Ten thousand robots on one cloud process: connect, idle, ingest and the API at that size.
+
+One simulated fleet (benchmarks/_multifleet.py: one process multiplexing every robot over the real
+wire protocol and authentication) against one daphne sharing one PostgreSQL and one Redis:
+
+- connect: every robot opens /ws/robot/ at the same moment; seconds until all are authenticated
+  and every row says `connected`, and how many handshakes or logins were rejected;
+- idle: heartbeats only (a WebSocket ping every 5 s, as the agent's default); daphne's CPU, its
+  resident memory per robot, and what Redis and PostgreSQL hold per robot;
+- ingest: every robot sends one `metrics` frame a second of 3 points (30,000 points/s at 10,000
+  robots); points stored against points sent, and the send-to-ack p95;
+- the API among them: a robot's reads (p99), a fleet page, a command to one robot (p50) and a
+  fleet-wide command;
+- honest presence: some robots vanish without a goodbye; their rows say `disconnected` within
+  daphne's ping interval plus timeout.
+
+With `--daphnes 2` or `4` the fleet is spread over that many processes, as a load balancer does.
+Goals (issue 37): connect_10k_s <= 10 with 0 rejected, idle_cpu_pct_10k <= 10,
+ingest_points_per_s_one_process >= 30,000 at ack p95 <= 1 s, api_p99_ms_10k <= 50, command p50 <= 30 ms.
+The simulator's own CPU is printed beside the cloud's. The thesis ran one robot at a time.
+
+    .venv/bin/python benchmarks/tenk.py --quick          # 3,000 robots
+    .venv/bin/python benchmarks/tenk.py                  # 10,000 robots
+    .venv/bin/python benchmarks/tenk.py --daphnes 2
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import ROOT, Daphne, log, percentile
+from _harness import arguments, cloud, create_fleet, forget_fleet, report
+from _multifleet import FleetProcess
+
+PREFIX = "tenk-"
+OWNER = "tenk-operator"
+PING_INTERVAL_S, PING_TIMEOUT_S = 10, 10
+logging.getLogger("httpx").setLevel(logging.WARNING)
+
+
+def prepare(count: int) -> tuple[list[tuple[str, str]], str]:
+    """Create the fleet afresh, each robot with its own token; return (id, token) pairs and a staff API token."""
+    from django.contrib.auth import get_user_model
+    from django.db import connection
+
+    from robots.services import issue_api_token
+
+    forget_fleet(PREFIX, metrics=True, events=True)
+    owner, _ = get_user_model().objects.get_or_create(username=OWNER, defaults={"is_staff": True})
+    owner.is_staff = True
+    owner.set_password("tenk-pass-123")
+    owner.save()
+    tokens = create_fleet(owner, count, PREFIX, digits=5, batch_size=2000)
+    api_token, _ = issue_api_token(owner)
+    connection.close()
+    return tokens, api_token
+
+
+def scalar(sql: str, params: list[Any] | None = None) -> Any:
+    from django.db import connection
+
+    with connection.cursor() as cursor:
+        cursor.execute(sql, params or [])
+        return cursor.fetchone()[0]
+
+
+def connected_rows() -> int:
+    return scalar("SELECT count(*) FROM robots_robot WHERE id LIKE %s AND connected", [PREFIX + "%"])
+
+
+def stored_points(since: float) -> int:
+    from monitoring.models import Metric
+
+    return scalar(
+        f"SELECT count(*) FROM {Metric._meta.db_table} WHERE robot_id LIKE %s AND ts >= to_timestamp(%s)",
+        [PREFIX + "%", since],
+    )
+
+
+def redis_used(url: str) -> int:
+    import redis
+
+    return int(redis.Redis.from_url(url).info("memory")["used_memory"])
+
+
+def postgres_bytes_per_robot(robots: int) -> float:
+    """Return what the fleet's own rows take in PostgreSQL per robot: the robots table and its indexes."""
+    return scalar("SELECT pg_total_relation_size('robots_robot')") / max(1, robots)
+
+
+def cpu_pct(daphnes: list[Daphne], before: list[float], seconds: float) -> list[float]:
+    return [round(100 * (d.cpu_seconds() - b) / seconds, 1) for d, b in zip(daphnes, before, strict=True)]
+
+
+# --------------------------------------------------------------------------- the phases
+
+
+def connect_phase(fleet: FleetProcess, robots: int, timeout: float) -> dict[str, Any]:
+    """Open every robot at once; the figure ends when all are authenticated and their rows say connected."""
+    began = time.monotonic()
+    answer = fleet.ask("connect", timeout=timeout + 30, within_s=timeout)
+    rows_at = None
+    while time.monotonic() - began < timeout + 10:
+        if connected_rows() >= answer["connected"]:
+            rows_at = time.monotonic() - began
+            break
+        time.sleep(0.1)
+    connect_s = None
+    if answer["connect_s"] is not None and rows_at is not None:
+        connect_s = round(max(answer["connect_s"], rows_at), 2)
+    return {**answer, "connect_s": connect_s, "simulator_cpu_pct": fleet.cpu_pct(answer)}
+
+
+def idle_phase(fleet: FleetProcess, daphnes: list[Daphne], seconds: float) -> dict[str, Any]:
+    before = [d.cpu_seconds() for d in daphnes]
+    answer = fleet.ask("idle", seconds=seconds)
+    return {"daphne_cpu_pct": cpu_pct(daphnes, before, answer["wall_s"]), "simulator_cpu_pct": fleet.cpu_pct(answer)}
+
+
+def ingest_phase(
+    fleet: FleetProcess, daphnes: list[Daphne], robots: int, points_per_frame: int, every_s: float, seconds: float
+) -> dict[str, Any]:
+    """Every robot sends a frame of ``points_per_frame`` every ``every_s``; count what is stored and the acks' lag."""
+    since = time.time() - 1
+    before = [d.cpu_seconds() for d in daphnes]
+    answer = fleet.ask("ingest", seconds=seconds, points_per_frame=points_per_frame, every_s=every_s, drain_s=3.0)
+    daphne_cpu = cpu_pct(daphnes, before, answer["wall_s"])
+    latencies = answer["latencies"]
+    stored = stored_points(since)
+    offered = robots * points_per_frame / every_s
+    p95 = percentile(latencies, 95)
+    return {
+        "offered_points_per_s": round(offered),
+        "points_sent": answer["points_sent"],
+        "points_stored": stored,
+        "stored_per_s": round(stored / seconds),
+        "ack_p50_ms": round(1000 * (percentile(latencies, 50) or 0), 1),
+        "ack_p95_ms": round(1000 * (p95 or 0), 1),
+        "unacked_frames": answer["unacked_frames"],
+        "daphne_cpu_pct": daphne_cpu,
+        "simulator_cpu_pct": fleet.cpu_pct(answer),
+    }
+
+
+async def api_phase(daphne: Daphne, api_token: str, robots: list[str], samples: int) -> dict[str, Any]:
+    """Time the Robot API among the fleet: a robot's reads, a fleet page, a command to one robot, a fleet command."""
+    import httpx
+
+    headers = {"Authorization": f"Token {api_token}"}
+    reads: list[float] = []
+    pages: list[float] = []
+    commands: list[float] = []
+    step = max(1, len(robots) // samples)
+    async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{daphne.port}", headers=headers, timeout=60) as http:
+        for warm in robots[:5]:
+            await http.get(f"/api/robot/{warm}")
+        for robot in robots[::step][:samples]:
+            started = time.perf_counter()
+            response = await http.get(f"/api/robot/{robot}")
+            reads.append(1000 * (time.perf_counter() - started))
+            response.raise_for_status()
+        for offset in range(0, min(len(robots), 100 * samples), max(100, len(robots) // samples))[:samples]:
+            started = time.perf_counter()
+            response = await http.get("/api/robot", params={"limit": 100, "offset": offset})
+            pages.append(1000 * (time.perf_counter() - started))
+            response.raise_for_status()
+        for robot in robots[::step][: max(20, samples // 5)]:
+            started = time.perf_counter()
+            response = await http.post(f"/api/robot/{robot}/start", params={"wait": "5"})
+            commands.append(1000 * (time.perf_counter() - started))
+            if response.status_code != 200 or not response.json().get("accepted"):
+                raise RuntimeError(f"command to {robot}: {response.status_code} {response.text[:300]}")
+        started = time.perf_counter()
+        response = await http.post("/api/robot/start", params={"wait": "10"}, timeout=120)
+        fleet_ms = 1000 * (time.perf_counter() - started)
+        response.raise_for_status()
+        body = response.json()
+    accepted = sum(1 for answer in body["results"] if answer.get("accepted"))
+    return {
+        "read_p50_ms": round(percentile(reads, 50) or 0, 1),
+        "read_p99_ms": round(percentile(reads, 99) or 0, 1),
+        "page_p50_ms": round(percentile(pages, 50) or 0, 1),
+        "page_p99_ms": round(percentile(pages, 99) or 0, 1),
+        "command_p50_ms": round(percentile(commands, 50) or 0, 1),
+        "command_p95_ms": round(percentile(commands, 95) or 0, 1),
+        "fleet_command_ms": round(fleet_ms),
+        "fleet_command_accepted": accepted,
+    }
+
+
+def vanish_phase(fleet: FleetProcess, how_many: int, within_s: float) -> dict[str, Any]:
+    """Make robots vanish without a goodbye; time until their rows say disconnected."""
+    from robots.models import Robot
+
+    gone = fleet.ask("vanish", robots=how_many)["robots"]
+    began = time.monotonic()
+    still = len(gone)
+    while time.monotonic() - began < within_s:
+        still = Robot.objects.filter(id__in=gone, connected=True).count()
+        if still == 0:
+            break
+        time.sleep(0.5)
+    return {"vanished": len(gone), "still_connected": still, "disconnected_after_s": round(time.monotonic() - began, 1)}
+
+
+# --------------------------------------------------------------------------- main
+
+
+def main() -> None:
+    parser = arguments(__doc__, "3,000 robots, short phases: under a minute", database="bridgeos_tenk", redis=13)
+    parser.add_argument("--robots", type=int, default=None, help="robots in the fleet (10,000; 3,000 with --quick)")
+    parser.add_argument("--daphnes", type=int, default=1, help="daphne processes the fleet is spread over")
+    parser.add_argument("--points-per-frame", type=int, default=3)
+    parser.add_argument("--every", type=float, default=1.0, help="seconds between a robot's metric frames")
+    parser.add_argument("--ingest-s", type=float, default=None)
+    parser.add_argument("--idle-s", type=float, default=None)
+    parser.add_argument("--skip-vanish", action="store_true")
+    args = parser.parse_args()
+    robots = args.robots or (3000 if args.quick else 10_000)
+    ingest_s = args.ingest_s or (8.0 if args.quick else 30.0)
+    idle_s = args.idle_s or (5.0 if args.quick else 20.0)
+    env = {"BRIDGEOS_WS_PING_INTERVAL": str(PING_INTERVAL_S), "BRIDGEOS_WS_PING_TIMEOUT": str(PING_TIMEOUT_S)}
+
+    with cloud(args, "bridgeos-tenk-", env=env) as bench:
+        tokens, api_token = prepare(robots)
+        ids = [robot_id for robot_id, _ in tokens]
+        log(f"created {robots} robots")
+        daphnes = [bench.start_daphne(f"daphne-{i}.log", wait=False) for i in range(args.daphnes)]
+        for daphne in daphnes:
+            daphne.wait()
+        redis_before = redis_used(args.redis_url)
+        rss_before = [d.memory_mib()[0] for d in daphnes]
+        fleet = FleetProcess(tokens, [d.ws_url for d in daphnes])
+        try:
+            connected = connect_phase(fleet, robots, timeout=60)
+            log(f"connect: {connected}")
+            time.sleep(2.0)
+            idle = idle_phase(fleet, daphnes, idle_s)
+            rss_after = [d.memory_mib()[0] for d in daphnes]
+            kb_per_robot = round(1024 * sum(a - b for a, b in zip(rss_after, rss_before, strict=True)) / robots, 1)
+            redis_kb = round((redis_used(args.redis_url) - redis_before) / 1024 / robots, 2)
+            postgres_kb = round(postgres_bytes_per_robot(robots) / 1024, 2)
+            log(f"idle: {idle}, {kb_per_robot} KiB/robot in daphne, {redis_kb} in Redis, {postgres_kb} in PostgreSQL")
+            ingest = ingest_phase(fleet, daphnes, robots, args.points_per_frame, args.every, ingest_s)
+            log(f"ingest: {ingest}")
+            api = asyncio.run(api_phase(daphnes[0], api_token, ids, 100 if args.quick else 500))
+            log(f"api: {api}")
+            vanish = None
+            if not args.skip_vanish:
+                vanish = vanish_phase(fleet, max(1, robots // 100), PING_INTERVAL_S + PING_TIMEOUT_S + 10)
+                log(f"vanish: {vanish}")
+            state = fleet.ask("state")
+        finally:
+            fleet.stop()
+    ingest_ok = ingest["ack_p95_ms"] <= 1000 and ingest["points_stored"] >= ingest["points_sent"]
+    report(
+        {
+            "robots": robots,
+            "daphnes": args.daphnes,
+            "connect_10k_s": connected["connect_s"],
+            "connect_10k_rejected": connected["rejected"],
+            "connect_failures": connected["failures"],
+            "idle_cpu_pct_10k": round(sum(idle["daphne_cpu_pct"]), 1),
+            "kb_per_robot": kb_per_robot,
+            "redis_kb_per_robot": redis_kb,
+            "postgres_kb_per_robot": postgres_kb,
+            "ingest_points_per_s_one_process": ingest["stored_per_s"] if ingest_ok else 0,
+            "ingest": ingest,
+            "api_p99_ms_10k": api["read_p99_ms"],
+            "api": api,
+            "vanish": vanish,
+            "closed_after_auth": state["closed_after_auth"],
+            "simulator_cpu_pct": max(
+                connected["simulator_cpu_pct"], idle["simulator_cpu_pct"], ingest["simulator_cpu_pct"]
+            ),
+            "simulator_cpu_pct_by_phase": {
+                "connect": connected["simulator_cpu_pct"],
+                "idle": idle["simulator_cpu_pct"],
+                "ingest": ingest["simulator_cpu_pct"],
+            },
+        }
+    )
+
+
+if __name__ == "__main__":
+    os.chdir(ROOT)
+    main()
