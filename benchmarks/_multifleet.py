@@ -260,6 +260,15 @@ class Fleet:
                     robot.send_metrics(self.points_per_frame)
             await asyncio.sleep(max(0.0, TICK_S - (time.monotonic() - started)))
 
+    async def drained(self, within_s: float) -> int:
+        """Wait until every metric frame sent is acked, at most ``within_s``; return how many are not."""
+        for _ in range(max(1, round(within_s / TICK_S))):
+            unacked = sum(len(robot.sent) for robot in self.robots)
+            if not unacked:
+                return 0
+            await asyncio.sleep(TICK_S)
+        return sum(len(robot.sent) for robot in self.robots)
+
     def vanish(self, how_many: int) -> list[str]:
         """Make the last ``how_many`` connected robots vanish without a goodbye; return their ids."""
         chosen = [robot for robot in self.robots if robot.authenticated_at is not None and not robot.closed]
@@ -304,8 +313,7 @@ def serve(conn: Any, robots: list[tuple[str, str]], urls: list[str], heartbeat_s
                 fleet.points_per_frame, fleet.metrics_every_s = args["points_per_frame"], args["every_s"]
                 await asyncio.sleep(args["seconds"])
                 fleet.metrics_every_s = 0.0
-                await asyncio.sleep(args.get("drain_s", 2.0))
-                unacked = sum(len(robot.sent) for robot in fleet.robots)
+                unacked = await fleet.drained(args.get("drain_s", 2.0))
                 answer = {"points_sent": fleet.points_sent, "latencies": fleet.latencies, "unacked_frames": unacked}
             elif command == "vanish":
                 answer = {"robots": fleet.vanish(args["robots"])}
