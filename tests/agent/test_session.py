@@ -254,3 +254,44 @@ async def test_a_frame_made_while_the_backlog_is_being_resent_is_sent_on_that_co
             controller.stop()
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.wait_for(running, 15)
+
+
+async def test_a_login_the_cloud_leaves_unanswered_is_tried_again_not_given_up(tmp_path, monkeypatch):
+    # In a connect storm of thousands the cloud may take the socket and answer the login late; a
+    # robot that gave up waiting used to stop trying for good (found with 2,000 robots and a real agent).
+    monkeypatch.setattr("bridgeos_agent.session.LOGIN_ANSWER_S", 0.5)
+    logins: list[float] = []
+
+    async def cloud(ws):
+        protocol.decode(await ws.recv())  # authentication_robot
+        logins.append(time.monotonic())
+        if len(logins) == 1:
+            await asyncio.sleep(3)  # the first login is never answered in time
+            return
+        await ws.send(
+            protocol.encode(protocol.make(Event.AUTHENTICATION_SUCCESS, {"robot": "sess-3"}, now=time.time()))
+        )
+        async for _ in ws:
+            pass
+
+    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
+        port = server.sockets[0].getsockname()[1]
+        settings = AgentSettings(
+            master=f"ws://127.0.0.1:{port}",
+            robot="sess-3",
+            token="token",
+            data_dir=tmp_path,
+            simulate=True,
+            detect_ros_master=False,
+            volume_sync_interval=0,
+        )
+        controller = RobotController(settings, plugins={})
+        running = asyncio.create_task(controller.run())
+        try:
+            await asyncio.wait_for(controller.connected.wait(), 15)
+            assert len(logins) == 2
+            assert not running.done()
+        finally:
+            controller.stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.wait_for(running, 15)

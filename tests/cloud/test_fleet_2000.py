@@ -107,6 +107,11 @@ def test_two_thousand_robots_connect_report_and_are_honestly_present(tmp_path):
                     answer = http.post(f"/api/robot/{robot_id}/start", params={"wait": "10"})
                     assert answer.status_code == 200, answer.text
                     assert answer.json()["accepted"] is True
+                # And one command to the whole fleet: every robot's answer in one response.
+                answer = http.post("/api/robot/start", params={"wait": "30"}, timeout=60)
+                assert answer.status_code == 200, answer.text
+                refused = [result for result in answer.json()["results"] if not result["accepted"]]
+                assert len(answer.json()["results"]) == FLEET + 1 and not refused, refused[:3]
 
             # 200 robots vanish without a goodbye: offline within the ping interval and timeout, the rest not.
             gone = set(fleet.ask("vanish", robots=VANISH)["robots"])

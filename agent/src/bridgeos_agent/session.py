@@ -41,6 +41,9 @@ EXIT_REFUSED = 3
 RETRY_CODES = frozenset({"unavailable", "internal_error", "rate_limited"})
 # A sent frame is retransmitted after 5 s, then 10, 20 and every 30 s until acked (±10% jitter).
 RESEND_INITIAL = 5.0
+# How long a login may wait for the cloud's answer: as long as daphne lets a WebSocket wait to be
+# accepted (30 s, scripts/daphne), since in a connect storm of thousands both queue in one loop.
+LOGIN_ANSWER_S = 30.0
 RESEND_CAP = 30.0
 # How often owed frames and unanswered requests are checked.
 TICK = 0.5
@@ -52,6 +55,10 @@ Reply = tuple[Event, dict[str, Any]]
 
 class AuthenticationRefused(RuntimeError):
     """The cloud refused the robot's id or token: retrying will not help."""
+
+
+class LoginUnanswered(RuntimeError):
+    """The cloud did not answer the robot's login in time: the next attempt may be."""
 
 
 def ws_scheme(ws: Any) -> str:
@@ -196,6 +203,10 @@ class Session:
                 return
             except websockets.ConnectionClosed:
                 pass
+            except LoginUnanswered:
+                # The cloud took the socket but not the login in time (a connect storm of thousands):
+                # a new attempt after the backoff, never a session that stops trying.
+                self.say(f"the cloud did not answer this robot's login within {LOGIN_ANSWER_S:g} s; retrying")
             finally:
                 self._on_disconnect()
                 current = asyncio.current_task()
@@ -241,7 +252,11 @@ class Session:
         if self.settings.labels:
             credentials["labels"] = self.settings.labels
         await ws.send(protocol.encode(protocol.make(Event.AUTHENTICATION_ROBOT, credentials, now=time.time())))
-        answer = protocol.decode(await asyncio.wait_for(ws.recv(), 10), direction=protocol.Direction.CLOUD_TO_ROBOT)
+        try:
+            raw = await asyncio.wait_for(ws.recv(), LOGIN_ANSWER_S)
+        except TimeoutError:
+            raise LoginUnanswered from None
+        answer = protocol.decode(raw, direction=protocol.Direction.CLOUD_TO_ROBOT)
         if answer.event != Event.AUTHENTICATION_SUCCESS:
             reason = getattr(protocol.parse_payload(answer), "reason", answer.event)
             raise AuthenticationRefused(reason)
