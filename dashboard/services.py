@@ -93,6 +93,12 @@ def fleet_summary(user: AbstractBaseUser) -> list[dict[str, Any]]:
     return rows
 
 
+def robots_out_of_sight(actor: Actor, robot_ids: Iterable[str]) -> set[str]:
+    """Return those of the robots that the request may not see (or that do not exist)."""
+    wanted = set(robot_ids)
+    return wanted - set(visible_robots(actor).filter(id__in=wanted).values_list("id", flat=True))
+
+
 def latest_robot_metrics(
     robot_ids: list[str], names: Iterable[str], *, now: datetime | None = None
 ) -> dict[str, dict[str, list[float]]]:

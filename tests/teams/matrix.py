@@ -209,6 +209,8 @@ CLIENT_EVENTS: dict[str, dict[str, Any]] = {
     "metrics_get": {},
     "logs_subscribe": {"tail": 0},
     "logs_unsubscribe": {},
+    # Sent as {"robots": [the robot]}: a subscription names many robots, not one (wsmatrix.client_data).
+    "metrics_subscribe": {},
 }
 
 

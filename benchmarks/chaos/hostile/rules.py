@@ -104,7 +104,7 @@ FLEET_COMMANDS = ("api/robot/start", "api/robot/stop", "api/robot/shutdown")
 
 def is_read_request(event: str) -> bool:
     """Tell whether a request on /ws/client/ only reads (a viewer's right); every other one changes something."""
-    return event.endswith("_get") or event in ("logs_subscribe", "logs_unsubscribe")
+    return event.endswith("_get") or event in ("logs_subscribe", "logs_unsubscribe", "metrics_subscribe")
 
 
 def published_robot_routes() -> set[str]:
