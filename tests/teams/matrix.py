@@ -78,6 +78,7 @@ MIGRATE = {"location": "cloud"}
 HTTP_RULES: dict[str, Rule] = {
     # -- the dashboard's pages
     "": Rule("signed-in", {"GET": 200}, lists=True),
+    "fleet/page": Rule("signed-in", {"GET": 200}, lists=True),
     "robots/<slug:robot_id>/": robot({"GET": 200}),
     "robots/<slug:robot_id>/logs/": robot({"GET": 200}),
     "skills/": Rule("signed-in", {"GET": 200}),
