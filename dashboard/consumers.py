@@ -72,6 +72,10 @@ class ClientConsumer(ProtocolConsumer):
         self.actor: access.Actor | None = None
         self.visible: set[str] | None = set()
         self.visible_loaded_at = 0.0
+        # The robots whose live metrics this client asked for (metrics_subscribe); None: every robot it may see.
+        self.subscribed: set[str] | None = None
+        # Subscriptions received so far: they are checked side by side, and the last one sent must win.
+        self.subscriptions = 0
         self.dedup = Dedup(capacity=1000)
         self.log_tail = LogTail(self)
         await super().connect()
@@ -161,9 +165,13 @@ class ClientConsumer(ProtocolConsumer):
     # ---------------------------------------------------------------- the live feed
 
     async def live_metrics(self, message: dict[str, Any]) -> None:
-        """Send the latest metric values of the robots this user may see, one frame per robot."""
+        """Send the latest metric values of the robots this user may see (and subscribed to), one frame per robot."""
         now = time.time()
-        for robot_id, data in message["robots"].items():
+        robots: dict[str, str] = message["robots"]
+        if self.subscribed is not None:
+            # A page of a 10,000-robot fleet: walk its hundred robots, not every robot in the message.
+            robots = {robot_id: robots[robot_id] for robot_id in self.subscribed if robot_id in robots}
+        for robot_id, data in robots.items():
             if await self.sees(robot_id):
                 # The payload was validated on the way in and encoded once for all clients.
                 await self.send_text(
@@ -200,13 +208,17 @@ class ClientConsumer(ProtocolConsumer):
         """Authorise one request, then answer it from the database or relay it to the robot."""
         payload = protocol.parse_payload(envelope)
         robot_id = getattr(payload, "robot", None)
-        if robot_id is None:
+        # A metrics subscription names many robots, not one: subscribe_metrics judges them all at once.
+        if robot_id is None and not isinstance(payload, protocol.MetricsSubscribe):
             await self.fail(
                 "name the robot this request is for", reply_to=envelope.id, field="data.robot", code="invalid_payload"
             )
             return
         outcome = "ok"
         try:
+            if isinstance(payload, protocol.MetricsSubscribe):
+                await self.subscribe_metrics(envelope, payload)
+                return
             allowed = await database_sync_to_async(access.may_on_robot)(self.actor, robot_id, right_for(envelope.event))
             if allowed is None:
                 raise NotFound(f"no robot {robot_id!r}", field="data.robot")
@@ -247,6 +259,20 @@ class ClientConsumer(ProtocolConsumer):
                 await database_sync_to_async(audit.record_client_command)(
                     self.actor, envelope.event, robot_id, outcome, self.scope.get("client")
                 )
+
+    async def subscribe_metrics(self, envelope: Envelope, payload: protocol.MetricsSubscribe) -> None:
+        """Narrow the live metrics to the named robots; refuse the lot if one is not the client's to see."""
+        self.subscriptions += 1
+        asked = self.subscriptions
+        robots = set(payload.robots)
+        hidden = await database_sync_to_async(services.robots_out_of_sight)(self.actor, robots)
+        if hidden:
+            # The words for another organization's robot and for a missing one are the same.
+            raise NotFound(f"no robot {min(hidden)!r}", field="data.robots")
+        # One sent later but checked sooner must not be undone by this one.
+        if asked == self.subscriptions:
+            self.subscribed = robots
+        await self.send_envelope(protocol.ack_frame(envelope.id, now=time.time()))
 
     async def relay(self, envelope: Envelope, robot_id: str, *, stored: bool = False) -> str:
         """Send a command to the robot and pass its reply back under the client's id; return the audit outcome."""

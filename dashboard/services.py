@@ -1,22 +1,37 @@
-"""What the dashboard's pages read (fleet summaries in a few queries) and what /ws/client/ answers."""
+"""What the dashboard's pages read (a page of the fleet in a few queries) and what /ws/client/ answers."""
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import connection
-from django.db.models import Count, QuerySet
+from django.db.models import (
+    Case,
+    Count,
+    F,
+    Func,
+    IntegerField,
+    OrderBy,
+    OuterRef,
+    Q,
+    QuerySet,
+    Subquery,
+    Value,
+    When,
+)
 from django.db.models.fields.json import KT
+from django.db.models.functions import Coalesce
 from django.utils import timezone
 from pydantic import BaseModel
 from pydantic import ValidationError as PydanticValidationError
 
 from bridgeos_agent.errors import field_errors
-from bridgeos_agent.protocol import Event
+from bridgeos_agent.protocol import Event, Location
 from bridgeos_agent.robotconfig import parse_robot_config, robot_config_json_schema
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_cloud.errors import NotFound
@@ -25,7 +40,8 @@ from monitoring.services import latest_metrics
 from recordings.choices import RosProfile
 from recordings.models import Recording
 from recordings.services import DEFAULT_MAX_BYTES, DEFAULT_MAX_DURATION_S
-from robots.access import Actor, robots_with, visible_robots
+from robots.access import Actor, robot_scope, robots_with, visible_robots
+from robots.labels import Selector, selector_q
 from robots.models import Robot
 from robots.services import robot_config, update_robot_config
 from rollouts.api.serializers import RolloutDetailSerializer
@@ -42,6 +58,13 @@ from teams.roles import Right
 ROBOT_METRICS = ("cpu", "ram", "bandwidth", "battery")
 # Older values are not "live" any more; the overview shows a dash instead.
 LATEST_METRIC_MAX_AGE = timedelta(hours=1)
+# The robots one fleet page shows: a bounded page renders in well under a second with 10,000 robots.
+FLEET_PAGE_SIZE = 100
+# The table's sort keys (a leading "-" sorts descending) and the robot states it filters by.
+FLEET_SORTS = ("id", "connected", *ROBOT_METRICS, "offloading", "skills", "components", "seen")
+FLEET_STATES = ("all", "online", "offline")
+# Component statuses that count as running somewhere, in the table's "Runs on" and the fleet's counts.
+ACTIVE_STATUSES = ("running", "starting", "migrating", "stopping")
 
 CONFIG_PARSERS: dict[str, Callable[[Any], BaseModel]] = {"skill": parse_skill_config, "robot": parse_robot_config}
 
@@ -60,18 +83,129 @@ CROSS JOIN LATERAL (
 """
 
 
-def fleet_summary(user: AbstractBaseUser) -> list[dict[str, Any]]:
-    """Return the robots a user may see, each with its skills' components and latest robot metrics."""
-    robots = visible_robots(user)
-    rows = list(
-        robots.order_by("id")
-        .annotate(offloading=KT("config__offloading"))
-        .values("id", "name", "labels", "status", "connected", "last_seen", "offloading")
+@dataclass(frozen=True)
+class FleetQuery:
+    """What the fleet page asks for: a search (ids and names, or a label selector), a state, an order, a page."""
+
+    text: str = ""
+    selector: Selector | None = None
+    state: str = "all"
+    sort: str = "id"
+    page: int = 1
+    # Why the search matches nothing (a malformed selector), shown beside the search box.
+    error: str = ""
+
+
+def fleet_page(actor: Actor, query: FleetQuery, *, size: int = FLEET_PAGE_SIZE) -> dict[str, Any]:
+    """Return one page of the robots a request may see that match a query, how many match, and the fleet's counts."""
+    robots = visible_robots(actor)
+    condition = _matching(query)
+    # The whole fleet's counts and the matches' in one pass over the robots, not counted from rows.
+    counts = robots.aggregate(
+        robots=Count("pk"),
+        online=Count("pk", filter=Q(connected=True)),
+        # No search and every state: an empty condition, which cannot be a FILTER clause.
+        matching=Count("pk", filter=condition) if condition else Count("pk"),
     )
+    # A malformed selector matches nothing; the page says why.
+    matches = 0 if query.error else counts["matching"]
+    pages = max(1, -(-matches // size))
+    page = min(query.page, pages)
+    offset = (page - 1) * size
+    rows = []
+    if matches:
+        ordered = robots.filter(condition).order_by(*_fleet_order(query.sort))
+        rows = robot_rows(ordered[offset : offset + size])
+    return {
+        "robots": rows,
+        "count": matches,
+        "page": page,
+        "pages": pages,
+        "offset": offset,
+        "size": size,
+        "summary": {"robots": counts["robots"], "online": counts["online"], **_component_counts(actor)},
+        "query": {"q": query.text, "state": query.state, "sort": query.sort},
+        "error": query.error,
+    }
+
+
+def _matching(query: FleetQuery) -> Q:
+    """Return the condition a robot meets to match the query's search and state (empty: every robot)."""
+    condition = Q()
+    if query.selector is not None:
+        condition &= selector_q(query.selector)
+    elif query.text:
+        condition &= Q(id__icontains=query.text) | Q(name__icontains=query.text)
+    if query.state != "all":
+        condition &= Q(connected=query.state == "online")
+    return condition
+
+
+def _fleet_order(sort: str) -> list[OrderBy]:
+    """Return the ORDER BY of a fleet sort key (``-key`` descending), ties in id order as the table has them."""
+    key = sort.removeprefix("-")
+    keys: list[Any]
+    if key in ROBOT_METRICS:
+        since = timezone.now() - LATEST_METRIC_MAX_AGE
+        # A robot without a value in the last hour sorts as -1, below every measured one.
+        latest = Metric.objects.filter(
+            robot_id=OuterRef("pk"), name=key, skill="", component="", ts__gte=since
+        ).order_by("-ts")
+        keys = [Coalesce(Subquery(latest.values("value")[:1]), Value(-1.0))]
+    elif key == "connected":
+        keys = [Case(When(connected=True, then=Value(0)), default=Value(1))]
+    elif key == "offloading":
+        keys = [KT("config__offloading")]
+    elif key == "skills":
+        keys = [_count_of(Skill.objects.filter(robot=OuterRef("pk")))]
+    elif key == "components":
+        cloud = Component.objects.filter(
+            skill__robot=OuterRef("pk"), status__in=ACTIVE_STATUSES, active_location=Location.CLOUD
+        )
+        keys = [_count_of(cloud)]
+    elif key == "seen":
+        # Connected robots are the most recently seen of all, then by when each was last seen.
+        keys = [F("connected"), F("last_seen")]
+    else:
+        keys = [F("id")]
+    descending = sort.startswith("-")
+    order = [k.desc(nulls_last=True) if descending else k.asc(nulls_first=True) for k in keys]
+    return [*order, F("id").asc()]
+
+
+def _count_of(rows: QuerySet[Any]) -> Subquery:
+    """Return a correlated count of ``rows``, to sort by without grouping the robots."""
+    # COUNT as a plain function, not an aggregate: Django adds no GROUP BY, so the subquery is one row.
+    counted = rows.order_by().annotate(n=Func(F("pk"), function="COUNT", output_field=IntegerField()))
+    return Subquery(counted.values("n"))
+
+
+def _component_counts(actor: Actor) -> dict[str, int]:
+    """Count the Skills of the robots a request may see and their components running on the robot and in the cloud."""
+    scope = robot_scope(actor)
+    skills = Skill.objects.all() if scope is None else Skill.objects.filter(robot__in=scope)
+    active = Component.objects.filter(status__in=ACTIVE_STATUSES)
+    if scope is not None:
+        active = active.filter(skill__robot__in=scope)
+    counted = active.aggregate(
+        on_robot=Count("pk", filter=Q(active_location=Location.ROBOT)),
+        on_cloud=Count("pk", filter=Q(active_location=Location.CLOUD)),
+    )
+    return {"skills": skills.count(), **counted}
+
+
+def robot_rows(robots: QuerySet[Robot]) -> list[dict[str, Any]]:
+    """Return robots, in their order, each with its skills' components and latest robot metrics."""
+    rows = list(
+        robots.annotate(offloading=KT("config__offloading")).values(
+            "id", "name", "labels", "status", "connected", "last_seen", "offloading"
+        )
+    )
+    ids = [row["id"] for row in rows]
     skills: dict[str, list[dict[str, Any]]] = {}
     by_pk: dict[int, dict[str, Any]] = {}
     for pk, robot_id, skill_id, status in (
-        Skill.objects.filter(robot__in=robots)
+        Skill.objects.filter(robot_id__in=ids)
         .order_by("robot_id", "skill_id")
         .values_list("pk", "robot_id", "skill_id", "status")
     ):
@@ -79,18 +213,24 @@ def fleet_summary(user: AbstractBaseUser) -> list[dict[str, Any]]:
         by_pk[pk] = skill
         skills.setdefault(robot_id, []).append(skill)
     for skill_pk, component_id, location, active_location, status in (
-        Component.objects.filter(skill__robot__in=robots)
+        Component.objects.filter(skill_id__in=by_pk)
         .order_by("skill_id", "component_id")
         .values_list("skill_id", "component_id", "location", "active_location", "status")
     ):
         by_pk[skill_pk]["components"].append(
             {"component_id": component_id, "location": location, "active_location": active_location, "status": status}
         )
-    metrics = latest_robot_metrics([row["id"] for row in rows], ROBOT_METRICS)
+    metrics = latest_robot_metrics(ids, ROBOT_METRICS)
     for row in rows:
         row["skills"] = skills.get(row["id"], [])
         row["metrics"] = metrics.get(row["id"], {})
     return rows
+
+
+def robots_out_of_sight(actor: Actor, robot_ids: Iterable[str]) -> set[str]:
+    """Return those of the robots that the request may not see (or that do not exist)."""
+    wanted = set(robot_ids)
+    return wanted - set(visible_robots(actor).filter(id__in=wanted).values_list("id", flat=True))
 
 
 def latest_robot_metrics(

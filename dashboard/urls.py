@@ -10,6 +10,7 @@ app_name = "dashboard"
 
 urlpatterns = [
     path("", views.fleet, name="index"),
+    path("fleet/page", views.fleet_data, name="fleet-page"),
     path("robots/<slug:robot_id>/", views.robot, name="robot"),
     path("robots/<slug:robot_id>/logs/", views.robot_logs, name="robot-logs"),
     path("skills/", views.skills, name="skills"),

@@ -18,6 +18,7 @@ from registry import services as registry_services
 from robots.access import actor_of
 
 from . import services
+from .forms import FleetQueryForm
 
 # The levels a log line may carry, lowest first: the viewer's "level at least" picker.
 LOG_LEVELS = get_args(LogLevel)
@@ -25,12 +26,18 @@ LOG_LEVELS = get_args(LogLevel)
 
 @login_required
 def fleet(request: HttpRequest) -> HttpResponse:
-    """Show every robot the user may see, live."""
-    return render(
-        request,
-        "dashboard/fleet.html",
-        {"page": "fleet", "robots": services.fleet_summary(actor_of(request)), "metric_names": services.ROBOT_METRICS},
-    )
+    """Show one page of the robots the user may see, searched and sorted as the address asks, live."""
+    fleet_page = services.fleet_page(actor_of(request), FleetQueryForm(request.GET).query())
+    return render(request, "dashboard/fleet.html", {"page": "fleet", "fleet": fleet_page})
+
+
+@login_required
+def fleet_data(request: HttpRequest) -> JsonResponse:
+    """Answer a page of the fleet as the fleet page redraws it in place (search, sort, paging, live counts)."""
+    form = FleetQueryForm(request.GET)
+    if not form.is_valid():
+        return JsonResponse({field: list(messages) for field, messages in form.errors.items()}, status=400)
+    return JsonResponse(services.fleet_page(actor_of(request), form.query()))
 
 
 @login_required

@@ -1,8 +1,12 @@
-// Fleet overview: every robot live, in a table that renders only the rows on screen.
+// Fleet overview: a page of robots, searched, sorted and paged by the cloud, its rows kept live.
 //
-// Frames change a plain model (robots by id) and mark robots dirty; one requestAnimationFrame
-// pass then rewrites only the cells of visible rows whose text changed. Hundreds of robots
-// sending metrics four times a second cost a few dozen cell writes per frame.
+// The cloud answers one page (100 robots) with the whole fleet's counts: rendered into the page
+// first, then from GET /fleet/page when the search, the order or the page changes. The page asks
+// for the live metrics of its own robots only (metrics_subscribe), so a 10,000-robot fleet sends
+// it a hundred robots' values, not ten thousand. Frames change a plain model and mark robots dirty;
+// one requestAnimationFrame pass rewrites only the cells whose text changed. An event that may
+// change the counts or which robots the page holds (a robot connecting, added or deleted)
+// reloads the page's data, at most once every RELOAD_MS.
 
 import { get, seg } from "./api.js";
 import { labelChips, labelText } from "./labels.js";
@@ -11,57 +15,62 @@ import {
   ROBOT_METRICS,
   debounce,
   el,
-  errorText,
   fmtAgo,
   fmtMetric,
+  fmtNumber,
   fmtTime,
   frameBatcher,
   isoSeconds,
   pageData,
   setClass,
   setText,
+  throttle,
+  toast,
 } from "./util.js";
 
 const METRIC_NAMES = Object.keys(ROBOT_METRICS);
 const ACTIVE = new Set(["running", "starting", "migrating", "stopping"]);
-const OVERSCAN = 8;
-// Sorting by a live metric reorders rows at most this often, so rows do not jump under the pointer.
-const METRIC_RESORT_MS = 3000;
+// Reloads of the page's data, when events say the fleet changed, come at most this often.
+const RELOAD_MS = 2000;
+// Sorts whose first click is ascending; the others start with the largest (or newest) first.
+const ASCENDING_FIRST = new Set(["id", "offloading"]);
+// A deleted robot, an added one, or a renamed or relabelled one: the event log's kinds that change the table.
+const ROBOT_CHANGES = new Set(["robot_created", "robot_updated", "robot_deleted"]);
 
 const table = document.getElementById("fleet");
 const tbody = document.getElementById("fleet-rows");
 const summary = document.getElementById("fleet-summary");
+const pager = document.getElementById("fleet-pager");
 const emptyNote = document.getElementById("fleet-empty");
 const noMatch = document.getElementById("fleet-no-match");
 const filterInput = document.getElementById("fleet-filter");
 const stateSelect = document.getElementById("fleet-state");
 const filterResult = document.getElementById("fleet-filter-result");
 
-const robots = new Map(); // id -> robot model
+let robots = new Map(); // id -> robot model, the robots of this page
+const rows = new Map(); // id -> {tr, cells} of this page's rows
 const dirty = new Set();
-const rows = new Map(); // id -> {tr, cells} for rows built so far
-let order = []; // ids in view order after filter and sort
+let order = []; // this page's ids, in the cloud's order
 let orderDirty = true;
-let windowDirty = true;
-let lastMetricSort = 0;
-let rendered = { first: 0, last: -1 };
-let rowHeight = 0;
-let sort = { key: "id", dir: 1 };
-// A search with '=' is a label selector, evaluated by the cloud: the ids it matched (null: not a selector).
-let selected = null;
-let selectorAsked = "";
+let current = null; // the page's data as the cloud last answered it (robots aside)
+let query = { q: "", state: "all", sort: "id", page: 1 };
 
 // --------------------------------------------------------------------------- the model
 
 function normalise(raw, previous) {
+  // A live value newer than the page's data is kept: the data may have been read just before it came.
+  const metrics = { ...(previous?.metrics ?? {}) };
+  for (const [name, point] of Object.entries(raw.metrics ?? {})) {
+    if (!metrics[name] || point[1] >= metrics[name][1]) metrics[name] = point;
+  }
   return {
     id: raw.id,
     name: raw.name || "",
-    labels: raw.labels ?? previous?.labels ?? {},
+    labels: raw.labels ?? {},
     connected: Boolean(raw.connected),
     status: raw.status,
     lastSeen: isoSeconds(raw.last_seen),
-    offloading: raw.offloading ?? raw.config?.offloading ?? "",
+    offloading: raw.offloading ?? "",
     skills: new Map(
       (raw.skills ?? []).map((skill) => [
         skill.skill_id,
@@ -73,8 +82,7 @@ function normalise(raw, previous) {
         },
       ]),
     ),
-    // A fresh copy from the API carries no metrics: keep the live ones.
-    metrics: { ...(previous?.metrics ?? {}), ...(raw.metrics ?? {}) },
+    metrics,
   };
 }
 
@@ -93,30 +101,67 @@ function counts(robot) {
   return { skills: robot.skills.size, onRobot, onCloud, total };
 }
 
-function upsert(raw) {
-  const robot = normalise(raw, robots.get(raw.id));
-  const known = robots.has(robot.id);
-  robots.set(robot.id, robot);
-  if (!known) orderDirty = true;
-  touch(robot.id, !known);
+/** Take a page of the fleet as the cloud answered it: its robots, counts and paging. */
+function apply(data) {
+  const next = new Map();
+  for (const raw of data.robots) next.set(raw.id, normalise(raw, robots.get(raw.id)));
+  robots = next;
+  for (const id of rows.keys()) if (!robots.has(id)) rows.delete(id);
+  order = data.robots.map((raw) => raw.id);
+  for (const id of order) dirty.add(id);
+  current = { ...data, robots: undefined };
+  query = { ...data.query, page: data.page };
+  orderDirty = true;
+  schedule();
+  live.subscribeMetrics(order, () => reload());
 }
 
-function touch(id, structural = false) {
+function touch(id) {
   dirty.add(id);
-  if (structural || sort.key === "connected" || stateSelect.value !== "all") orderDirty = true;
   schedule();
 }
 
-const fetching = new Set();
+// --------------------------------------------------------------------------- loading pages
 
-/** Load a robot the page does not know yet (added after the page loaded) or whose skills changed. */
-async function refresh(id) {
-  if (fetching.has(id)) return;
-  fetching.add(id);
-  const answer = await get(`/api/robot/${seg(id)}`);
-  fetching.delete(id);
-  if (answer.ok) upsert(answer.data);
+const params = (q) => {
+  const search = new URLSearchParams();
+  if (q.q) search.set("q", q.q);
+  if (q.state !== "all") search.set("state", q.state);
+  if (q.sort !== "id") search.set("sort", q.sort);
+  if (q.page > 1) search.set("page", String(q.page));
+  return search.toString();
+};
+
+const address = (q) => {
+  const search = params(q);
+  return search ? `?${search}` : location.pathname;
+};
+
+let asked = 0;
+let wanted = null; // the page last asked for: a reload asks for it again, not for the one on screen
+
+/** Load a page of the fleet and draw it; `history` says how the address follows ("push", "replace" or none). */
+async function load(next, history = "replace") {
+  const ticket = ++asked;
+  wanted = next;
+  // The address follows at once, so a reload that overtakes this answer keeps it.
+  if (history) window.history[history === "push" ? "pushState" : "replaceState"](null, "", address(next));
+  const answer = await get(`/fleet/page?${params(next)}`);
+  if (ticket !== asked) return; // asked for another page meanwhile
+  if (answer.status === 400 && answer.data?.q) {
+    // A malformed label selector: say why beside the search box, and match nothing.
+    apply({ ...current, robots: [], count: 0, page: 1, pages: 1, offset: 0, query: next, error: answer.data.q.join(" ") });
+  } else if (answer.ok) {
+    apply(answer.data);
+    // Past the last page the cloud answers the last one: the address says which.
+    if (answer.data.page !== next.page) window.history.replaceState(null, "", address(query));
+  } else {
+    toast(`The fleet did not load: ${answer.data?.detail ?? `HTTP ${answer.status}`}`, "error");
+  }
 }
+
+/** Read the page's data again: the fleet changed (robots connected, added, deleted) or frames were missed. */
+const reload = throttle(() => load(wanted ?? query, null), RELOAD_MS);
 
 // --------------------------------------------------------------------------- live frames
 
@@ -136,22 +181,21 @@ function onMetrics(frame) {
 }
 
 function onConnection(frame, connected) {
+  // The fleet's online count changed, and a robot new to the fleet may belong on this page.
+  reload();
   const robot = robots.get(frame.data.robot);
-  if (!robot) {
-    refresh(frame.data.robot);
-    return;
-  }
+  if (!robot) return;
   robot.connected = connected;
   if (connected) robot.status = "running";
   robot.lastSeen = frame.ts || Date.now() / 1000;
-  touch(robot.id, sort.key === "seen");
+  touch(robot.id);
 }
 
+/** Return this page's component a frame is about; reload when it is one the page does not know yet. */
 function component(frame) {
-  const robot = robots.get(frame.data.robot);
-  const found = robot?.skills.get(frame.data.skill)?.components.get(frame.data.component);
-  if (!found) refresh(frame.data.robot);
-  return found;
+  // The fleet's counts of components on robots and in the cloud may have changed.
+  reload();
+  return robots.get(frame.data.robot)?.skills.get(frame.data.skill)?.components.get(frame.data.component);
 }
 
 function wire(live) {
@@ -172,32 +216,27 @@ function wire(live) {
     touch(frame.data.robot);
   });
   live.on("skill_status", (frame) => {
-    const skill = robots.get(frame.data.robot)?.skills.get(frame.data.skill);
-    if (!skill) refresh(frame.data.robot);
-    else skill.status = frame.data.status;
+    const robot = robots.get(frame.data.robot);
+    const skill = robot?.skills.get(frame.data.skill);
+    if (skill) skill.status = frame.data.status;
+    else if (robot) reload();
   });
-  live.on("skill_config", (frame) => refresh(frame.data.robot));
+  // A Skill added or changed: the fleet's count of Skills, and the robot's row if it is here.
+  live.on("skill_config", reload);
   live.on("offloading", (frame) => {
     const robot = robots.get(frame.data.robot);
     if (!robot) return;
     robot.offloading = frame.data.mode;
     touch(robot.id);
   });
-  // A deleted robot leaves the table at once (the cloud pushes its event-log entry).
   live.on("log_event", (frame) => {
+    if (!ROBOT_CHANGES.has(frame.data.kind)) return;
+    // A deleted robot leaves the table at once; the reload then brings the next one up.
     if (frame.data.kind === "robot_deleted") forget(frame.data.robot);
+    reload();
   });
-  // Frames may have been missed while reconnecting: reload the fleet's state.
-  live.onResync(async () => {
-    const answer = await get("/api/robot");
-    if (!answer.ok) return;
-    const current = new Set(answer.data.map((raw) => raw.id));
-    for (const id of robots.keys()) {
-      if (!current.has(id)) forget(id);
-    }
-    for (const raw of answer.data) upsert(raw);
-    schedule();
-  });
+  // Frames may have been missed while reconnecting.
+  live.onResync(reload);
 }
 
 /** Drop a robot that no longer exists from the table. */
@@ -205,50 +244,9 @@ function forget(id) {
   if (!robots.delete(id)) return;
   rows.delete(id);
   dirty.delete(id);
+  order = order.filter((other) => other !== id);
   orderDirty = true;
   schedule();
-}
-
-// --------------------------------------------------------------------------- order: filter and sort
-
-const SORT_KEYS = {
-  id: (r) => r.id,
-  connected: (r) => (r.connected ? 0 : 1),
-  cpu: (r) => r.metrics.cpu?.[0] ?? -1,
-  ram: (r) => r.metrics.ram?.[0] ?? -1,
-  bandwidth: (r) => r.metrics.bandwidth?.[0] ?? -1,
-  battery: (r) => r.metrics.battery?.[0] ?? -1,
-  offloading: (r) => r.offloading,
-  skills: (r) => r.skills.size,
-  components: (r) => counts(r).onCloud,
-  seen: (r) => (r.connected ? Number.MAX_VALUE : r.lastSeen ?? 0),
-};
-
-function recomputeOrder() {
-  const text = filterInput.value.trim().toLowerCase();
-  const state = stateSelect.value;
-  const key = SORT_KEYS[sort.key];
-  order = [];
-  for (const robot of robots.values()) {
-    if (state === "online" && !robot.connected) continue;
-    if (state === "offline" && robot.connected) continue;
-    if (selected) {
-      if (!selected.has(robot.id)) continue;
-    } else if (text && !robot.id.includes(text) && !robot.name.toLowerCase().includes(text)) continue;
-    order.push(robot);
-  }
-  order.sort((a, b) => {
-    const ka = key(a);
-    const kb = key(b);
-    if (ka < kb) return -sort.dir;
-    if (ka > kb) return sort.dir;
-    return a.id < b.id ? -1 : 1;
-  });
-  order = order.map((robot) => robot.id);
-  table.setAttribute("aria-rowcount", String(order.length + 1));
-  orderDirty = false;
-  windowDirty = true;
-  lastMetricSort = performance.now();
 }
 
 // --------------------------------------------------------------------------- rows
@@ -333,92 +331,85 @@ function updateRow(entry, robot, now) {
   setText(c.seen, robot.connected ? "connected" : fmtAgo(robot.lastSeen, now));
 }
 
-function measureRowHeight() {
-  const first = tbody.querySelector("tr[data-robot]");
-  if (first) rowHeight = first.getBoundingClientRect().height || rowHeight;
-  // Before any row exists, the height the stylesheet gives rows.
-  return rowHeight || Number.parseFloat(getComputedStyle(table).getPropertyValue("--row-h")) || 52;
-}
-
-/** Work out which rows are on screen (the page scrolls, not the table). */
-function visibleRange() {
-  const height = measureRowHeight();
-  const top = tbody.getBoundingClientRect().top;
-  const first = Math.max(0, Math.floor(-top / height) - OVERSCAN);
-  const count = Math.ceil(window.innerHeight / height) + 2 * OVERSCAN;
-  return { first, last: Math.min(order.length - 1, first + count - 1), height };
-}
-
-function spacer(height) {
-  return el("tr", { class: "spacer", "aria-hidden": "true" }, el("td", { colspan: "10", style: `height:${height}px` }));
-}
-
-function renderWindow(now) {
-  const { first, last, height } = visibleRange();
-  const children = [];
-  if (first > 0) children.push(spacer(first * height));
-  for (let i = first; i <= last; i += 1) {
-    const id = order[i];
+function renderRows(now) {
+  const children = order.map((id, i) => {
     const entry = rows.get(id) ?? buildRow(id);
-    entry.tr.setAttribute("aria-rowindex", String(i + 2));
+    entry.tr.setAttribute("aria-rowindex", String(current.offset + i + 2));
     updateRow(entry, robots.get(id), now);
-    children.push(entry.tr);
-  }
-  if (last < order.length - 1) children.push(spacer((order.length - 1 - last) * height));
-  // Moving a row out and back in blurs it: a keyboard user must keep their place through re-sorts.
+    return entry.tr;
+  });
+  // Moving a row out and back in blurs it: a keyboard user must keep their place through a reload.
   const focused = tbody.contains(document.activeElement) ? document.activeElement : null;
   tbody.replaceChildren(...children);
   if (focused?.isConnected && document.activeElement !== focused) focused.focus({ preventScroll: true });
-  rendered = { first, last };
-  windowDirty = false;
-  // Spacers sized with a guessed row height misplace the window: measure, and redo it once.
-  if (Math.abs(measureRowHeight() - height) > 0.5) {
-    windowDirty = true;
-    schedule();
-  }
-  // Rows far off screen are rebuilt on demand: keep memory flat with thousands of robots.
-  if (rows.size > 4 * (last - first + 1) + 100) {
-    const keep = new Set(order.slice(first, last + 1));
-    for (const id of rows.keys()) if (!keep.has(id)) rows.delete(id);
-  }
+  table.setAttribute("aria-rowcount", String(current.count + 1));
+  orderDirty = false;
 }
+
+// --------------------------------------------------------------------------- around the table
 
 let summaryText = "";
 
 function updateSummary() {
-  let online = 0;
-  let skills = 0;
-  let onRobot = 0;
-  let onCloud = 0;
-  for (const robot of robots.values()) {
-    if (robot.connected) online += 1;
-    const n = counts(robot);
-    skills += n.skills;
-    onRobot += n.onRobot;
-    onCloud += n.onCloud;
-  }
-  const text = [robots.size, online, robots.size - online, skills, onRobot, onCloud].join("|");
+  const s = current.summary;
+  const text = [s.robots, s.online, s.skills, s.on_robot, s.on_cloud].join("|");
   if (text === summaryText) return;
   summaryText = text;
-  const item = (value, label, cls = "") => el("li", { class: cls }, el("strong", {}, String(value)), ` ${label}`);
+  const item = (value, label, cls = "") => el("li", { class: cls }, el("strong", {}, fmtNumber(value)), ` ${label}`);
   summary.replaceChildren(
-    item(robots.size, robots.size === 1 ? "robot" : "robots"),
-    item(online, "online", "online"),
-    item(robots.size - online, "offline", "offline"),
-    item(skills, skills === 1 ? "skill" : "skills"),
-    item(onRobot, "components on robots", "loc-robot"),
-    item(onCloud, "in the cloud", "loc-cloud"),
+    item(s.robots, s.robots === 1 ? "robot" : "robots"),
+    item(s.online, "online", "online"),
+    item(s.robots - s.online, "offline", "offline"),
+    item(s.skills, s.skills === 1 ? "skill" : "skills"),
+    item(s.on_robot, "components on robots", "loc-robot"),
+    item(s.on_cloud, "in the cloud", "loc-cloud"),
   );
-  emptyNote.hidden = robots.size > 0;
+  emptyNote.hidden = s.robots > 0;
+}
+
+function pageLink(label, page, rel) {
+  if (page === null) return el("span", { class: "muted", "aria-disabled": "true" }, label);
+  return el("a", { href: address({ ...query, page }), rel, dataset: { page: String(page) } }, label);
+}
+
+function updatePager() {
+  const { offset, count, page, pages } = current;
+  const shown = order.length;
+  pager.hidden = count === 0;
+  const range =
+    pages > 1
+      ? `Robots ${fmtNumber(offset + 1)}–${fmtNumber(offset + shown)} of ${fmtNumber(count)} · page ${page} of ${fmtNumber(pages)}`
+      : `${fmtNumber(count)} ${count === 1 ? "robot" : "robots"}`;
+  pager.replaceChildren(
+    pageLink("Previous", page > 1 ? page - 1 : null, "prev"),
+    el("span", { id: "fleet-range", role: "status" }, range),
+    pageLink("Next", page < pages ? page + 1 : null, "next"),
+  );
+}
+
+function updateControls() {
+  if (document.activeElement !== filterInput && filterInput.value !== query.q) filterInput.value = query.q;
+  stateSelect.value = query.state;
+  const key = query.sort.replace(/^-/, "");
+  const dir = query.sort.startsWith("-") ? "descending" : "ascending";
+  for (const th of table.querySelectorAll("th[data-sort]")) {
+    th.setAttribute("aria-sort", th.dataset.sort === key ? dir : "none");
+  }
+  if (current.error) {
+    filterResult.className = "result error";
+    setText(filterResult, current.error);
+  } else {
+    filterResult.className = "result";
+    setText(filterResult, query.q.includes("=") ? `Label selector: ${current.count} robot(s) match.` : "");
+  }
 }
 
 function flush() {
   const now = Date.now() / 1000;
-  const metricSort = sort.key in ROBOT_METRICS;
-  if (metricSort && dirty.size && performance.now() - lastMetricSort > METRIC_RESORT_MS) orderDirty = true;
-  if (orderDirty) recomputeOrder();
-  if (windowDirty) {
-    renderWindow(now);
+  if (orderDirty) {
+    renderRows(now);
+    updatePager();
+    updateControls();
   } else {
     for (const id of dirty) {
       const entry = rows.get(id);
@@ -426,7 +417,7 @@ function flush() {
     }
   }
   dirty.clear();
-  noMatch.hidden = order.length > 0 || robots.size === 0;
+  noMatch.hidden = current.count > 0 || current.summary.robots === 0;
   updateSummary();
   if (!document.body.dataset.fleetReady) {
     document.body.dataset.fleetReady = "true";
@@ -439,93 +430,63 @@ const schedule = frameBatcher(flush);
 // --------------------------------------------------------------------------- controls
 
 function setSort(key) {
-  sort = { key, dir: sort.key === key ? -sort.dir : key === "id" || key === "offloading" ? 1 : -1 };
-  for (const th of table.querySelectorAll("th[data-sort]")) {
-    th.setAttribute("aria-sort", th.dataset.sort === sort.key ? (sort.dir > 0 ? "ascending" : "descending") : "none");
-  }
-  orderDirty = true;
-  schedule();
+  const [currentKey, descending] = [query.sort.replace(/^-/, ""), query.sort.startsWith("-")];
+  const ascending = currentKey === key ? descending : ASCENDING_FIRST.has(key);
+  load({ ...query, sort: ascending ? key : `-${key}`, page: 1 });
 }
 
 function controls() {
   for (const th of table.querySelectorAll("th[data-sort]")) {
     th.querySelector("button").addEventListener("click", () => setSort(th.dataset.sort));
   }
-  const refilter = () => {
-    orderDirty = true;
-    schedule();
-  };
-  const askCloud = debounce(async () => {
-    const text = filterInput.value.trim();
-    selectorAsked = text;
-    const answer = await get(`/api/robot?fields=id&selector=${encodeURIComponent(text)}`);
-    if (selectorAsked !== text) return; // typed on since
-    if (answer.ok) {
-      selected = new Set(answer.data.map((robot) => robot.id));
-      filterResult.className = "result";
-      setText(filterResult, `Label selector: ${selected.size} robot(s) match.`);
-    } else {
-      selected = new Set();
-      filterResult.className = "result error";
-      setText(filterResult, errorText(answer.data, answer.status));
-    }
-    refilter();
-  }, 250);
-  const reselect = () => {
-    if (filterInput.value.includes("=")) {
-      askCloud();
-      return;
-    }
-    selected = null;
-    selectorAsked = "";
-    setText(filterResult, "");
-    refilter();
-  };
-  filterInput.form.addEventListener("submit", (event) => event.preventDefault());
-  filterInput.addEventListener("input", reselect);
-  stateSelect.addEventListener("change", refilter);
-  const rewindow = () => {
-    const { first, last } = visibleRange();
-    if (first !== rendered.first || last !== rendered.last) {
-      windowDirty = true;
-      schedule();
-    }
-  };
-  window.addEventListener("scroll", rewindow, { passive: true });
-  window.addEventListener("resize", rewindow, { passive: true });
+  const search = debounce(() => load({ ...query, q: filterInput.value.trim(), page: 1 }), 250);
+  filterInput.form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    load({ ...query, q: filterInput.value.trim(), page: 1 });
+  });
+  filterInput.addEventListener("input", search);
+  stateSelect.addEventListener("change", () => load({ ...query, state: stateSelect.value, page: 1 }));
+  pager.addEventListener("click", (event) => {
+    const link = event.target.closest("a[data-page]");
+    if (!link || event.metaKey || event.ctrlKey || event.shiftKey) return;
+    event.preventDefault();
+    load({ ...query, page: Number(link.dataset.page) }, "push").then(() => window.scrollTo(0, 0));
+  });
+  window.addEventListener("popstate", () => load(fromAddress(), null));
   tbody.addEventListener("keydown", moveFocus);
   // "3 min ago" ages without any frame arriving.
   setInterval(() => {
-    for (const id of order.slice(rendered.first, rendered.last + 1)) dirty.add(id);
+    for (const id of order) dirty.add(id);
     schedule();
   }, 15000);
 }
 
-/** Arrow keys move between robots' rows, rendering the next ones when they are off screen. */
+function fromAddress() {
+  const search = new URLSearchParams(location.search);
+  return {
+    q: search.get("q") ?? "",
+    state: search.get("state") ?? "all",
+    sort: search.get("sort") ?? "id",
+    page: Number(search.get("page")) || 1,
+  };
+}
+
+/** Arrow keys move between the robots' rows. */
 function moveFocus(event) {
   if (event.key !== "ArrowDown" && event.key !== "ArrowUp") return;
   const row = event.target.closest("tr[data-robot]");
-  if (!row) return;
-  const step = event.key === "ArrowDown" ? 1 : -1;
-  const next = order[order.indexOf(row.dataset.robot) + step];
-  if (next === undefined) return;
+  const next = event.key === "ArrowDown" ? row?.nextElementSibling : row?.previousElementSibling;
+  const link = next?.querySelector("a.robot-link");
+  if (!link) return;
   event.preventDefault();
-  const focusNext = (tries) => {
-    const link = tbody.querySelector(`tr[data-robot="${CSS.escape(next)}"] a.robot-link`);
-    if (link) {
-      link.focus({ preventScroll: true });
-      link.closest("tr").scrollIntoView({ block: "nearest" });
-    } else if (tries > 0) {
-      window.scrollBy(0, step * measureRowHeight());
-      requestAnimationFrame(() => requestAnimationFrame(() => focusNext(tries - 1)));
-    }
-  };
-  focusNext(4);
+  link.focus({ preventScroll: true });
+  next.scrollIntoView({ block: "nearest" });
 }
 
 // --------------------------------------------------------------------------- start
 
-for (const raw of pageData("fleet-data") ?? []) upsert(raw);
+const live = startLive();
+wire(live);
 controls();
+apply(pageData("fleet-data"));
 flush();
-wire(startLive());

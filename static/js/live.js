@@ -15,6 +15,8 @@ class LiveSocket {
     this.ready = false;
     this.everReady = false;
     this.attempt = 0;
+    // The robots whose live metrics the page asked for, and what to do if refused (null: every robot).
+    this.metrics = null;
     this.ws = null;
     this.statusNode = document.getElementById("live-status");
   }
@@ -29,6 +31,24 @@ class LiveSocket {
   /** Call fn after every reconnection: frames may have been missed, so the page reloads its state. */
   onResync(fn) {
     this.resyncs.add(fn);
+  }
+
+  /**
+   * Be sent the live metrics of these robots only, now and after every reconnection; the cloud
+   * refuses a list naming a robot the user may not see (deleted meanwhile, say): refused(error).
+   */
+  subscribeMetrics(robots, refused = () => {}) {
+    this.metrics = { robots: [...robots], refused };
+    // Before the socket is up, the list goes out right after authentication.
+    if (this.ready) this.sendSubscription();
+  }
+
+  sendSubscription() {
+    const { robots, refused } = this.metrics;
+    this.request("metrics_subscribe", { robots }).catch((error) => {
+      // A socket that closed subscribes again when it is back.
+      if (error.code !== "closed") refused(error);
+    });
   }
 
   /** Send a request (a *_get or a command) and resolve with its answer; reject with an error_message. */
@@ -72,6 +92,8 @@ class LiveSocket {
       this.ready = true;
       this.attempt = 0;
       this.status("live", "live");
+      // A new connection streams every robot: narrow it first.
+      if (this.metrics) this.sendSubscription();
       for (const queued of this.queue.splice(0)) this.ws.send(queued);
       if (this.everReady) for (const fn of this.resyncs) fn();
       this.everReady = true;

@@ -66,6 +66,21 @@ export function coalesce(fn, ms) {
   };
 }
 
+/** Call fn at once, then at most once every ms while calls keep coming; a call meanwhile is made at the end. */
+export function throttle(fn, ms) {
+  let timer = null;
+  let last = Number.NEGATIVE_INFINITY;
+  const run = () => {
+    timer = null;
+    last = performance.now();
+    fn();
+  };
+  return () => {
+    if (timer !== null) return;
+    timer = setTimeout(run, Math.max(0, last + ms - performance.now()));
+  };
+}
+
 /** Call fn once, wait ms after the last of a burst of calls. */
 export function debounce(fn, ms) {
   let timer = null;

@@ -175,6 +175,8 @@ SAMPLES: dict[Event, dict[str, Any]] = {
     Event.COMPONENT_LOGS_GET: {"skill": "people-detector", "component": "detector", "after_seq": 40, "limit": 500},
     Event.LOGS_SUBSCRIBE: {"robot": "robot-1", "skill": "people-detector", "tail": 50, "ring": True},
     Event.LOGS_UNSUBSCRIBE: {"robot": "robot-1", "skill": "people-detector"},
+    # the fleet page's live rows
+    Event.METRICS_SUBSCRIBE: {"robots": ["robot-1", "robot-2"]},
 }
 
 
@@ -196,16 +198,18 @@ def test_samples_cover_every_event_and_table() -> None:
     # Table 3.3's 31 events, ack, the three of Skill volume sync, the manager's decision log and the
     # cloud copies' Components API relay (request and reply), the event log's live entries, the three
     # of the bridges (a rosbridge/Foxglove client relayed over the robot's link), the four of MCAP
-    # recordings, a connected robot's new token, a component's hold on its robot's updates, and the four
-    # of component logs (shipped, asked of a robot, a client's tail started and ended).
-    assert len(Event) == 52
+    # recordings, a connected robot's new token, a component's hold on its robot's updates, the four
+    # of component logs (shipped, asked of a robot, a client's tail started and ended), and a client's
+    # choice of the robots whose live metrics it is sent.
+    assert len(Event) == 53
     assert REQUIRES_ACK <= set(Event) and COMMANDS <= REQUIRES_ACK
-    # Requests are named *_get, but for the relayed Components API call, which may POST, and a client's
-    # live log tail, started and ended.
+    # Requests are named *_get, but for the relayed Components API call, which may POST, a client's
+    # live log tail, started and ended, and its live metrics narrowed to some robots.
     requests = {name for name in REPLIES if name not in COMMANDS and "auth" not in name} - {
         Event.COMPONENTS_API,
         Event.LOGS_SUBSCRIBE,
         Event.LOGS_UNSUBSCRIBE,
+        Event.METRICS_SUBSCRIBE,
     }
     assert all(name.endswith("_get") for name in requests)
 

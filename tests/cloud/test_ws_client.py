@@ -300,6 +300,38 @@ async def test_a_components_api_reply_goes_to_its_requester_and_nothing_else(dap
     await robot.close()
 
 
+async def test_a_client_subscribed_to_some_robots_is_sent_only_their_metrics(daphne_server):
+    alice, token = await make_owner("alice")
+    bob, _ = await make_owner("bob")
+    robots = {
+        rid: await robot_link(daphne_server, rid, await make_robot(rid, alice, with_skill=False))
+        for rid in ("alice-1", "alice-2")
+    }
+    await make_robot("bob-bot", bob, with_skill=False)
+    client = await client_link(daphne_server, token)
+
+    async def metrics_from_both() -> set[str]:
+        for robot in robots.values():
+            await robot.send(Event.METRICS, {"metrics": [{"name": "cpu", "value": 0.5, "ts": time.time()}]})
+        return {frame.data["robot"] for frame in await collect(client, 1.0) if frame.event == Event.METRICS}
+
+    # Another user's robot and a missing one are refused alike, and the refusal changes nothing.
+    for hidden in ("bob-bot", "no-such-bot"):
+        refused = await client.request(Event.METRICS_SUBSCRIBE, {"robots": ["alice-1", hidden]})
+        assert (refused.event, refused.data["code"], refused.data["field"]) == (
+            Event.ERROR_MESSAGE,
+            "not_found",
+            "data.robots",
+        )
+    assert await metrics_from_both() == {"alice-1", "alice-2"}
+    assert (await client.request(Event.METRICS_SUBSCRIBE, {"robots": ["alice-2"]})).event == Event.ACK
+    assert await metrics_from_both() == {"alice-2"}
+    assert (await client.request(Event.METRICS_SUBSCRIBE, {"robots": []})).event == Event.ACK
+    assert await metrics_from_both() == set()
+    for link in (*robots.values(), client):
+        await link.close()
+
+
 def drain(link) -> list:
     """Return every frame the link has received and not yet read."""
     frames = []

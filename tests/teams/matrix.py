@@ -78,6 +78,7 @@ MIGRATE = {"location": "cloud"}
 HTTP_RULES: dict[str, Rule] = {
     # -- the dashboard's pages
     "": Rule("signed-in", {"GET": 200}, lists=True),
+    "fleet/page": Rule("signed-in", {"GET": 200}, lists=True),
     "robots/<slug:robot_id>/": robot({"GET": 200}),
     "robots/<slug:robot_id>/logs/": robot({"GET": 200}),
     "skills/": Rule("signed-in", {"GET": 200}),
@@ -209,6 +210,8 @@ CLIENT_EVENTS: dict[str, dict[str, Any]] = {
     "metrics_get": {},
     "logs_subscribe": {"tail": 0},
     "logs_unsubscribe": {},
+    # Sent as {"robots": [the robot]}: a subscription names many robots, not one (wsmatrix.client_data).
+    "metrics_subscribe": {},
 }
 
 

@@ -35,7 +35,10 @@ CLIENT_ANSWERS: dict[str, str] = {
     # A tail's first answer: each component's stored lines, or an ack when the robot has no component yet.
     "logs_subscribe": "ack",
     "logs_unsubscribe": "ack",
+    "metrics_subscribe": "ack",
 }
+# Requests that only read without a _get in their name: live tails and the live metrics' subscription.
+READS = ("logs_subscribe", "logs_unsubscribe", "metrics_subscribe")
 # A refused WebSocket handshake is a 403 whatever the reason (daphne has no other status for
 # it): no role, another organization's robot and a missing one answer alike.
 BRIDGE_REFUSED = 403
@@ -81,6 +84,13 @@ def client_expected(event: str, caller: str, target: str) -> str:
     return CLIENT_ANSWERS[event] if RANK[Role(caller)] >= RANK[Role(LEAST[right])] else "error:forbidden"
 
 
+def client_data(event: str, robot_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+    """The data of a client's request about a robot: named in ``robot``, or in ``robots`` for a subscription."""
+    if event == "metrics_subscribe":
+        return {"robots": [robot_id], **payload}
+    return {"robot": robot_id, **payload}
+
+
 def ask_client(world: World, tally: Tally, ws_url: str) -> None:
     """Send every client request as every caller on both organizations' robots."""
     for caller in CALLERS:
@@ -99,13 +109,13 @@ def ask_client(world: World, tally: Tally, ws_url: str) -> None:
             for event, payload in sorted(CLIENT_EVENTS.items()):
                 for target in TARGETS:
                     ident = uuid.uuid4().hex
-                    frame = {"event": event, "id": ident, "data": {"robot": world.robot_id(target), **payload}}
+                    frame = {"event": event, "id": ident, "data": client_data(event, world.robot_id(target), payload)}
                     before = entries()
                     ws.send(json.dumps(frame))
                     got = outcome(answer_to(ws, ident))
                     tally.judge(f"{caller} WS {event} on {target}", got, client_expected(event, caller, target))
-                    # Reads (the _get requests and live log tails) leave no entry in the audit trail.
-                    if not event.endswith("_get") and event not in ("logs_subscribe", "logs_unsubscribe"):
+                    # Reads (the _get requests, live log tails and subscriptions) leave no entry in the audit trail.
+                    if not event.endswith("_get") and event not in READS:
                         tally.judge(f"{caller} WS {event} on {target} audit entries", settled(before, 1), 1)
 
 

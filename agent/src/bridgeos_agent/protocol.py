@@ -96,6 +96,7 @@ __all__ = [
     "MetricPoint",
     "MetricsGet",
     "MetricsPayload",
+    "MetricsSubscribe",
     "Offloading",
     "OffloadingDecision",
     "OffloadingGet",
@@ -148,6 +149,8 @@ __all__ = [
 
 MAX_FRAME_BYTES = 1_048_576
 MAX_METRICS_PER_FRAME = 10_000
+# The robots one metrics_subscribe may name: the fleet page shows 100 at a time.
+MAX_SUBSCRIBED_ROBOTS = 1000
 # The lines of its log a crashed component's status report and event carry.
 CRASH_LOG_LINES = 50
 # The longest a robot's updates may be held (a rollout installs past the deadline anyway).
@@ -222,6 +225,8 @@ class Event(enum.StrEnum):
     COMPONENT_LOGS_GET = "component_logs_get"
     LOGS_SUBSCRIBE = "logs_subscribe"
     LOGS_UNSUBSCRIBE = "logs_unsubscribe"
+    # Not in the thesis: a client's choice of the robots whose live metrics it is sent (issue 37).
+    METRICS_SUBSCRIBE = "metrics_subscribe"
 
 
 EVENTS: frozenset[str] = frozenset(e.value for e in Event)
@@ -632,6 +637,16 @@ class MetricsGet(RobotScoped):
     component: Slug | None = None
     since: Timestamp | None = None
     limit: Annotated[int, Strict(), Field(ge=1, le=MAX_METRICS_PER_FRAME)] | None = None
+
+
+class MetricsSubscribe(Payload):
+    """Send a client the live metrics of these robots only, instead of every robot it may see.
+
+    Answered with ``ack``; naming a robot the client may not see (or that does not exist) is
+    refused whole with ``error_message`` ``not_found``. A new connection streams every robot again.
+    """
+
+    robots: Annotated[list[Slug], Field(max_length=MAX_SUBSCRIBED_ROBOTS)]
 
 
 def _relative_path(path: str) -> str:
@@ -1120,6 +1135,7 @@ PAYLOADS: Mapping[str, type[Payload]] = {
     Event.COMPONENT_LOGS_GET: ComponentLogsGet,
     Event.LOGS_SUBSCRIBE: LogsSubscribe,
     Event.LOGS_UNSUBSCRIBE: LogsUnsubscribe,
+    Event.METRICS_SUBSCRIBE: MetricsSubscribe,
 }
 
 
@@ -1188,6 +1204,7 @@ DIRECTIONS: Mapping[str, frozenset[Direction]] = {
     Event.COMPONENT_LOGS_GET: frozenset({_C2R}),
     Event.LOGS_SUBSCRIBE: frozenset({_K2C}),
     Event.LOGS_UNSUBSCRIBE: frozenset({_K2C}),
+    Event.METRICS_SUBSCRIBE: frozenset({_K2C}),
 }
 
 # Events that change state: the receiver acks them, the sender retransmits until it does,
@@ -1272,6 +1289,7 @@ REPLIES: Mapping[str, frozenset[Event]] = {
     Event.COMPONENT_LOGS_GET: _answered_by(Event.COMPONENT_LOGS),
     Event.LOGS_SUBSCRIBE: _answered_by(Event.COMPONENT_LOGS),
     Event.LOGS_UNSUBSCRIBE: frozenset({Event.ACK, Event.ERROR_MESSAGE}),
+    Event.METRICS_SUBSCRIBE: frozenset({Event.ACK, Event.ERROR_MESSAGE}),
     **{command: _COMMAND_REPLIES for command in COMMANDS},
 }
 

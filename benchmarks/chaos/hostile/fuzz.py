@@ -27,6 +27,7 @@ def filler(annotation: Any, name: str, robot: str) -> Any:
     """Return a value a payload field of this name and type accepts, aimed at ``robot``."""
     known = {
         "robot": robot,
+        "robots": [robot],
         "skill": SKILL,
         "component": "sampler",
         "volume": "data",

@@ -38,6 +38,7 @@ def methods_of(callback: Any) -> list[str]:
 # Routes that take no robot: what each gives and why no robot of another user can be reached there.
 NO_ROBOT = {
     "": "the fleet page: lists only the user's robots (checked below)",
+    "fleet/page": "a page of the fleet page's robots: only the user's, whatever it searches for (checked below)",
     "skills/": "the catalog of Skill templates, shared by design",
     "events/": "the event log page: filled by /api/events (checked below)",
     "rollouts/": "the rollouts of the caller's organizations (rollouts.rolling.visible_rollouts); names no robot",
@@ -104,7 +105,7 @@ FLEET_COMMANDS = ("api/robot/start", "api/robot/stop", "api/robot/shutdown")
 
 def is_read_request(event: str) -> bool:
     """Tell whether a request on /ws/client/ only reads (a viewer's right); every other one changes something."""
-    return event.endswith("_get") or event in ("logs_subscribe", "logs_unsubscribe")
+    return event.endswith("_get") or event in ("logs_subscribe", "logs_unsubscribe", "metrics_subscribe")
 
 
 def published_robot_routes() -> set[str]:

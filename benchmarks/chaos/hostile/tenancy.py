@@ -186,6 +186,10 @@ def cross_tenant(world: World, alice_robot: RecordingRobot, intruder: str = "bob
             elif route in NO_ROBOT:
                 if route in ("", "events/"):
                     attempt("page", "GET", "/" + route, client=session)
+                if route in ("", "fleet/page"):
+                    # The fleet's search spans the whole fleet the caller sees, never beyond it. Its text is
+                    # echoed back, so it names no robot: "alice" would match alice-bot were it Bob's.
+                    attempt("page", "GET", f"/{route}?q=alice", client=session)
             else:
                 unclassified.append(route)
         session.close()
