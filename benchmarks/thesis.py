@@ -307,6 +307,22 @@ BENCHMARKS: dict[str, list[Figure]] = {
         _f("query_1m_lines_ms", "a text query over 1M stored lines", "ms", goal=500, goal_source="issue 36"),
         _f("cli_start_ms", "`bridgeos --help` wall time", "ms", goal=300, goal_source="issue 36"),
     ],
+    "tenk": [
+        _f("connect_10k_s", "10,000 robots connected to one daphne at once", "s", goal=10, goal_source="issue 37"),
+        _f("connect_10k_rejected", "handshakes or logins rejected in that storm", "", goal=0, goal_source="issue 37"),
+        _f("idle_cpu_pct_10k", "one daphne holding 10,000 idle robots", "% of a core", goal=10, goal_source="issue 37"),
+        _f("kb_per_robot", "daphne's resident memory per connected robot", "KiB"),
+        _f(
+            "ingest_points_per_s_one_process",
+            "points/s stored by one process at ack p95 <= 1 s",
+            "points/s",
+            goal=30_000,
+            goal_source="issue 37",
+            better="higher",
+        ),
+        _f("api_p99_ms_10k", "Robot API read p99 among 10,000 robots", "ms", goal=50, goal_source="issue 37"),
+        _f("simulator_cpu_pct", "the simulated fleet's own CPU", "% of a core"),
+    ],
     "dashboard": [
         _f("first_render_s", "fleet page first render", "s", goal=1.0, goal_source="issue 9"),
         _f("update_lag_s", "metric to row lag p95", "s", goal=1.0, goal_source="issue 9"),
