@@ -231,9 +231,10 @@ def metric_samples(robot: str, since: float, until: float) -> int:
     ("rate", "printed_at_least", "samples_kept"),
     [
         # The flooding process and the agent's reads share two cores with the cloud: on a busy CI machine
-        # the agent's 0.2 s sampler itself is held back (4.0 samples/s once, against 5.0 quiet), so the
-        # floor is what says "still coming", not a timing figure; benchmarks/logs.py measures the lag.
-        pytest.param(50_000, 190_000, 0.65, id="50k-lines-per-s"),
+        # the agent's 0.2 s sampler itself is held back (4.0 samples/s once, against 5.0 quiet), and the
+        # flood prints less than 200,000 lines in its 4 s, though always well over the robot's cap. The
+        # floor says "still coming", not a timing figure: benchmarks/logs.py measures the lag.
+        pytest.param(50_000, 150_000, 0.5, id="50k-lines-per-s"),
         # As fast as Python prints (hundreds of thousands a second): far ahead of the robot's reads,
         # so most is passed over unread, counted too, and the disk does not fill ahead of the reads.
         # The flooding process takes one of the machine's two cores itself: fewer samples are taken.
