@@ -6,6 +6,9 @@ import asyncio
 import contextlib
 import sqlite3
 import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
 
 import websockets
 
@@ -13,6 +16,30 @@ from bridgeos_agent import protocol
 from bridgeos_agent.controller import AgentSettings, RobotController
 from bridgeos_agent.protocol import Envelope, Event
 from bridgeos_agent.session import RESEND_INITIAL
+
+
+@contextlib.asynccontextmanager
+async def running_agent(cloud: Any, robot: str, tmp_path: Path) -> AsyncIterator[tuple[RobotController, asyncio.Task]]:
+    """Run a simulated agent against ``cloud`` (a websockets handler) on a port of its own; stop it at the end."""
+    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
+        port = server.sockets[0].getsockname()[1]
+        settings = AgentSettings(
+            master=f"ws://127.0.0.1:{port}",
+            robot=robot,
+            token="token",
+            data_dir=tmp_path,
+            simulate=True,
+            detect_ros_master=False,
+            volume_sync_interval=0,
+        )
+        controller = RobotController(settings, plugins={})
+        running = asyncio.create_task(controller.run())
+        try:
+            yield controller, running
+        finally:
+            controller.stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.wait_for(running, 15)
 
 
 async def test_an_unacked_frame_is_sent_again_after_its_backoff_and_dropped_once_acked(tmp_path):
@@ -34,36 +61,19 @@ async def test_an_unacked_frame_is_sent_again_after_its_backoff_and_dropped_once
             if envelope.event in protocol.REQUIRES_ACK:
                 await ws.send(protocol.ack_text(envelope.id, now=time.time()))
 
-    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
-        port = server.sockets[0].getsockname()[1]
-        settings = AgentSettings(
-            master=f"ws://127.0.0.1:{port}",
-            robot="sess-1",
-            token="token",
-            data_dir=tmp_path,
-            simulate=True,
-            detect_ros_master=False,
-            volume_sync_interval=0,
+    async with running_agent(cloud, "sess-1", tmp_path) as (controller, _):
+        await asyncio.wait_for(controller.connected.wait(), 10)
+        sent = await controller.emit(
+            Event.COMPONENT_STATUS, {"skill": "nav", "component": "planner", "status": "running"}
         )
-        controller = RobotController(settings, plugins={})
-        running = asyncio.create_task(controller.run())
-        try:
-            await asyncio.wait_for(controller.connected.wait(), 10)
-            sent = await controller.emit(
-                Event.COMPONENT_STATUS, {"skill": "nav", "component": "planner", "status": "running"}
-            )
-            await asyncio.wait_for(acked.wait(), RESEND_INITIAL * 2)
-            await asyncio.sleep(0.2)  # the ack crosses back
-            (first_at, first), (again_at, again) = received
-            assert first.id == again.id == sent.id
-            # Reliable's first delay, within its ±10 % jitter (and the 0.5 s tick that sends what is due).
-            assert RESEND_INITIAL * 0.9 - 0.05 <= again_at - first_at <= RESEND_INITIAL * 1.1 + 0.6
-            assert sent.id not in controller.outbox
-            assert len(controller.session.reliable) == 0
-        finally:
-            controller.stop()
-            with contextlib.suppress(asyncio.CancelledError):
-                await asyncio.wait_for(running, 15)
+        await asyncio.wait_for(acked.wait(), RESEND_INITIAL * 2)
+        await asyncio.sleep(0.2)  # the ack crosses back
+        (first_at, first), (again_at, again) = received
+        assert first.id == again.id == sent.id
+        # Reliable's first delay, within its ±10 % jitter (and the 0.5 s tick that sends what is due).
+        assert RESEND_INITIAL * 0.9 - 0.05 <= again_at - first_at <= RESEND_INITIAL * 1.1 + 0.6
+        assert sent.id not in controller.outbox
+        assert len(controller.session.reliable) == 0
 
 
 async def test_a_command_is_answered_even_when_its_id_cannot_be_kept_on_disk(tmp_path, caplog):
@@ -83,41 +93,24 @@ async def test_a_command_is_answered_even_when_its_id_cannot_be_kept_on_disk(tmp
             if envelope.reply_to:
                 answers[envelope.reply_to] = envelope
 
-    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
-        port = server.sockets[0].getsockname()[1]
-        settings = AgentSettings(
-            master=f"ws://127.0.0.1:{port}",
-            robot="sess-2",
-            token="token",
-            data_dir=tmp_path,
-            simulate=True,
-            detect_ros_master=False,
-            volume_sync_interval=0,
-        )
-        controller = RobotController(settings, plugins={})
-        running = asyncio.create_task(controller.run())
+    async with running_agent(cloud, "sess-2", tmp_path) as (controller, _):
+        await asyncio.wait_for(connected.wait(), 10)
+        kept = protocol.make(Event.OFFLOADING, {"mode": "manual"}, now=time.time())
+        await cloud_ws[0].send(protocol.encode(kept))
+        await asyncio.wait_for(_answered(answers, kept.id), 5)
+        # The outbox's file refuses writes now (as a full disk would): the answer still comes.
+        db: sqlite3.Connection = controller.outbox._db
+        db.execute("PRAGMA query_only=ON")
         try:
-            await asyncio.wait_for(connected.wait(), 10)
-            kept = protocol.make(Event.OFFLOADING, {"mode": "manual"}, now=time.time())
-            await cloud_ws[0].send(protocol.encode(kept))
-            await asyncio.wait_for(_answered(answers, kept.id), 5)
-            # The outbox's file refuses writes now (as a full disk would): the answer still comes.
-            db: sqlite3.Connection = controller.outbox._db
-            db.execute("PRAGMA query_only=ON")
-            try:
-                lost = protocol.make(Event.OFFLOADING, {"mode": "auto"}, now=time.time())
-                await cloud_ws[0].send(protocol.encode(lost))
-                await asyncio.wait_for(_answered(answers, lost.id), 10)
-            finally:
-                db.execute("PRAGMA query_only=OFF")
-            assert answers[lost.id].event == Event.ACK
-            assert "keeping an applied command's id on disk failed" in caplog.text
-            remembered = [frame_id for frame_id, _ in controller.outbox.applied.load()]
-            assert kept.id in remembered and lost.id not in remembered
+            lost = protocol.make(Event.OFFLOADING, {"mode": "auto"}, now=time.time())
+            await cloud_ws[0].send(protocol.encode(lost))
+            await asyncio.wait_for(_answered(answers, lost.id), 10)
         finally:
-            controller.stop()
-            with contextlib.suppress(asyncio.CancelledError):
-                await asyncio.wait_for(running, 15)
+            db.execute("PRAGMA query_only=OFF")
+        assert answers[lost.id].event == Event.ACK
+        assert "keeping an applied command's id on disk failed" in caplog.text
+        remembered = [frame_id for frame_id, _ in controller.outbox.applied.load()]
+        assert kept.id in remembered and lost.id not in remembered
 
 
 async def _answered(answers: dict[str, Envelope], frame_id: str) -> None:
@@ -274,24 +267,7 @@ async def test_a_login_the_cloud_leaves_unanswered_is_tried_again_not_given_up(t
         async for _ in ws:
             pass
 
-    async with websockets.serve(cloud, "127.0.0.1", 0) as server:
-        port = server.sockets[0].getsockname()[1]
-        settings = AgentSettings(
-            master=f"ws://127.0.0.1:{port}",
-            robot="sess-3",
-            token="token",
-            data_dir=tmp_path,
-            simulate=True,
-            detect_ros_master=False,
-            volume_sync_interval=0,
-        )
-        controller = RobotController(settings, plugins={})
-        running = asyncio.create_task(controller.run())
-        try:
-            await asyncio.wait_for(controller.connected.wait(), 15)
-            assert len(logins) == 2
-            assert not running.done()
-        finally:
-            controller.stop()
-            with contextlib.suppress(asyncio.CancelledError):
-                await asyncio.wait_for(running, 15)
+    async with running_agent(cloud, "sess-3", tmp_path) as (controller, running):
+        await asyncio.wait_for(controller.connected.wait(), 15)
+        assert len(logins) == 2
+        assert not running.done()

@@ -25,6 +25,7 @@ import httpx
 import pytest
 from django.contrib.auth import get_user_model
 
+from benchmarks._fleetpage import CHROMIUM, CHROMIUM_FLAGS  # one set of Chromium flags for tests and benchmarks
 from bridgeos_agent.skillconfig import load_sample_skill_config
 from robots.models import Robot, default_robot_config
 from robots.services import create_robot, issue_api_token
@@ -36,17 +37,6 @@ from tests.logguard import watch
 
 from .simrobot import start_simulated_robot, stop_simulated_robot
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-component-update",
-    "--disable-sync",
-]
 ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = Path(os.environ.get("BRIDGEOS_TEST_ARTIFACTS", ROOT / ".data" / "test-artifacts")) / "browser"
 PASSWORD_SUFFIX = "-pass-123"
