@@ -40,6 +40,29 @@ def robot_channels(robot_ids: list[str]) -> dict[str, str]:
     return dict(rows)
 
 
+async def receive_within(layer: Any, channel: str, seconds: float) -> dict | None:
+    """Return the next message on a reply channel, or None once ``seconds`` have passed.
+
+    The receive runs as a task of its own that is given up at the deadline, not cancelled in place:
+    with several commands waiting in one process, channels-redis's receive (4.3) was seen to absorb
+    its cancellation and run on, and its command waited until the robot left (409 after a minute)
+    instead of answering 504 after its wait. A given-up receive ends with the next message.
+    """
+    receiving = asyncio.ensure_future(layer.receive(channel))
+    done, _ = await asyncio.wait({receiving}, timeout=seconds)
+    if receiving in done:
+        return receiving.result()
+    receiving.cancel()
+    receiving.add_done_callback(_forget)
+    return None
+
+
+def _forget(task: asyncio.Future) -> None:
+    """Retrieve a given-up receive's outcome so asyncio does not report it as never retrieved."""
+    if not task.cancelled():
+        task.exception()
+
+
 async def relay_command(robot_id: str, event: Event | str, data: dict[str, Any], *, wait: float = 5.0) -> Envelope:
     """Send a command to a robot through its consumer and return the robot's reply.
 
@@ -92,10 +115,8 @@ async def relay_to_many(
         left = deadline - time.monotonic()
         if left <= 0:
             break
-        try:
-            async with asyncio.timeout(left):
-                message = await layer.receive(reply_channel)
-        except TimeoutError:
+        message = await receive_within(layer, reply_channel, left)
+        if message is None:
             break
         reply = None if message.get("offline") else protocol.decode(message["frame"])
         robot_id = waiting.pop(str((reply.reply_to if reply else message.get("id")) or ""), "")
