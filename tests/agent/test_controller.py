@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import os
 import subprocess
 import sys
@@ -69,6 +70,34 @@ async def test_connects_receives_its_config_and_reports_metrics(cloud, tmp_path)
         assert await eventually(lambda: metric_rows("ctl-1"), what="metrics stored") > 0
     # The config from the cloud is kept on disk for the next start.
     assert '"offloading": "manual"' in (tmp_path / "agent" / "state.json").read_text()
+
+
+@sync_to_async
+def metric_frames(robot_id: str) -> tuple[list[float], int]:
+    """Return the commit times of a robot's stored metrics frames, in order, and how many sample times its points have."""
+    from monitoring.models import IngestedFrame, Metric
+
+    frames = IngestedFrame.objects.filter(robot_id=robot_id).order_by("created").values_list("created", flat=True)
+    samples = Metric.objects.filter(robot_id=robot_id).values("ts").distinct().count()
+    return [created.timestamp() for created in frames], samples
+
+
+async def test_a_report_interval_sends_the_samples_taken_meanwhile_in_one_frame(cloud, tmp_path):
+    # Five samples a second, a frame a second: the cloud's cost is per frame, so a large fleet reports seldom.
+    async with robot_agent(cloud, "ctl-batch", tmp_path / "agent", report_interval=1.0):
+        frames, samples = await eventually(
+            lambda: _at_least(metric_frames("ctl-batch"), 5), timeout=20, what="five metrics frames stored"
+        )
+    gaps = [later - earlier for earlier, later in itertools.pairwise(frames)]
+    # About a second apart on average (one frame's commit can be late and the next's on time).
+    assert 0.7 <= sum(gaps) / len(gaps) <= 1.5, gaps
+    # A frame a sample would have as many frames as sample times; here each frame carries about five.
+    assert samples >= 3 * len(frames), (samples, len(frames))
+
+
+async def _at_least(frames_coroutine, count: int):
+    frames, samples = await frames_coroutine
+    return (frames, samples) if len(frames) >= count else None
 
 
 async def test_a_skill_started_through_the_api_runs_on_the_robot(cloud, tmp_path):

@@ -51,6 +51,7 @@ def settings_from_args(args: argparse.Namespace) -> AgentSettings:
         simulated=simulated,
         ros2=args.ros2,
         sample_interval=args.sample_interval,
+        report_interval=args.report_interval,
         outbox_memory_bytes=int(args.outbox_memory * 1024 * 1024),
         stop_components_on_exit=args.stop_components_on_exit,
         ca_file=args.ca,

@@ -25,6 +25,9 @@ class AgentSettings:
     runtime: str = "process"
     simulate: bool = False
     sample_interval: float = 1.0
+    # Seconds between metrics frames; the samples taken meanwhile go in one frame (0: a frame per
+    # sample). The cloud's cost is per frame, not per point: a large fleet reports every few seconds.
+    report_interval: float = 0.0
     report_max_interval: float = 10.0
     startup_parallelism: int = 8
     outbox_max_bytes: int = 64 * 1024 * 1024

@@ -80,6 +80,21 @@ def _positive(option: str) -> Any:
     return check
 
 
+def _non_negative(option: str) -> Any:
+    """Build an argparse type accepting zero or a positive finite number."""
+
+    def check(value: str) -> float:
+        try:
+            number = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{option} must be a number, not {value!r}") from None
+        if not (number >= 0 and number < float("inf")):
+            raise argparse.ArgumentTypeError(f"{option} must be zero or a positive number, not {value!r}")
+        return number
+
+    return check
+
+
 def _metrics_address(value: str) -> str:
     """Accept HOST:PORT for --metrics."""
     from bridgeos_agent.metrics import parse_address
@@ -258,6 +273,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         metavar="S",
         help="seconds between resource samples (default 1)",
+    )
+    run.add_argument(
+        "--report-interval",
+        type=_non_negative("--report-interval"),
+        default=0.0,
+        metavar="S",
+        help="seconds between metrics frames to the cloud; the samples taken meanwhile travel in one frame "
+        "(default 0: each sample in its own frame; a fleet of thousands sets 5)",
     )
     run.add_argument(
         "--outbox-memory",

@@ -35,8 +35,8 @@ from bridgeos_agent.monitor import RESOURCES, Reporter, ResourceMonitor, Simulat
 from bridgeos_agent.network import CloudNetwork
 from bridgeos_agent.outbox import Outbox
 from bridgeos_agent.placement import Placement
+from bridgeos_agent.protocol import MAX_METRICS_PER_FRAME, Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import ComponentStatusName as CS
-from bridgeos_agent.protocol import Envelope, Event, ProtocolError
 from bridgeos_agent.protocol import SkillStatusName as SS
 from bridgeos_agent.robotconfig import RobotConfig
 from bridgeos_agent.ros2graph import Ros2Graph
@@ -520,6 +520,9 @@ class RobotController:
         stats_every = max(1, round(5.0 / interval)) if self.runtime.name == "docker" else 1
         tick = 0
         last_cloud = (0, 0, time.monotonic())
+        # Points selected since the last metrics frame, sent together every report interval.
+        unsent: list[dict[str, object]] = []
+        last_report = time.monotonic()
         while True:
             await asyncio.sleep(interval)
             tick += 1
@@ -539,8 +542,12 @@ class RobotController:
                 readings.append(("ram", round(usage.ram, 1), skill, component))
             routers = ((skill_id, record.context("router")) for skill_id, record in list(self.skills.items()))
             readings += self._delivery.sample(((s, r) for s, r in routers if r is not None), now)
-            points = self._reporter.select(time.time(), readings)
-            if points:
+            unsent += self._reporter.select(time.time(), readings)
+            # Half a sample early counts as due: sleeps run late, and a frame must not slip a whole sample.
+            due = now - last_report >= self.settings.report_interval - interval / 2
+            if unsent and (due or len(unsent) >= MAX_METRICS_PER_FRAME // 2):
+                last_report = now
+                points, unsent = unsent, []
                 await self.emit(Event.METRICS, {"metrics": points})
 
     async def _measure_components(self) -> None:
