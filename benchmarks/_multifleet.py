@@ -248,8 +248,9 @@ class Fleet:
     async def tick_forever(self) -> None:
         """Walk the fleet in slices: each robot pings every heartbeat and sends metrics every interval."""
         ticks_per_beat = max(1, round(self.heartbeat_s / TICK_S))
+        # Ticks keep to the clock, not to a sleep after each: a late tick is caught up, so the rates offered hold.
+        first = time.monotonic()
         for tick in itertools.count():
-            started = time.monotonic()
             beat_slot = tick % ticks_per_beat
             for robot in self.robots[beat_slot::ticks_per_beat]:
                 robot.ping()
@@ -258,7 +259,7 @@ class Fleet:
                 metric_slot = tick % ticks_per_metric
                 for robot in self.robots[metric_slot::ticks_per_metric]:
                     robot.send_metrics(self.points_per_frame)
-            await asyncio.sleep(max(0.0, TICK_S - (time.monotonic() - started)))
+            await asyncio.sleep(max(0.0, first + (tick + 1) * TICK_S - time.monotonic()))
 
     async def drained(self, within_s: float) -> int:
         """Wait until every metric frame sent is acked, at most ``within_s``; return how many are not."""

@@ -438,7 +438,8 @@ async def on_metrics(consumer: RobotConsumer, envelope: Envelope, payload: Any) 
                 consumer.fail("metrics not stored, send again later", reply_to=envelope.id, code="unavailable")
             )
         else:
-            consumer.spawn(consumer.ack_applied(envelope))
+            # Committed with its frame's row, which any process finds: no id to save elsewhere first.
+            consumer.spawn(consumer.ack(envelope))
 
     written.add_done_callback(acknowledge)
     return False
