@@ -16,6 +16,11 @@ wire protocol and authentication) against one daphne sharing one PostgreSQL and 
 - honest presence: some robots vanish without a goodbye; their rows say `disconnected` within
   daphne's ping interval plus timeout.
 
+Beside the fleet, a few real agents (`--agents`, 2; `bridgeos-agent run --simulate --report-interval 5`)
+connect to the same daphne once the fleet is in: the reference for what the simulator does. Their
+rows must say `connected`, their points be stored (several samples a frame) and a command to each be
+answered, as for the simulated robots (`reference_agents` in the last line).
+
 With `--daphnes 2` or `4` the fleet is spread over that many processes, as a load balancer does.
 Goals (issue 37): connect_10k_s <= 10 with 0 rejected, idle_cpu_pct_10k <= 10,
 ingest_points_per_s_one_process >= 30,000 at ack p95 <= 1 s, api_p99_ms_10k <= 50, command p50 <= 30 ms.
@@ -44,28 +49,76 @@ from _harness import arguments, cloud, create_fleet, forget_fleet, report
 from _multifleet import FleetProcess
 
 PREFIX = "tenk-"
+AGENT_PREFIX = "tenkagent-"  # not matched by PREFIX's LIKE 'tenk-%': the fleet's own counts leave the agents out
 OWNER = "tenk-operator"
 PASSWORD = "tenk-pass-123"
+# daphne's ping window, in which a robot that vanished without a goodbye is found out (shorter with --quick).
 PING_INTERVAL_S, PING_TIMEOUT_S = 10, 10
 logging.getLogger("httpx").setLevel(logging.WARNING)
 
 
-def prepare(count: int) -> tuple[list[tuple[str, str]], str]:
-    """Create the fleet afresh, each robot with its own token; return (id, token) pairs and a staff API token."""
+def prepare(count: int, agents: int) -> tuple[list[tuple[str, str]], list[tuple[str, str]], str]:
+    """Create the fleet and the reference agents' robots afresh, each with a token; return both and an API token."""
     from django.contrib.auth import get_user_model
     from django.db import connection
 
     from robots.services import issue_api_token
 
     forget_fleet(PREFIX, metrics=True, events=True)
+    forget_fleet(AGENT_PREFIX, metrics=True, events=True)
+    with connection.cursor() as cursor:
+        # An earlier run's robots leave their pages behind: the per-robot size must be this fleet's.
+        cursor.execute("VACUUM FULL robots_robot")
     owner, _ = get_user_model().objects.get_or_create(username=OWNER, defaults={"is_staff": True})
     owner.is_staff = True
     owner.set_password(PASSWORD)
     owner.save()
     tokens = create_fleet(owner, count, PREFIX, digits=5, batch_size=2000)
+    agent_tokens = create_fleet(owner, agents, AGENT_PREFIX, digits=2)
     api_token, _ = issue_api_token(owner)
     connection.close()
-    return tokens, api_token
+    return tokens, agent_tokens, api_token
+
+
+def start_reference_agents(bench: Any, daphne: Daphne, agent_tokens: list[tuple[str, str]]) -> list[Any]:
+    """Start a real agent for each reference robot, reporting as the simulated fleet does (every 5 s)."""
+    agents = []
+    for robot_id, token in agent_tokens:
+        argv = [str(Path(sys.executable).parent / "bridgeos-agent"), "run", "--master", daphne.ws_url]
+        argv += ["--robot", robot_id, "--token", token, "--data-dir", str(bench.data_dir / robot_id)]
+        argv += ["--runtime", "process", "--simulate", "--report-interval", "5"]
+        agents.append(bench.start_process(robot_id, argv))
+    return agents
+
+
+def reference_agents_report(agent_ids: list[str], api_url: str, api_token: str) -> dict[str, Any]:
+    """Check the real agents as the fleet is checked: connected, points stored, samples a frame, commands answered."""
+    import httpx
+
+    from monitoring.models import IngestedFrame, Metric
+    from robots.models import Robot
+
+    if not agent_ids:
+        return {"robots": 0}
+    connected = Robot.objects.filter(id__in=agent_ids, connected=True).count()
+    points = Metric.objects.filter(robot_id__in=agent_ids).count()
+    samples = Metric.objects.filter(robot_id__in=agent_ids).values("robot_id", "ts").distinct().count()
+    frames = IngestedFrame.objects.filter(robot_id__in=agent_ids).count()
+    answered = 0
+    with httpx.Client(base_url=api_url, headers={"Authorization": f"Token {api_token}"}, timeout=30) as http:
+        for robot_id in agent_ids:
+            answer = http.post(f"/api/robot/{robot_id}/start", params={"wait": "10"})
+            answered += answer.status_code == 200 and answer.json().get("accepted") is True
+    from django.db import connection
+
+    connection.close()
+    return {
+        "robots": len(agent_ids),
+        "connected": connected,
+        "points_stored": points,
+        "samples_per_frame": round(samples / frames, 1) if frames else None,
+        "commands_answered": answered,
+    }
 
 
 def scalar(sql: str, params: list[Any] | None = None) -> Any:
@@ -230,14 +283,16 @@ def main() -> None:
     parser.add_argument("--ingest-s", type=float, default=None)
     parser.add_argument("--idle-s", type=float, default=None)
     parser.add_argument("--skip-vanish", action="store_true")
+    parser.add_argument("--agents", type=int, default=2, help="real agents beside the fleet, the reference (2)")
     args = parser.parse_args()
     robots = args.robots or (3000 if args.quick else 10_000)
     ingest_s = args.ingest_s or (10.0 if args.quick else 30.0)
     idle_s = args.idle_s or (5.0 if args.quick else 20.0)
-    env = {"BRIDGEOS_WS_PING_INTERVAL": str(PING_INTERVAL_S), "BRIDGEOS_WS_PING_TIMEOUT": str(PING_TIMEOUT_S)}
+    ping_s, ping_timeout_s = (5, 5) if args.quick else (PING_INTERVAL_S, PING_TIMEOUT_S)
+    env = {"BRIDGEOS_WS_PING_INTERVAL": str(ping_s), "BRIDGEOS_WS_PING_TIMEOUT": str(ping_timeout_s)}
 
     with cloud(args, "bridgeos-tenk-", env=env) as bench:
-        tokens, api_token = prepare(robots)
+        tokens, agent_tokens, api_token = prepare(robots, args.agents)
         ids = [robot_id for robot_id, _ in tokens]
         log(f"created {robots} robots")
         daphnes = [bench.start_daphne(f"daphne-{i}.log", wait=False) for i in range(args.daphnes)]
@@ -249,6 +304,8 @@ def main() -> None:
         try:
             connected = connect_phase(fleet, robots, timeout=60)
             log(f"connect: {connected}")
+            # The real agents join once the fleet is in: the connect figure is the fleet's own.
+            start_reference_agents(bench, daphnes[0], agent_tokens)
             time.sleep(2.0)
             idle = idle_phase(fleet, daphnes, idle_s)
             rss_after = [d.memory_mib()[0] for d in daphnes]
@@ -263,9 +320,13 @@ def main() -> None:
             # The dashboard's fleet page, as an operator who sees the whole fleet opens it, every robot connected.
             page = fleet_page_first_render_ms(f"http://127.0.0.1:{daphnes[0].port}", OWNER, PASSWORD, samples=3)
             log(f"fleet page: {page}")
+            agents = reference_agents_report(
+                [robot_id for robot_id, _ in agent_tokens], f"http://127.0.0.1:{daphnes[0].port}", api_token
+            )
+            log(f"reference agents: {agents}")
             vanish = None
             if not args.skip_vanish:
-                vanish = vanish_phase(fleet, max(1, robots // 100), PING_INTERVAL_S + PING_TIMEOUT_S + 10)
+                vanish = vanish_phase(fleet, max(1, robots // 100), ping_s + ping_timeout_s + 10)
                 log(f"vanish: {vanish}")
             state = fleet.ask("state")
         finally:
@@ -288,6 +349,7 @@ def main() -> None:
             "api": api,
             "fleet_page_first_render_ms": page["first_render_ms_p50"],
             "vanish": vanish,
+            "reference_agents": agents,
             "closed_after_auth": state["closed_after_auth"],
             "simulator_cpu_pct": max(
                 connected["simulator_cpu_pct"], idle["simulator_cpu_pct"], ingest["simulator_cpu_pct"]
