@@ -160,8 +160,16 @@ def cpu_pct(daphnes: list[Daphne], before: list[float], seconds: float) -> list[
 # --------------------------------------------------------------------------- the phases
 
 
+def machine_busy() -> tuple[float, float]:
+    """Return the machine's busy and total CPU time so far, in clock ticks of all cores (/proc/stat)."""
+    fields = [float(value) for value in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    idle = fields[3] + fields[4]  # idle and iowait
+    return sum(fields) - idle, sum(fields)
+
+
 def connect_phase(fleet: FleetProcess, robots: int, timeout: float) -> dict[str, Any]:
     """Open every robot at once; the figure ends when all are authenticated and their rows say connected."""
+    machine_before = machine_busy()
     began = time.monotonic()
     answer = fleet.ask("connect", timeout=timeout + 30, within_s=timeout)
     rows_at = None
@@ -173,7 +181,15 @@ def connect_phase(fleet: FleetProcess, robots: int, timeout: float) -> dict[str,
     connect_s = None
     if answer["connect_s"] is not None and rows_at is not None:
         connect_s = round(max(answer["connect_s"], rows_at), 2)
-    return {**answer, "connect_s": connect_s, "simulator_cpu_pct": fleet.cpu_pct(answer)}
+    busy, total = (after - before for after, before in zip(machine_busy(), machine_before, strict=True))
+    # The whole machine's share in use: the fleet, daphne, PostgreSQL, Redis and the kernel's TCP work together.
+    machine_pct = round(100 * busy / total, 1) if total else None
+    return {
+        **answer,
+        "connect_s": connect_s,
+        "simulator_cpu_pct": fleet.cpu_pct(answer),
+        "machine_cpu_pct": machine_pct,
+    }
 
 
 def idle_phase(fleet: FleetProcess, daphnes: list[Daphne], seconds: float) -> dict[str, Any]:
