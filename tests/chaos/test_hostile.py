@@ -15,6 +15,9 @@ hostile = importlib.import_module("benchmarks.chaos.hostile")
 
 
 @pytest.mark.timeout(240)
+# The hostile clients' own library (websockets' sync client) logs a stream that the server ended
+# mid-frame, on purpose, after a huge or junk frame, as an internal error of its own.
+@pytest.mark.log_errors(r"websockets\.client: unexpected internal error[\s\S]*EOFError: stream ended")
 def test_hostile_input_breaks_nothing_and_reaches_no_other_tenant():
     outcomes = hostile.run(quick=True)
 
