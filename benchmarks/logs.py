@@ -143,7 +143,9 @@ async def agent_run(bench: Cloud, tokens: dict[str, str], flag: Path, stop: Path
     from asgiref.sync import sync_to_async
 
     daphne = bench.daphnes[0]
-    bench.start_agent(daphne, ROBOT, tokens["robot"], "--simulate", "--sample-interval", "0.25", "-q")
+    # Its flooding component goes with it: an agent keeps its components for the next one by default.
+    flags = ("--simulate", "--sample-interval", "0.25", "--stop-components-on-exit", "-q")
+    bench.start_agent(daphne, ROBOT, tokens["robot"], *flags)
     client = LiveClient(daphne.ws_url, tokens["api"])
     ready = asyncio.Event()
     listening = asyncio.create_task(client.run(ready))
