@@ -65,31 +65,17 @@ def _identifier(what: str) -> Any:
     return check
 
 
-def _positive(option: str) -> Any:
-    """Build an argparse type accepting a positive finite number."""
+def _positive(option: str, *, zero: bool = False) -> Any:
+    """Build an argparse type accepting a positive finite number (or zero too, with ``zero``)."""
+    wanted = "zero or a positive number" if zero else "a positive number"
 
     def check(value: str) -> float:
         try:
             number = float(value)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{option} must be a number, not {value!r}") from None
-        if not (number > 0 and number < float("inf")):
-            raise argparse.ArgumentTypeError(f"{option} must be a positive number, not {value!r}")
-        return number
-
-    return check
-
-
-def _non_negative(option: str) -> Any:
-    """Build an argparse type accepting zero or a positive finite number."""
-
-    def check(value: str) -> float:
-        try:
-            number = float(value)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{option} must be a number, not {value!r}") from None
-        if not (number >= 0 and number < float("inf")):
-            raise argparse.ArgumentTypeError(f"{option} must be zero or a positive number, not {value!r}")
+        if not ((number >= 0 if zero else number > 0) and number < float("inf")):
+            raise argparse.ArgumentTypeError(f"{option} must be {wanted}, not {value!r}")
         return number
 
     return check
@@ -276,7 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--report-interval",
-        type=_non_negative("--report-interval"),
+        type=_positive("--report-interval", zero=True),
         default=0.0,
         metavar="S",
         help="seconds between metrics frames to the cloud; the samples taken meanwhile travel in one frame "
