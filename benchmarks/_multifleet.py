@@ -62,6 +62,8 @@ class SimRobot(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self.ws: Any = None
         self.started = 0.0
+        self.tcp_at: float | None = None
+        self.upgraded_at: float | None = None
         self.authenticated_at: float | None = None
         self.failure: str | None = None
         self.closed = False
@@ -76,6 +78,7 @@ class SimRobot(asyncio.Protocol):
         from websockets.uri import parse_uri
 
         self.transport = transport  # type: ignore[assignment]
+        self.tcp_at = time.monotonic()
         self.ws = ClientProtocol(parse_uri(self.url), max_size=2**23)
         self.ws.send_request(self.ws.connect())
         self.flush()
@@ -90,6 +93,7 @@ class SimRobot(asyncio.Protocol):
                 if self.ws.handshake_exc is not None:
                     self.fail(f"handshake refused: {event.status_code}")
                 else:
+                    self.upgraded_at = time.monotonic()
                     self.send("authentication_robot", {"robot": self.robot_id, "token": self.token})
                 continue
             if event.opcode in (Opcode.TEXT, Opcode.CONT):
@@ -192,6 +196,7 @@ class Fleet:
         self.commands: dict[str, int] = {}
         self.points_sent = 0
         self.latencies: list[float] = []
+        self.acked_at: list[float] = []  # when each of latencies was acked
         self.metrics_every_s = 0.0  # 0: no metrics
         self.points_per_frame = 0
         self.ticker: asyncio.Task | None = None
@@ -209,6 +214,7 @@ class Fleet:
 
     def acked(self, seconds: float) -> None:
         self.latencies.append(seconds)
+        self.acked_at.append(time.monotonic())
 
     async def connect(self, within_s: float) -> dict[str, Any]:
         """Open every robot's connection at once; return how long until all authenticated, and who failed."""
@@ -238,6 +244,10 @@ class Fleet:
                 failures[why[:80]] = failures.get(why[:80], 0) + 1
         self.ticker = asyncio.ensure_future(self.tick_forever())
         return {
+            "stages": {
+                stage: spread([getattr(robot, f"{stage}_at") for robot in self.robots], began)
+                for stage in ("tcp", "upgraded", "authenticated")
+            },
             "connected": len(took),
             "rejected": len(self.robots) - len(took),
             "connect_s": max(took) if len(took) == len(self.robots) else None,
@@ -286,6 +296,14 @@ class Fleet:
                 robot.transport.abort()
 
 
+def spread(moments: list[float | None], began: float) -> dict[str, float | None]:
+    """Return the median and last of moments since ``began``, in seconds (where a storm's time goes)."""
+    took = sorted(moment - began for moment in moments if moment is not None)
+    if not took:
+        return {"p50_s": None, "last_s": None}
+    return {"p50_s": round(took[len(took) // 2], 2), "last_s": round(took[-1], 2)}
+
+
 def cpu_s() -> float:
     """Return this process's CPU time (user + system) so far."""
     usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -310,12 +328,18 @@ def serve(conn: Any, robots: list[tuple[str, str]], urls: list[str], heartbeat_s
             elif command == "idle":
                 await asyncio.sleep(args["seconds"])
             elif command == "ingest":
-                fleet.latencies, fleet.points_sent = [], 0
+                fleet.latencies, fleet.acked_at, fleet.points_sent = [], [], 0
+                began = time.monotonic()
                 fleet.points_per_frame, fleet.metrics_every_s = args["points_per_frame"], args["every_s"]
                 await asyncio.sleep(args["seconds"])
                 fleet.metrics_every_s = 0.0
                 unacked = await fleet.drained(args.get("drain_s", 2.0))
-                answer = {"points_sent": fleet.points_sent, "latencies": fleet.latencies, "unacked_frames": unacked}
+                answer = {
+                    "points_sent": fleet.points_sent,
+                    "latencies": fleet.latencies,
+                    "acked_after_s": [moment - began for moment in fleet.acked_at],
+                    "unacked_frames": unacked,
+                }
             elif command == "vanish":
                 answer = {"robots": fleet.vanish(args["robots"])}
             elif command == "state":

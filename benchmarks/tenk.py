@@ -167,9 +167,10 @@ def machine_busy() -> tuple[float, float]:
     return sum(fields) - idle, sum(fields)
 
 
-def connect_phase(fleet: FleetProcess, robots: int, timeout: float) -> dict[str, Any]:
+def connect_phase(fleet: FleetProcess, daphnes: list[Daphne], timeout: float) -> dict[str, Any]:
     """Open every robot at once; the figure ends when all are authenticated and their rows say connected."""
     machine_before = machine_busy()
+    daphne_before = [d.cpu_seconds() for d in daphnes]
     began = time.monotonic()
     answer = fleet.ask("connect", timeout=timeout + 30, within_s=timeout)
     rows_at = None
@@ -184,8 +185,11 @@ def connect_phase(fleet: FleetProcess, robots: int, timeout: float) -> dict[str,
     busy, total = (after - before for after, before in zip(machine_busy(), machine_before, strict=True))
     # The whole machine's share in use: the fleet, daphne, PostgreSQL, Redis and the kernel's TCP work together.
     machine_pct = round(100 * busy / total, 1) if total else None
+    # daphne's own CPU per robot: steadier than the wall time on a shared machine, and what the changes cut.
+    daphne_cpu_s = sum(d.cpu_seconds() - before for d, before in zip(daphnes, daphne_before, strict=True))
     return {
         **answer,
+        "daphne_cpu_ms_per_robot": round(1000 * daphne_cpu_s / max(1, answer["connected"]), 3),
         "connect_s": connect_s,
         "simulator_cpu_pct": fleet.cpu_pct(answer),
         "machine_cpu_pct": machine_pct,
@@ -218,9 +222,20 @@ def ingest_phase(
         "ack_p50_ms": round(1000 * (percentile(latencies, 50) or 0), 1),
         "ack_p95_ms": round(1000 * (p95 or 0), 1),
         "unacked_frames": answer["unacked_frames"],
+        # The slowest ack of each 5 s (by when it came): a stall shows as one window, a backlog as a climb.
+        "ack_max_ms_by_5s": slowest_by_window(answer["acked_after_s"], latencies, 5.0),
         "daphne_cpu_pct": daphne_cpu,
         "simulator_cpu_pct": fleet.cpu_pct(answer),
     }
+
+
+def slowest_by_window(moments: list[float], latencies: list[float], window_s: float) -> list[float]:
+    """Return the longest latency among those that ended in each window of ``window_s`` seconds, in ms."""
+    slowest: dict[int, float] = {}
+    for moment, latency in zip(moments, latencies, strict=True):
+        window = int(moment // window_s)
+        slowest[window] = max(slowest.get(window, 0.0), latency)
+    return [round(1000 * slowest.get(window, 0.0)) for window in range(max(slowest, default=-1) + 1)]
 
 
 async def api_phase(daphne: Daphne, api_token: str, robots: list[str], samples: int) -> dict[str, Any]:
@@ -318,7 +333,7 @@ def main() -> None:
         rss_before = [d.memory_mib()[0] for d in daphnes]
         fleet = FleetProcess(tokens, [d.ws_url for d in daphnes])
         try:
-            connected = connect_phase(fleet, robots, timeout=60)
+            connected = connect_phase(fleet, daphnes, timeout=60)
             log(f"connect: {connected}")
             # The real agents join once the fleet is in: the connect figure is the fleet's own.
             start_reference_agents(bench, daphnes[0], agent_tokens)
@@ -354,6 +369,7 @@ def main() -> None:
             "daphnes": args.daphnes,
             "connect_10k_s": connected["connect_s"],
             "connect_10k_rejected": connected["rejected"],
+            "connect_daphne_cpu_ms_per_robot": connected["daphne_cpu_ms_per_robot"],
             "connect_failures": connected["failures"],
             "idle_cpu_pct_10k": round(sum(idle["daphne_cpu_pct"]), 1),
             "kb_per_robot": kb_per_robot,

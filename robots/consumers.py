@@ -21,6 +21,7 @@ from bridgeos_cloud.batching import Batcher
 from bridgeos_cloud.consumers import CLOSE_TOO_MANY_FAILURES, ProtocolConsumer, validation_message
 from bridgeos_cloud.errors import NotFound
 from bridgeos_cloud.loopowned import loop_object
+from bridgeos_cloud.servertuning import gathered_writes
 from monitoring import prometheus
 from monitoring.ingest import get_writer
 from monitoring.live import get_live_feed
@@ -260,26 +261,28 @@ class RobotConsumer(ProtocolConsumer):
         self.dedup.load(await applied_ids().load(connected.robot))
         if connected.replaced_channel:
             await self.channel_layer.send(connected.replaced_channel, {"type": "robot.replaced"})
-        await self.send_envelope(
-            protocol.make(
-                Event.AUTHENTICATION_SUCCESS,
-                {
-                    "robot": connected.robot,
-                    "ros_master": connected.ros_master,
-                    "ros2_discovery_server": connected.ros2_discovery_server,
-                    "cloud_relays": connected.cloud_relays,
-                },
-                reply_to=envelope.id,
-                now=time.time(),
+        # One send for the login's frames, not one each: the robot reads them together too.
+        with gathered_writes():
+            await self.send_envelope(
+                protocol.make(
+                    Event.AUTHENTICATION_SUCCESS,
+                    {
+                        "robot": connected.robot,
+                        "ros_master": connected.ros_master,
+                        "ros2_discovery_server": connected.ros2_discovery_server,
+                        "cloud_relays": connected.cloud_relays,
+                    },
+                    reply_to=envelope.id,
+                    now=time.time(),
+                )
             )
-        )
-        await self.send_reliably(
-            protocol.make(Event.CONNECTION_ESTABLISHED, {"robot": connected.robot}, now=time.time())
-        )
-        await self.send_reliably(protocol.make(Event.ROBOT_CONFIG, {"config": connected.config}, now=time.time()))
-        # What became of its cloud copies while it was away (a start it waits for may have finished).
-        for event, data in reports:
-            await self.send_reliably(protocol.make(event, data, now=time.time()))
+            await self.send_reliably(
+                protocol.make(Event.CONNECTION_ESTABLISHED, {"robot": connected.robot}, now=time.time())
+            )
+            await self.send_reliably(protocol.make(Event.ROBOT_CONFIG, {"config": connected.config}, now=time.time()))
+            # What became of its cloud copies while it was away (a start it waits for may have finished).
+            for event, data in reports:
+                await self.send_reliably(protocol.make(event, data, now=time.time()))
         self.volumes = CloudVolumes(connected.robot)
         if has_volumes:
             self.scan_volumes()

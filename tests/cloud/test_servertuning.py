@@ -1,0 +1,122 @@
+"""daphne's tunings as a robot and an operator see them: its access log, and the writes of a robot's login."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import signal
+import socket
+import struct
+import time
+from pathlib import Path
+
+import pytest
+from django.contrib.auth import get_user_model
+from websockets.client import ClientProtocol
+from websockets.http11 import Response
+from websockets.uri import parse_uri
+
+from bridgeos_cloud.servertuning import ACCESS_LOG_FLUSH_S
+from robots.services import create_robot
+
+from ..conftest import another_daphne, wait_until
+
+pytestmark = pytest.mark.django_db(transaction=True)
+
+REQUESTS = 300
+
+
+def write_calls(pid: int) -> int:
+    """Return how many write(2) calls the process has made (sockets send with send(2), which is not counted)."""
+    for line in Path(f"/proc/{pid}/io").read_text().splitlines():
+        if line.startswith("syscw:"):
+            return int(line.split()[1])
+    raise AssertionError(f"/proc/{pid}/io has no syscw line")
+
+
+def get_health(connection: http.client.HTTPConnection, marker: str) -> None:
+    connection.request("GET", f"/api/health?{marker}")
+    response = connection.getresponse()
+    response.read()
+    assert response.status == 200
+
+
+def lines_with(log: Path, marker: str) -> int:
+    return log.read_text(errors="replace").count(f"GET /api/health?{marker}")
+
+
+def test_access_lines_are_written_in_blocks_and_reach_the_log_within_the_flush_period(tmp_path):
+    log = tmp_path / "daphne.log"
+    with another_daphne(log) as (server, process):
+        connection = http.client.HTTPConnection(server.host, server.port, timeout=10)
+        get_health(connection, "warm")
+        wait_until(lambda: lines_with(log, "warm") == 1, timeout=5, what="the warm-up request's line")
+        before = write_calls(process.pid)
+        for _ in range(REQUESTS):
+            get_health(connection, "block")
+        writes = write_calls(process.pid) - before
+        # Unbuffered, each line was a write of its own: 300 or more.
+        assert writes < REQUESTS / 10, f"{writes} write calls for {REQUESTS} access lines"
+        wait_until(
+            lambda: lines_with(log, "block") == REQUESTS,
+            timeout=ACCESS_LOG_FLUSH_S + 2,
+            what=f"all {REQUESTS} access lines in the log",
+        )
+        connection.close()
+
+
+def test_the_last_access_lines_are_written_when_daphne_stops(tmp_path):
+    log = tmp_path / "daphne.log"
+    with another_daphne(log) as (server, process):
+        connection = http.client.HTTPConnection(server.host, server.port, timeout=10)
+        for _ in range(50):
+            get_health(connection, "last")
+        connection.close()
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=30)
+    assert lines_with(log, "last") == 50
+
+
+# Where Linux's struct tcp_info keeps tcpi_data_segs_in (segments that carried data), stable since 4.6.
+TCP_INFO_DATA_SEGS_IN = 152
+LOGIN_FRAMES = ["authentication_success", "connection_established", "robot_config"]
+
+
+def data_segments_in(sock: socket.socket) -> int:
+    return struct.unpack_from("I", sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 256), TCP_INFO_DATA_SEGS_IN)[0]
+
+
+def frames_until(sock: socket.socket, ws: ClientProtocol, last_event: str, timeout: float = 15.0) -> list[str]:
+    """Read from the socket until ``last_event`` arrives; return the events of the frames read."""
+    events: list[str] = []
+    deadline = time.monotonic() + timeout
+    while last_event not in events:
+        sock.settimeout(max(0.01, deadline - time.monotonic()))
+        data = sock.recv(65536)
+        assert data, f"daphne closed the connection after {events}"
+        ws.receive_data(data)
+        for received in ws.events_received():
+            if isinstance(received, Response):
+                events.append("handshake")
+            else:
+                events.append(json.loads(received.data)["event"])
+    return events
+
+
+def test_a_robots_login_frames_reach_it_together_in_one_segment(daphne_server):
+    owner = get_user_model().objects.create_user("gathered-owner")
+    _, token = create_robot("gathered-bot", owner)
+    ws = ClientProtocol(parse_uri(f"{daphne_server.ws_url}/ws/robot/"))
+    with socket.create_connection((daphne_server.host, daphne_server.port), timeout=15) as sock:
+        ws.send_request(ws.connect())
+        sock.sendall(b"".join(ws.data_to_send()))
+        assert frames_until(sock, ws, "handshake") == ["handshake"]
+        before = data_segments_in(sock)
+        credentials = {"robot": "gathered-bot", "token": token}
+        ws.send_text(json.dumps({"event": "authentication_robot", "id": "login-1", "data": credentials}).encode())
+        sock.sendall(b"".join(ws.data_to_send()))
+        events = frames_until(sock, ws, LOGIN_FRAMES[-1])
+        segments = data_segments_in(sock) - before
+    assert events == LOGIN_FRAMES
+    # Sent one by one (TCP_NODELAY, as autobahn sets), each frame was a segment of its own: three.
+    assert segments == 1, f"the login's {len(events)} frames came in {segments} segments"
