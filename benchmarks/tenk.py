@@ -4,13 +4,16 @@ One simulated fleet (benchmarks/_multifleet.py: one process multiplexing every r
 wire protocol and authentication) against one daphne sharing one PostgreSQL and one Redis:
 
 - connect: every robot opens /ws/robot/ at the same moment; seconds until all are authenticated
-  and every row says `connected`, and how many handshakes or logins were rejected;
+  and every row says `connected`, and how many handshakes or logins were rejected; when the last
+  TCP connection opened, the last handshake and the last login were answered (`stages`), and
+  daphne's CPU per robot connecting (`connect_daphne_cpu_ms_per_robot`);
 - idle: heartbeats only (a WebSocket ping every 5 s, as the agent's default); daphne's CPU, its
   resident memory per robot, and what Redis and PostgreSQL hold per robot;
 - ingest: every robot measures 3 points a second and sends them every 5 s in one `metrics` frame
   of 15, as an agent run with `--report-interval 5` does (30,000 points/s, 2,000 frames/s at
   10,000 robots: the cost is per frame, not per point); points stored against points sent, and the
-  send-to-ack p95. `--every 1 --points-per-frame 3` is a frame a second per robot;
+  send-to-ack p95, and the slowest ack of each 5 s (a stall or a growing backlog).
+  `--every 1 --points-per-frame 3` is a frame a second per robot;
 - the API among them: a robot's reads (p99), a fleet page, a command to one robot (p50) and a
   fleet-wide command; the dashboard's fleet page in Chromium (first render, benchmarks/_fleetpage.py);
 - honest presence: some robots vanish without a goodbye; their rows say `disconnected` within

@@ -1,7 +1,7 @@
 """What daphne's stack (Twisted, autobahn) is told in a bridgeOS server process, each measured with py-spy.
 
-Each tuning changes how much work the same traffic costs, never what goes over the wire: a
-robot or a browser cannot tell a tuned process from an untuned one.
+Each tuning changes how much work the same traffic costs, never what goes over the wire beyond how
+it is cut into TCP segments: a robot or a browser cannot tell a tuned process from an untuned one.
 """
 
 from __future__ import annotations
