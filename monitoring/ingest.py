@@ -103,12 +103,16 @@ def format_copy_rows(robot_id: str, points: Iterable[MetricPoint]) -> str:
     lines = []
     append = lines.append
     for point in points:
-        head = f"{point.skill or ''}\t{point.component or ''}\t{point.name}"
+        skill = point.get("skill") or ""
+        component = point.get("component") or ""
+        name = point["name"]
+        head = f"{skill}\t{component}\t{name}"
         # The protocol's slug and name patterns exclude these, so escaping is almost never needed.
         if "\\" in head or "\n" in head or "\r" in head or head.count("\t") != 2:
-            head = "\t".join(_copy_escape(part) for part in (point.skill or "", point.component or "", point.name))
-        labels = format_labels(point.labels) if point.labels else "{}"
-        append(f"{robot}\t{head}\t{float(point.value)!r}\t{labels}\t{format_ts(point.ts)}\n")
+            head = "\t".join(_copy_escape(part) for part in (skill, component, name))
+        labels = point.get("labels")
+        labels_text = format_labels(labels) if labels else "{}"
+        append(f"{robot}\t{head}\t{float(point['value'])!r}\t{labels_text}\t{format_ts(point['ts'])}\n")
     return "".join(lines)
 
 
@@ -269,12 +273,12 @@ class _OrmSink:
         return [
             Metric(
                 robot_id=entry.robot_id,
-                skill=point.skill or "",
-                component=point.component or "",
-                name=point.name,
-                value=point.value,
-                labels=point.labels or {},
-                ts=datetime.fromtimestamp(point.ts, UTC),
+                skill=point.get("skill") or "",
+                component=point.get("component") or "",
+                name=point["name"],
+                value=point["value"],
+                labels=point.get("labels") or {},
+                ts=datetime.fromtimestamp(point["ts"], UTC),
             )
             for point in entry.payload
         ]

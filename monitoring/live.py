@@ -66,10 +66,10 @@ class LiveFeed:
         if series is None:
             series = self._latest[robot_id] = {}
         for point in points:
-            key = (point.skill, point.component, point.name)
+            key = (point.get("skill"), point.get("component"), point["name"])
             known = series.get(key)
             # A robot resending its outbox after a reconnect must not replace newer values.
-            if known is None or point.ts >= known.ts:
+            if known is None or point["ts"] >= known["ts"]:
                 series[key] = point
         self.start()
         self._wake.set()
@@ -128,11 +128,12 @@ def metrics_data_json(robot_id: str, points: Iterable[MetricPoint]) -> str:
     """Encode the data of a cloud-to-client metrics frame: the robot and its latest points."""
     encoded = []
     for point in points:
-        item: dict[str, Any] = {"name": point.name, "value": point.value, "ts": point.ts}
-        if point.skill:
-            item["skill"] = point.skill
-        if point.component:
-            item["component"] = point.component
+        item: dict[str, Any] = {"name": point["name"], "value": point["value"], "ts": point["ts"]}
+        skill, component = point.get("skill"), point.get("component")
+        if skill:
+            item["skill"] = skill
+        if component:
+            item["component"] = component
         encoded.append(item)
     return json.dumps({"robot": robot_id, "metrics": encoded}, separators=(",", ":"))
 

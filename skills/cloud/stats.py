@@ -72,5 +72,5 @@ def collect_stats(robot_ids: set[str]) -> int:
     else:
         measured = asyncio.run(measure_all())
     for robot_id, points in measured.items():
-        push_to_robot(robot_id, Event.METRICS, {"metrics": [p.model_dump(exclude_none=True) for p in points]})
+        push_to_robot(robot_id, Event.METRICS, {"metrics": points})
     return sum(len(points) for points in measured.values())

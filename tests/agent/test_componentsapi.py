@@ -280,7 +280,7 @@ async def test_invalid_point_rejects_the_whole_batch(
 @pytest.mark.parametrize(("point", "field"), [p for p in BAD_POINTS if not p[1].endswith("unit")])
 def test_invalid_points_are_invalid_metric_points_too(point: dict[str, Any], field: str) -> None:
     with pytest.raises(pydantic.ValidationError):
-        MetricPoint.model_validate({"ts": 1.0, **point})
+        pydantic.TypeAdapter(MetricPoint).validate_python({"ts": 1.0, **point})
 
 
 async def test_points_about_unknown_components_are_refused(client: httpx.AsyncClient, skill: DemoSkill) -> None:

@@ -244,7 +244,8 @@ def test_pinned_metrics_shape_decodes() -> None:
     text = frame("metrics", {"metrics": [{"name": "cpu", "value": 1, "ts": 2, "labels": {"core": "0"}}]})
     payload = parse_payload(decode(text))
     assert isinstance(payload, MetricsPayload)
-    assert payload.metrics[0].value == 1.0 and payload.metrics[0].labels == {"core": "0"}
+    assert payload.metrics[0] == {"name": "cpu", "value": 1.0, "ts": 2.0, "labels": {"core": "0"}}
+    assert type(payload.metrics[0]) is dict  # a plain dict: the collector never walks it
 
 
 @pytest.mark.parametrize(

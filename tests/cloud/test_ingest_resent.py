@@ -75,7 +75,7 @@ async def test_a_failed_write_leaves_no_frame_id_behind(robot):
     writer = MetricWriter(flush_interval=0.01)
     try:
         with pytest.raises(Exception):  # noqa: B017 - whatever the database says about a NUL in a name
-            await writer.add(robot, [MetricPoint.model_construct(name="c\x00pu", value=1.0, ts=T0)], "frame-3")
+            await writer.add(robot, [MetricPoint(name="c\x00pu", value=1.0, ts=T0)], "frame-3")
         assert not await sync_to_async(IngestedFrame.objects.filter(frame_id="frame-3").exists)()
         await writer.add(robot, points(2), "frame-3")
     finally:

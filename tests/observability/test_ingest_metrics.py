@@ -28,7 +28,7 @@ async def test_batches_rows_lag_and_refused_frames_are_counted(robots, make_writ
     writer = make_writer(flush_interval=60)
     good = writer.add("r1", [point("cpu", 1.0, T0), point("cpu", 2.0, T0 + 1)])
     # Built without validation: a name longer than the column allows, so PostgreSQL refuses its frame.
-    bad = writer.add("r2", [MetricPoint.model_construct(name="x" * 200, value=1.0, ts=T0)])
+    bad = writer.add("r2", [MetricPoint(name="x" * 200, value=1.0, ts=T0)])
     await asyncio.sleep(0.05)
     await writer.flush()
     await asyncio.gather(good, bad, return_exceptions=True)

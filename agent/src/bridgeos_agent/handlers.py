@@ -202,8 +202,9 @@ async def on_cloud_metrics(controller: RobotController, envelope: Envelope, p: A
     # The cloud's measurements of this robot's cloud copies, for each Skill's manager.
     by_skill: dict[str, list[dict[str, Any]]] = {}
     for point in p.metrics:
-        if point.skill and point.component:
-            by_skill.setdefault(point.skill, []).append(point.model_dump(mode="json", exclude_none=True))
+        skill, component = point.get("skill"), point.get("component")
+        if skill and component:
+            by_skill.setdefault(skill, []).append({key: value for key, value in point.items() if value is not None})
     for skill_id, points in by_skill.items():
         record = controller.skills.get(skill_id)
         manager = record.context("manager") if record is not None else None

@@ -21,7 +21,7 @@ import struct
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, NotRequired
 
 from pydantic import (
     AfterValidator,
@@ -33,7 +33,9 @@ from pydantic import (
     StringConstraints,
     ValidationError,
     model_validator,
+    with_config,
 )
+from typing_extensions import TypedDict  # pydantic needs this one before Python 3.12
 
 from bridgeos_agent.skillconfig import SLUG_PATTERN
 
@@ -612,15 +614,19 @@ class ComponentMigrate(RobotScoped):
     location: Target | None = None
 
 
-class MetricPoint(Payload):
+# A plain dict, not a model: points are the most numerous objects the cloud holds while it ingests,
+# and a dict of plain values is one the garbage collector never walks (a model instance and its
+# fields-set are two it does: 30 of the 39 objects it tracked per 15-point frame).
+@with_config(extra="forbid")
+class MetricPoint(TypedDict):
     """Carry one measured value."""
 
     name: MetricName
     value: FiniteFloat
     ts: Timestamp
-    skill: Slug | None = None
-    component: Slug | None = None
-    labels: Annotated[dict[LabelKey, LabelValue], Field(max_length=16)] | None = None
+    skill: NotRequired[Slug | None]
+    component: NotRequired[Slug | None]
+    labels: NotRequired[Annotated[dict[LabelKey, LabelValue], Field(max_length=16)] | None]
 
 
 class MetricsPayload(RobotScoped):
