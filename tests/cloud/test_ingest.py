@@ -22,7 +22,7 @@ from django.utils import timezone
 from bridgeos_agent.protocol import MetricPoint
 from bridgeos_cloud.loopowned import close_loop_objects
 from monitoring.ingest import MetricWriter, conninfo_from_settings, format_ts, get_writer
-from monitoring.live import LIVE_GROUP, LiveFeed, get_live_feed, publish_on_commit
+from monitoring.live import LIVE_GROUP, LiveFeed, get_live_feed, metrics_data_json, publish_on_commit
 from monitoring.models import Metric
 from robots.dedup import applied_ids
 from robots.models import Robot
@@ -320,6 +320,22 @@ async def test_live_feed_coalesces_many_adds_into_one_message_of_latest_values(r
         await feed.close()
         await layer.group_discard(LIVE_GROUP, channel)
         await layer.close_pools()
+
+
+def test_live_frames_carry_points_without_labels_or_empty_fields():
+    points = [
+        point("cpu", 1.0, T0),
+        point("mem", 2.0, T0, skill="nav", component="planner"),
+        point("fps", 3.0, T0, skill=None, component="camera", labels={"core": "0"}),
+    ]
+    assert json.loads(metrics_data_json("r1", points)) == {
+        "robot": "r1",
+        "metrics": [
+            {"name": "cpu", "value": 1.0, "ts": T0},
+            {"name": "mem", "value": 2.0, "ts": T0, "skill": "nav", "component": "planner"},
+            {"name": "fps", "value": 3.0, "ts": T0, "component": "camera"},
+        ],
+    }
 
 
 class Rollback(Exception):
