@@ -73,8 +73,20 @@ def heartbeats_count_as_traffic() -> None:
     module.WebSocketProtocol._bridgeos_pings_are_traffic = True
 
 
-# The connections written to inside ``gathered_writes`` (in the task that opened it), and what each was given.
-_GATHERING: ContextVar[dict[Any, list[bytes]] | None] = ContextVar("bridgeos_gathering", default=None)
+class _Gathering:
+    """The connections written to inside one ``gathered_writes`` block, and what each was given."""
+
+    __slots__ = ("chunks", "open")
+
+    def __init__(self) -> None:
+        self.chunks: dict[Any, list[bytes]] = {}
+        self.open = True
+
+
+# Set in the task that opened the block. A timer or task started inside copies the context and
+# outlives the block: ``open`` tells it the block has ended, so its writes go out as they come
+# (a robot's login frames were resent into a block long gone, and reached it only with a later write).
+_GATHERING: ContextVar[_Gathering | None] = ContextVar("bridgeos_gathering", default=None)
 
 
 @contextmanager
@@ -84,19 +96,21 @@ def gathered_writes() -> Iterator[None]:
     # three sends, a fifth of daphne's main thread while 10,000 robots connect (py-spy), and three
     # reads for the robot. Gathered, they are one send and one read. Only writes that would have
     # gone out at once are gathered (see write_through_when_idle); outside daphne nothing changes.
-    if _GATHERING.get() is not None:
+    outer = _GATHERING.get()
+    if outer is not None and outer.open:
         yield  # already inside one: the outer block sends
         return
-    gathering: dict[Any, list[bytes]] = {}
+    gathering = _Gathering()
     token = _GATHERING.set(gathering)
     try:
         yield
     finally:
+        gathering.open = False
         _GATHERING.reset(token)
-        for connection, chunks in gathering.items():
+        for connection, chunks in gathering.chunks.items():
             if chunks and connection.__dict__.get("_bridgeos_gathered") is chunks:
                 connection._bridgeos_gathered = None
-                connection.write(chunks[0] if len(chunks) == 1 else b"".join(chunks))
+                connection.write(b"".join(chunks))
 
 
 def write_through_when_idle() -> None:
@@ -135,10 +149,10 @@ def write_through_when_idle() -> None:
             and self.offset == len(self.dataBuffer)
         ):
             gathering = _GATHERING.get()
-            if gathering is not None:
+            if gathering is not None and gathering.open:
                 if pending is None:
-                    pending = self._bridgeos_gathered = gathering.setdefault(self, [])
-                if gathering.get(self) is pending:
+                    pending = self._bridgeos_gathered = gathering.chunks.setdefault(self, [])
+                if gathering.chunks.get(self) is pending:
                     pending.append(data)
                     return
             elif pending is None:

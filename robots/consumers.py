@@ -155,7 +155,10 @@ class RobotConsumer(ProtocolConsumer):
         if forwarded:
             await self.forward_reply(envelope)
         if event == Event.ACK:
-            self.reliable.on_ack(envelope.reply_to)
+            if self.reliable.on_ack(envelope.reply_to) and not self.reliable and self.retransmit_timer is not None:
+                # Nothing left to resend: a timer left to fire would cost a callback a robot for nothing.
+                self.retransmit_timer.cancel()
+                self.retransmit_timer = None
             if envelope.reply_to in self.rekeys:
                 self.rekeys.discard(envelope.reply_to)
                 await sync(rotation.record_rekeyed)(self.robot_id)
@@ -371,16 +374,21 @@ class RobotConsumer(ProtocolConsumer):
         due = self.reliable.next_due()
         if due is not None:
             delay = max(0.0, due - time.monotonic())
-            self.retransmit_timer = asyncio.get_running_loop().call_later(delay, self.spawn_call, self.retransmit)
+            self.retransmit_timer = asyncio.get_running_loop().call_later(delay, self.retransmit)
 
-    async def retransmit(self) -> None:
+    def retransmit(self) -> None:
         """Resend every unacknowledged frame whose time has come."""
         self.retransmit_timer = None
         if self.closing:
             return
-        for envelope in self.reliable.due(time.monotonic()):
-            await self.send_envelope(envelope)
+        due = self.reliable.due(time.monotonic())
+        if due:
+            self.spawn(self._resend(due))
         self._schedule_retransmit()
+
+    async def _resend(self, envelopes: list[Envelope]) -> None:
+        for envelope in envelopes:
+            await self.send_envelope(envelope)
 
     # ---------------------------------------------------------------- closing
 

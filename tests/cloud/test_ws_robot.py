@@ -86,6 +86,30 @@ async def test_anything_but_valid_credentials_first_is_refused_and_closed(daphne
     assert not (await robot_row("r1")).connected
 
 
+async def test_login_frames_are_resent_until_acked_and_never_after(daphne_server):
+    owner, _ = await make_owner("owner")
+    token = await make_robot("r1", owner, with_skill=False)
+    async with websockets.connect(daphne_server.ws_url + "/ws/robot/") as ws:
+        auth = {"robot": "r1", "token": token}
+        await ws.send(protocol.encode(protocol.make(Event.AUTHENTICATION_ROBOT, auth, now=0.0)))
+        first = [protocol.decode(await asyncio.wait_for(ws.recv(), 5)) for _ in range(3)]
+        assert [frame.event for frame in first] == [
+            Event.AUTHENTICATION_SUCCESS,
+            Event.CONNECTION_ESTABLISHED,
+            Event.ROBOT_CONFIG,
+        ]
+        # Not acked: both acked events come again, with their ids, about a second later (the resend's
+        # timer was set inside the login's gathered send, and its writes once waited for another one).
+        again = [protocol.decode(await asyncio.wait_for(ws.recv(), 5)) for _ in range(2)]
+        # Each on its own jittered schedule, so in either order.
+        assert sorted((frame.event, frame.id) for frame in again) == sorted((frame.event, frame.id) for frame in first[1:])
+        for frame in again:
+            await ws.send(protocol.ack_text(frame.id, now=0.0))
+        # Acked: nothing more, though the next resend (about two seconds on) was due.
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(ws.recv(), 3.5)
+
+
 async def test_link_raises_on_refused_credentials(daphne_server):
     owner, _ = await make_owner("owner")
     await make_robot("r1", owner, with_skill=False)
