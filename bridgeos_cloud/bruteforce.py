@@ -5,7 +5,7 @@ from __future__ import annotations
 import ipaddress
 import threading
 import time
-from functools import cache
+from functools import cache, lru_cache
 
 from django.conf import settings
 from django.dispatch import Signal
@@ -39,19 +39,27 @@ class FailureLimit:
         """Return ``blocked_for`` of many logins at once: one Redis round trip for all of them."""
         if self._redis is None:
             return [self.blocked_for(keys, window) for keys in logins]
-        pipe = self._redis.pipeline()
-        for keys in logins:
-            for key, _ in keys:
-                pipe.get(self.prefix + key)
-                pipe.ttl(self.prefix + key)
-        answers = iter(pipe.execute())
+        # One MGET of the distinct counters (a fleet behind one address shares its address counter),
+        # and TTLs only for those at their limit: a connect storm's batch asked four commands a robot.
+        names = list(dict.fromkeys(self.prefix + key for keys in logins for key, _ in keys))
+        counts = dict(zip(names, self._redis.mget(names), strict=True)) if names else {}
+        over = [self.prefix + key for keys in logins for key, limit in keys if int(counts[self.prefix + key] or 0) >= limit]
+        ttls: dict[str, int] = {}
+        if over:
+            over = list(dict.fromkeys(over))
+            pipe = self._redis.pipeline()
+            for name in over:
+                pipe.ttl(name)
+            ttls = dict(zip(over, pipe.execute(), strict=True))
         retries = []
         for keys in logins:
             retry = 0.0
-            for _, limit in keys:
-                count, ttl = next(answers), next(answers)
-                if not retry and int(count or 0) >= limit:
+            for key, limit in keys:
+                name = self.prefix + key
+                if int(counts[name] or 0) >= limit:
+                    ttl = ttls.get(name)
                     retry = max(1.0, float(ttl if ttl and ttl > 0 else window))
+                    break
             retries.append(retry)
         return retries
 
@@ -122,6 +130,7 @@ def login_keys(scope: str, identity: str, address: str) -> list[tuple[str, int]]
     return keys
 
 
+@lru_cache(maxsize=4096)  # asked for every login; a fleet comes from few addresses
 def _loopback(address: str) -> bool:
     try:
         return ipaddress.ip_address(address).is_loopback
