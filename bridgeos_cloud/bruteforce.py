@@ -43,10 +43,16 @@ class FailureLimit:
         # and TTLs only for those at their limit: a connect storm's batch asked four commands a robot.
         names = list(dict.fromkeys(self.prefix + key for keys in logins for key, _ in keys))
         counts = dict(zip(names, self._redis.mget(names), strict=True)) if names else {}
-        over = [self.prefix + key for keys in logins for key, limit in keys if int(counts[self.prefix + key] or 0) >= limit]
+        over = list(
+            dict.fromkeys(
+                self.prefix + key
+                for keys in logins
+                for key, limit in keys
+                if int(counts[self.prefix + key] or 0) >= limit
+            )
+        )
         ttls: dict[str, int] = {}
         if over:
-            over = list(dict.fromkeys(over))
             pipe = self._redis.pipeline()
             for name in over:
                 pipe.ttl(name)

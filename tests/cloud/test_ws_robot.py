@@ -102,7 +102,9 @@ async def test_login_frames_are_resent_until_acked_and_never_after(daphne_server
         # timer was set inside the login's gathered send, and its writes once waited for another one).
         again = [protocol.decode(await asyncio.wait_for(ws.recv(), 5)) for _ in range(2)]
         # Each on its own jittered schedule, so in either order.
-        assert sorted((frame.event, frame.id) for frame in again) == sorted((frame.event, frame.id) for frame in first[1:])
+        assert sorted((frame.event, frame.id) for frame in again) == sorted(
+            (frame.event, frame.id) for frame in first[1:]
+        )
         for frame in again:
             await ws.send(protocol.ack_text(frame.id, now=0.0))
         # Acked: nothing more, though the next resend (about two seconds on) was due.
