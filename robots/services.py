@@ -152,10 +152,13 @@ def _mark_all_connected(logins: list[Login], outcomes: list[Connected]) -> None:
     now = timezone.now()
     with transaction.atomic():
         # Locked in id order, so two batches (of two processes) never deadlock.
+        # Only the columns read here: this thread shares daphne's interpreter, and a storm's batch
+        # would otherwise decode every column of every robot (name, owner, token hashes, ...).
         robots = {
             robot.id: robot
             for robot in Robot.objects.select_for_update()
             .filter(id__in=[login.robot_id for login in logins])
+            .only("id", "connected", "channel", "ros2", "labels", "config")
             .order_by("id")
         }
         changed, events, frames = [], [], []
