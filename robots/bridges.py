@@ -19,16 +19,13 @@ import json
 import logging
 import secrets
 import time
-import weakref
 from collections import deque
 from typing import Any
 from urllib.parse import parse_qs
 
 from channels.consumer import get_handler_name
 from channels.db import database_sync_to_async
-from channels.exceptions import ChannelFull
 from channels.generic.websocket import AsyncWebsocketConsumer
-from channels.layers import get_channel_layer
 from django.conf import settings
 
 from audit import services as audit
@@ -39,6 +36,7 @@ from bridgeos_cloud.ratelimit import TokenBucket
 from monitoring import prometheus
 
 from .access import open_bridge
+from .local import deliver, register_local
 
 log = logging.getLogger(__name__)
 
@@ -49,28 +47,6 @@ CLOSE_FLOODING = 4008
 OPEN_TIMEOUT_S = 5.0  # how long the robot's consumer has to take a new session
 MAX_FLOOD_STRIKES = 500
 MAX_SESSIONS_PER_ROBOT = 64
-
-# The consumers of this process by channel name: frames between a robot and its clients served by
-# the same process skip the channel layer (and Redis) altogether.
-_local: weakref.WeakValueDictionary[str, Any] = weakref.WeakValueDictionary()
-
-
-def register_local(consumer: Any) -> None:
-    """Let frames for this consumer's channel reach it directly from this process."""
-    _local[consumer.channel_name] = consumer
-
-
-async def deliver(channel: str, message: dict[str, Any]) -> bool:
-    """Hand a message to a consumer (in this process if it is here); False if it was dropped."""
-    consumer = _local.get(channel)
-    if consumer is not None:
-        await consumer.dispatch(message)
-        return True
-    try:
-        await get_channel_layer().send(channel, message)
-    except ChannelFull:
-        return False
-    return True
 
 
 def status_frame(kind: str, text: str, level: str = "error") -> str:

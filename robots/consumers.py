@@ -31,9 +31,10 @@ from skills.cloud.reporting import cloud_reports_for
 from skills.cloud.volumes import CloudVolumes
 
 from . import dedup, rotation, services
-from .bridges import RobotBridges, deliver, register_local
+from .bridges import RobotBridges
 from .dbthreads import AlreadyApplied, applying, sync
 from .dedup import applied_ids
+from .local import deliver, register_local
 from .presence import get_presence
 
 log = logging.getLogger(__name__)
@@ -350,7 +351,7 @@ class RobotConsumer(ProtocolConsumer):
     async def forward_reply(self, envelope: Envelope) -> None:
         """Hand the robot's answer to whoever relayed the command."""
         reply_channel, _ = self.requests.pop(envelope.reply_to)
-        await self.channel_layer.send(reply_channel, {"type": "robot.reply", "frame": protocol.encode(envelope)})
+        await deliver(reply_channel, {"type": "robot.reply", "frame": protocol.encode(envelope)})
 
     async def robot_bridge(self, message: dict[str, Any]) -> None:
         """Pass a bridge client's frame (or its session's opening or end) to the robot."""
@@ -397,7 +398,7 @@ class RobotConsumer(ProtocolConsumer):
             self.retransmit_timer.cancel()
         for request_id, (reply_channel, _) in self.requests.items():
             # The id: one relay waits on one reply channel for many robots' answers.
-            await self.channel_layer.send(reply_channel, {"type": "robot.reply", "offline": True, "id": request_id})
+            await deliver(reply_channel, {"type": "robot.reply", "offline": True, "id": request_id})
         self.requests.clear()
         await self.bridges.robot_left()
         if self.robot_id is not None:
