@@ -156,17 +156,14 @@ class RobotConsumer(ProtocolConsumer):
         if forwarded:
             await self.forward_reply(envelope)
         if event == Event.ACK:
-            if self.reliable.on_ack(envelope.reply_to) and not self.reliable and self.retransmit_timer is not None:
-                # Nothing left to resend: a timer left to fire would cost a callback a robot for nothing.
-                self.retransmit_timer.cancel()
-                self.retransmit_timer = None
+            self.settled(envelope.reply_to)
             if envelope.reply_to in self.rekeys:
                 self.rekeys.discard(envelope.reply_to)
                 await sync(rotation.record_rekeyed)(self.robot_id)
             return
         if event == Event.ERROR_MESSAGE:
             # The robot refused a frame: sending it again would be refused again.
-            self.reliable.on_ack(envelope.reply_to)
+            self.settled(envelope.reply_to)
             self.rekeys.discard(envelope.reply_to)
         if envelope.reply_to is not None and envelope.reply_to in self.chunk_requests:
             future = self.chunk_requests[envelope.reply_to]
@@ -368,6 +365,13 @@ class RobotConsumer(ProtocolConsumer):
     async def robot_replaced(self, message: dict[str, Any]) -> None:
         """Close this connection: the robot reconnected on a newer one."""
         await self.close_with(CLOSE_REPLACED, "replaced by a newer connection")
+
+    def settled(self, frame_id: str | None) -> None:
+        """Stop resending a frame the robot acked or refused; with nothing left, stop the resend timer."""
+        if self.reliable.on_ack(frame_id) and not self.reliable and self.retransmit_timer is not None:
+            # A timer left to fire would cost a callback a robot for nothing.
+            self.retransmit_timer.cancel()
+            self.retransmit_timer = None
 
     def _schedule_retransmit(self) -> None:
         if self.retransmit_timer is not None:
