@@ -6,6 +6,7 @@ import asyncio
 import io
 import json
 import logging
+import uuid
 from collections.abc import AsyncIterator, Callable
 from datetime import UTC, datetime, timedelta
 from typing import Any
@@ -13,7 +14,8 @@ from typing import Any
 import psycopg
 import pytest
 from asgiref.sync import sync_to_async
-from channels.layers import get_channel_layer
+from channels.layers import InMemoryChannelLayer, get_channel_layer
+from channels_redis.core import RedisChannelLayer
 from django.contrib.auth import get_user_model
 from django.core.management import call_command
 from django.db import connections, transaction
@@ -22,7 +24,14 @@ from django.utils import timezone
 from bridgeos_agent.protocol import MetricPoint
 from bridgeos_cloud.loopowned import close_loop_objects
 from monitoring.ingest import MetricWriter, conninfo_from_settings, format_ts, get_writer
-from monitoring.live import LIVE_GROUP, LiveFeed, get_live_feed, metrics_data_json, publish_on_commit
+from monitoring.live import (
+    LIVE_GROUP,
+    LiveFeed,
+    get_live_feed,
+    has_members,
+    metrics_data_json,
+    publish_on_commit,
+)
 from monitoring.models import Metric
 from robots.dedup import applied_ids
 from robots.models import Robot
@@ -320,6 +329,43 @@ async def test_live_feed_coalesces_many_adds_into_one_message_of_latest_values(r
         await feed.close()
         await layer.group_discard(LIVE_GROUP, channel)
         await layer.close_pools()
+
+
+async def test_live_feed_encodes_and_sends_nothing_while_nobody_watches():
+    # A layer of its own (its own key prefix), so no other test's watcher is in its live group.
+    layer = RedisChannelLayer(hosts=[TEST_REDIS_URL], prefix=f"unwatched-{uuid.uuid4().hex}")
+    feed = LiveFeed(interval=0.05, layer=layer)
+    try:
+        feed.add_metrics("r1", [point("cpu", 1.0, T0)])
+        await wait_for_condition(lambda: feed.unwatched_sends == 1)
+        assert feed.messages_sent == 0
+
+        channel = await layer.new_channel()
+        await layer.group_add(LIVE_GROUP, channel)
+        feed.add_metrics("r1", [point("cpu", 2.0, T0 + 1)])
+        message = await asyncio.wait_for(layer.receive(channel), timeout=3)
+
+        # Only what arrived once someone watched: the value nobody was there for is gone.
+        assert json.loads(message["robots"]["r1"])["metrics"] == [{"name": "cpu", "value": 2.0, "ts": T0 + 1}]
+        assert feed.messages_sent == 1 and feed.unwatched_sends == 1
+        await layer.group_discard(LIVE_GROUP, channel)
+    finally:
+        await feed.close()
+        await layer.close_pools()
+
+
+async def test_the_in_memory_layer_says_whether_a_group_has_members():
+    layer = InMemoryChannelLayer()
+    assert not await has_members(layer, LIVE_GROUP)
+    await layer.group_add(LIVE_GROUP, await layer.new_channel())
+    assert await has_members(layer, LIVE_GROUP)
+
+
+async def wait_for_condition(condition: Callable[[], bool], timeout: float = 3.0) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not condition():
+        assert asyncio.get_running_loop().time() < deadline, "condition not met in time"
+        await asyncio.sleep(0.01)
 
 
 def test_live_frames_carry_points_without_labels_or_empty_fields():

@@ -10,7 +10,7 @@ from channels_redis.core import RedisChannelLayer
 
 from bridgeos_agent.protocol import MetricPoint
 from monitoring import prometheus
-from monitoring.live import LiveFeed
+from monitoring.live import LIVE_GROUP, LiveFeed
 from tests.cloud.test_ingest import T0, close_thread_connections, make_writer, point, robots  # noqa: F401  (fixtures)
 
 from .promutil import value
@@ -58,7 +58,11 @@ async def test_live_feed_messages_and_drops_are_counted():
 
     from django.conf import settings
 
-    working = LiveFeed(interval=60, layer=RedisChannelLayer(hosts=[settings.REDIS_URL]))
+    layer = RedisChannelLayer(hosts=[settings.REDIS_URL])
+    watcher = await layer.new_channel()  # the feed sends only while someone watches
+    await layer.group_add(LIVE_GROUP, watcher)
+    working = LiveFeed(interval=60, layer=layer)
     working.add_metrics("r1", points)
     await working.close()
+    await layer.group_discard(LIVE_GROUP, watcher)
     assert value(await here(), "bridgeos_live_messages_total") - value(before, "bridgeos_live_messages_total") == 1
