@@ -8,11 +8,13 @@ import signal
 import socket
 import struct
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from django.contrib.auth import get_user_model
 from websockets.client import ClientProtocol
+from websockets.frames import Frame, Opcode
 from websockets.http11 import Response
 from websockets.uri import parse_uri
 
@@ -126,3 +128,59 @@ def test_a_robots_login_frames_reach_it_together_in_one_segment(daphne_server):
     assert events == LOGIN_FRAMES
     # Sent one by one (TCP_NODELAY, as autobahn sets), each frame was a segment of its own: three.
     assert segments == 1, f"the login's {len(events)} frames came in {segments} segments"
+
+
+def read_frames(sock: socket.socket, ws: ClientProtocol, done: Callable[[list[Frame]], bool]) -> list[Frame]:
+    """Read frames until ``done`` says they are all there; return them."""
+    frames: list[Frame] = []
+    deadline = time.monotonic() + 15
+    while not done(frames):
+        sock.settimeout(max(0.01, deadline - time.monotonic()))
+        data = sock.recv(65536)
+        assert data, f"daphne closed the connection after {frames}"
+        ws.receive_data(data)
+        frames.extend(ws.events_received())
+    return frames
+
+
+def pongs(frames: list[Frame]) -> list[bytes]:
+    return [bytes(frame.data) for frame in frames if frame.opcode is Opcode.PONG]
+
+
+def opened(daphne_server) -> tuple[socket.socket, ClientProtocol]:
+    ws = ClientProtocol(parse_uri(f"{daphne_server.ws_url}/ws/robot/"))
+    sock = socket.create_connection((daphne_server.host, daphne_server.port), timeout=15)
+    ws.send_request(ws.connect())
+    sock.sendall(b"".join(ws.data_to_send()))
+    assert frames_until(sock, ws, "handshake") == ["handshake"]
+    return sock, ws
+
+
+@pytest.mark.parametrize("payload", [b"", b"beat-1", bytes(range(125))])
+def test_a_lone_ping_gets_its_own_payload_back(daphne_server, payload):
+    sock, ws = opened(daphne_server)
+    with sock:
+        for _ in range(3):
+            ws.send_ping(payload)
+            sock.sendall(b"".join(ws.data_to_send()))  # one ping, one segment: answered directly
+            assert pongs(read_frames(sock, ws, lambda frames: bool(frames))) == [payload]
+
+
+def test_a_ping_sent_together_with_a_frame_is_answered_and_the_frame_handled(daphne_server):
+    owner = get_user_model().objects.create_user("ping-owner")
+    _, token = create_robot("ping-bot", owner)
+    sock, ws = opened(daphne_server)
+    with sock:
+        credentials = {"robot": "ping-bot", "token": token}
+        ws.send_ping(b"first")
+        ws.send_text(json.dumps({"event": "authentication_robot", "id": "login-1", "data": credentials}).encode())
+        ws.send_ping(b"second")
+        # Two pings and a login in one segment: not a lone ping, so the general parser takes all three.
+        sock.sendall(b"".join(ws.data_to_send()))
+
+        def texts(frames: list[Frame]) -> list[str]:
+            return [json.loads(frame.data)["event"] for frame in frames if frame.opcode is Opcode.TEXT]
+
+        frames = read_frames(sock, ws, lambda frames: len(pongs(frames)) == 2 and "robot_config" in texts(frames))
+    assert pongs(frames) == [b"first", b"second"]
+    assert texts(frames) == LOGIN_FRAMES
