@@ -42,6 +42,9 @@ logger = logging.getLogger(__name__)
 LIVE_GROUP = "live"
 # State events per group message when many are published at once (bounded message size).
 PUBLISH_CHUNK = 250
+# How long points go ungathered after a round found nobody watching: a watcher who comes meanwhile
+# waits at most this long for values.
+UNWATCHED_RECHECK_S = 1.0
 # How long a round of state events gathers before it goes to the live group.
 EVENT_SETTLE_S = 0.005
 
@@ -58,12 +61,15 @@ class LiveFeed:
         self.layer = layer
         self.messages_sent = 0
         self.unwatched_sends = 0  # rounds dropped because no client was in the live group
+        self._unwatched_until = -math.inf  # monotonic time: until then, points are not even gathered
         self._latest: dict[str, dict[SeriesKey, MetricPoint]] = {}
         self._task: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
 
     def add_metrics(self, robot_id: str, points: Sequence[MetricPoint]) -> None:
         """Remember the newest value of each series among the points."""
+        if time.monotonic() < self._unwatched_until:
+            return  # nobody watched a moment ago; the first points after that look again
         series = self._latest.get(robot_id)
         if series is None:
             series = self._latest[robot_id] = {}
@@ -102,6 +108,7 @@ class LiveFeed:
             # Nobody watches, in any process: a watcher who comes gets the values that arrive after.
             # Encoding 10,000 robots' values for nobody was a ninth of daphne's main thread (py-spy).
             self.unwatched_sends += 1
+            self._unwatched_until = time.monotonic() + UNWATCHED_RECHECK_S
             return
         # Each robot's payload is encoded once here, not once per subscribed client.
         robots = {robot_id: metrics_data_json(robot_id, series.values()) for robot_id, series in latest.items()}

@@ -23,6 +23,7 @@ from django.utils import timezone
 
 from bridgeos_agent.protocol import MetricPoint
 from bridgeos_cloud.loopowned import close_loop_objects
+from monitoring import live
 from monitoring.ingest import MetricWriter, conninfo_from_settings, format_ts, get_writer
 from monitoring.live import (
     LIVE_GROUP,
@@ -331,7 +332,8 @@ async def test_live_feed_coalesces_many_adds_into_one_message_of_latest_values(r
         await layer.close_pools()
 
 
-async def test_live_feed_encodes_and_sends_nothing_while_nobody_watches():
+async def test_live_feed_encodes_and_sends_nothing_while_nobody_watches(monkeypatch):
+    monkeypatch.setattr(live, "UNWATCHED_RECHECK_S", 0.3)
     # A layer of its own (its own key prefix), so no other test's watcher is in its live group.
     layer = RedisChannelLayer(hosts=[TEST_REDIS_URL], prefix=f"unwatched-{uuid.uuid4().hex}")
     feed = LiveFeed(interval=0.05, layer=layer)
@@ -342,11 +344,15 @@ async def test_live_feed_encodes_and_sends_nothing_while_nobody_watches():
 
         channel = await layer.new_channel()
         await layer.group_add(LIVE_GROUP, channel)
+        # Nobody watched a moment ago: not even gathered, until the feed looks again.
         feed.add_metrics("r1", [point("cpu", 2.0, T0 + 1)])
+        assert not feed._latest
+        await asyncio.sleep(0.3)
+        feed.add_metrics("r1", [point("cpu", 3.0, T0 + 2)])
         message = await asyncio.wait_for(layer.receive(channel), timeout=3)
 
-        # Only what arrived once someone watched: the value nobody was there for is gone.
-        assert json.loads(message["robots"]["r1"])["metrics"] == [{"name": "cpu", "value": 2.0, "ts": T0 + 1}]
+        # Only what arrived once someone watched: the values nobody was there for are gone.
+        assert json.loads(message["robots"]["r1"])["metrics"] == [{"name": "cpu", "value": 3.0, "ts": T0 + 2}]
         assert feed.messages_sent == 1 and feed.unwatched_sends == 1
         await layer.group_discard(LIVE_GROUP, channel)
     finally:
