@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
@@ -256,8 +257,12 @@ class ClientConsumer(ProtocolConsumer):
             await self.fail("internal error", reply_to=envelope.id, code="internal_error")
         finally:
             if envelope.event in RELAYED or envelope.event in STORED_THEN_RELAYED:
-                await database_sync_to_async(audit.record_client_command)(
-                    self.actor, envelope.event, robot_id, outcome, self.scope.get("client")
+                # Shielded: a client that leaves cancels what its connection was doing, and an entry
+                # still queued for the database thread was cancelled with it, the command unrecorded.
+                await asyncio.shield(
+                    database_sync_to_async(audit.record_client_command)(
+                        self.actor, envelope.event, robot_id, outcome, self.scope.get("client")
+                    )
                 )
 
     async def subscribe_metrics(self, envelope: Envelope, payload: protocol.MetricsSubscribe) -> None:

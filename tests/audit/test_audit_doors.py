@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import base64
 from datetime import UTC, datetime
 from typing import Any
@@ -110,6 +111,24 @@ def test_dashboard_and_admin_logins_and_an_admin_change_are_one_entry_each(daphn
         ("admin", "admin.auth_group_add", "root", "ok"),
         ("admin", "admin.auth_group_add", "root", "invalid"),
     ]
+
+
+async def test_every_command_is_written_although_its_client_leaves_at_once(daphne_server, alice):
+    from asgiref.sync import sync_to_async
+
+    _, key = alice
+    link = await client_link(daphne_server, key)
+    commands = 15  # within the per-robot command limit
+    answers = await asyncio.gather(*(link.request(Event.ROBOT_STOP, {"robot": "alice-bot"}) for _ in range(commands)))
+    assert [answer.data["code"] for answer in answers] == ["robot_offline"] * commands
+    # At once: the last commands' entries still wait for daphne's database thread, and leaving
+    # cancels what the connection was doing. Their writes were cancelled with it, and lost.
+    await link.close()
+    await sync_to_async(wait_until)(
+        lambda: AuditEntry.objects.filter(door="ws").count() >= commands,
+        what=f"{commands} entries",
+    )
+    assert await sync_to_async(AuditEntry.objects.filter(door="ws").count)() == commands
 
 
 async def test_a_client_websocket_command_is_one_entry(daphne_server, alice):
