@@ -103,6 +103,7 @@ def pings_answered_directly() -> None:
             and self.state == state_open
             and not self.data
             and self.current_frame is None
+            and not self.send_queue  # nothing autobahn holds back to send first
             and not self.logOctets
             and not self.logFrames
             and type(data) is bytes
