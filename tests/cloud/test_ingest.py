@@ -6,6 +6,7 @@ import asyncio
 import io
 import json
 import logging
+import time
 import uuid
 from collections.abc import AsyncIterator, Callable
 from datetime import UTC, datetime, timedelta
@@ -431,3 +432,39 @@ def test_prune_metrics_command_deletes_old_points(robots):
 
     assert out.getvalue().strip() == "Deleted 5 metric points."
     assert sorted(Metric.objects.values_list("value", flat=True)) == [0, 1, 2, 3, 4]
+
+
+async def test_the_next_batch_is_written_while_the_event_loop_is_still_busy(robots, make_writer, monkeypatch):
+    writer = make_writer(flush_rows=10, flush_interval=60)
+    first = writer.add("r1", [point("cpu", float(i), T0 + i) for i in range(10)])
+    sink = writer._sink
+    write = sink.write
+    calls: list[int] = []
+
+    def slow_first_write(entries):
+        calls.append(len(entries))
+        if len(calls) == 1:
+            time.sleep(0.5)  # a slow COPY, while the robots' next frames arrive
+        return write(entries)
+
+    monkeypatch.setattr(sink, "write", slow_first_write)
+    await asyncio.sleep(0.1)  # the first batch is being written
+    second = writer.add("r2", [point("cpu", float(i), T0 + i) for i in range(10)])
+    await asyncio.sleep(0.1)  # the second is cut and handed to the thread behind it
+    # The loop is busy (a backlog of frames) while the first batch commits: the thread goes on to
+    # the second without waiting for the loop to take the first one's result.
+    time.sleep(1.0)  # noqa: ASYNC251 - the point: the loop blocked, as under a backlog
+    with psycopg.connect(conninfo_from_settings()) as conn:
+        committed = conn.execute("SELECT count(*) FROM monitoring_metric").fetchone()[0]
+    assert committed == 20
+    await asyncio.wait_for(asyncio.gather(first, second), timeout=5)
+    assert calls == [1, 1] and writer.rows_written == 20
+
+
+async def test_an_idle_writer_leaves_the_event_loop_free(robots, make_writer):
+    writer = make_writer(flush_interval=0.05)
+    await asyncio.wait_for(writer.add("r1", [point("cpu", 1.0, T0)]), timeout=5)
+    used = time.thread_time()
+    await asyncio.wait_for(asyncio.sleep(0.5), timeout=5)
+    # Ten intervals with nothing to write: a few wakeups, not a loop spinning on the CPU.
+    assert time.thread_time() - used < 0.1

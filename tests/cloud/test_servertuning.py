@@ -18,7 +18,8 @@ from websockets.frames import Frame, Opcode
 from websockets.http11 import Response
 from websockets.uri import parse_uri
 
-from bridgeos_cloud.servertuning import ACCESS_LOG_FLUSH_S
+from bridgeos_cloud.servertuning import ACCESS_LOG_FLUSH_S, unmask
+from monitoring.models import Metric
 from robots.services import create_robot
 
 from ..conftest import another_daphne, wait_until
@@ -184,3 +185,114 @@ def test_a_ping_sent_together_with_a_frame_is_answered_and_the_frame_handled(dap
         frames = read_frames(sock, ws, lambda frames: len(pongs(frames)) == 2 and "robot_config" in texts(frames))
     assert pongs(frames) == [b"first", b"second"]
     assert texts(frames) == LOGIN_FRAMES
+
+
+@pytest.mark.parametrize("size", [1, 3, 4, 5, 125, 126, 1000, 65535])
+def test_unmasking_is_the_rfc_xor_of_every_byte_with_the_key(size):
+    payload, mask = bytes((7 * i + 3) % 256 for i in range(size)), b"\x9a\x01\xff\x42"
+    assert unmask(payload, mask) == bytes(byte ^ mask[i % 4] for i, byte in enumerate(payload))
+
+
+def texts_of(frames: list[Frame]) -> list[dict]:
+    return [json.loads(frame.data) for frame in frames if frame.opcode is Opcode.TEXT]
+
+
+def logged_in(daphne_server, name: str) -> tuple[socket.socket, ClientProtocol]:
+    owner = get_user_model().objects.create_user(f"{name}-owner")
+    _, token = create_robot(name, owner)
+    sock, ws = opened(daphne_server)
+    # A lone text frame in one segment: read directly.
+    ws.send_text(
+        json.dumps({"event": "authentication_robot", "id": "login-1", "data": {"robot": name, "token": token}}).encode()
+    )
+    sock.sendall(b"".join(ws.data_to_send()))
+    frames = read_frames(sock, ws, lambda frames: "robot_config" in [t["event"] for t in texts_of(frames)])
+    assert [text["event"] for text in texts_of(frames)] == LOGIN_FRAMES
+    return sock, ws
+
+
+def test_lone_text_frames_of_each_length_encoding_reach_the_robot_consumer_whole(daphne_server):
+    sock, ws = logged_in(daphne_server, "direct-text-bot")
+    with sock:
+        now = time.time()
+        for count in (1, 40):  # a 7-bit length, then a 16-bit one
+            points = [{"name": f"m{i}", "value": i + 0.5, "ts": now} for i in range(count)]
+            frame = {"event": "metrics", "id": f"metrics-{count}", "data": {"metrics": points}, "ts": now}
+            ws.send_text(json.dumps(frame).encode())
+            sock.sendall(b"".join(ws.data_to_send()))
+            (answer,) = texts_of(read_frames(sock, ws, lambda frames: bool(texts_of(frames))))
+            assert (answer["event"], answer["reply_to"]) == ("ack", f"metrics-{count}")
+        # Text beyond ASCII arrives as the robot wrote it: the refusal names the event it was sent.
+        ws.send_text(json.dumps({"event": "größe-✓", "id": "odd-1", "data": {}}, ensure_ascii=False).encode())
+        sock.sendall(b"".join(ws.data_to_send()))
+        (refusal,) = texts_of(read_frames(sock, ws, lambda frames: bool(texts_of(frames))))
+    assert refusal["event"] == "error_message" and "größe-✓" in refusal["data"]["message"]
+    stored = Metric.objects.filter(robot_id="direct-text-bot")
+    assert stored.count() == 41 and set(stored.values_list("name", flat=True)) == {f"m{i}" for i in range(40)}
+
+
+def test_a_text_frame_split_over_segments_is_read_the_general_way(daphne_server):
+    sock, ws = logged_in(daphne_server, "split-text-bot")
+    with sock:
+        frame = {
+            "event": "metrics",
+            "id": "split-1",
+            "data": {"metrics": [{"name": "m", "value": 1.5, "ts": time.time()}]},
+        }
+        ws.send_text(json.dumps(frame).encode())
+        data = b"".join(ws.data_to_send())
+        sock.sendall(data[:9])
+        time.sleep(0.2)
+        sock.sendall(data[9:])
+        (answer,) = texts_of(read_frames(sock, ws, lambda frames: bool(texts_of(frames))))
+    assert (answer["event"], answer["reply_to"]) == ("ack", "split-1")
+
+
+def how_it_ends(sock: socket.socket, ws: ClientProtocol) -> str:
+    """Read until daphne ends the connection; return how: its close code, or that it dropped the socket."""
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        sock.settimeout(max(0.01, deadline - time.monotonic()))
+        try:
+            data = sock.recv(65536)
+        except ConnectionResetError:
+            return "dropped"
+        if not data:
+            return "dropped"
+        ws.receive_data(data)
+        for frame in ws.events_received():
+            assert frame.opcode is not Opcode.TEXT, f"a bad frame was answered: {frame.data!r}"
+            if frame.opcode is Opcode.CLOSE:
+                return f"closed {struct.unpack('!H', bytes(frame.data[:2]))[0]}"
+    raise AssertionError("daphne kept the connection open")
+
+
+def bad_frame_endings(daphne_server, name: str, frame: bytes) -> list[str]:
+    """Send a bad frame in one segment (a candidate for the direct path) and split (the general one)."""
+    endings = []
+    for split in (False, True):
+        sock, ws = logged_in(daphne_server, f"{name}-{int(split)}")
+        with sock:
+            if split:
+                sock.sendall(frame[:3])
+                time.sleep(0.2)
+                sock.sendall(frame[3:])
+            else:
+                sock.sendall(frame)
+            endings.append(how_it_ends(sock, ws))
+    return endings
+
+
+def test_a_lone_text_frame_of_invalid_utf8_ends_the_connection_as_autobahn_does(daphne_server):
+    payload, mask = b'{"event": "metrics", "id": "\xff\xfe"}', b"\x01\x02\x03\x04"
+    frame = bytes((0x81, 0x80 | len(payload))) + mask + unmask(payload, mask)
+    one_segment, split = bad_frame_endings(daphne_server, "bad-utf8", frame)
+    assert one_segment == split
+
+
+def test_a_lone_text_frame_whose_length_is_not_minimally_encoded_ends_the_connection_as_autobahn_does(daphne_server):
+    payload, mask = b'{"event":"x"}', b"\x01\x02\x03\x04"
+    # A 13-byte payload announced in the 16-bit form: RFC 6455 allows only the shortest form.
+    frame = bytes((0x81, 0x80 | 126)) + len(payload).to_bytes(2, "big") + mask + unmask(payload, mask)
+    one_segment, split = bad_frame_endings(daphne_server, "long-length", frame)
+    assert one_segment == split
