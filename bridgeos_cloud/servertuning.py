@@ -109,8 +109,7 @@ def pings_answered_directly() -> None:
             and not self.logFrames
             and type(data) is bytes
         ):
-            mask = data[2:6]
-            payload = bytes(byte ^ mask[i & 3] for i, byte in enumerate(data[6:]))
+            payload = unmask(data[6:], data[2:6])
             pong = bytes((_PONG, len(payload))) + payload
             self.trafficStats.incomingOctetsWireLevel += len(data)
             self.trafficStats.outgoingOctetsWireLevel += len(pong)
