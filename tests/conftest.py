@@ -12,17 +12,24 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
+from pytest_django.plugin import blocking_manager_key
 
 from tests.logguard import watch
 
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
+_config: pytest.Config
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    global _config
+    _config = config
 
 
 def free_port() -> int:
@@ -176,6 +183,9 @@ def another_daphne(log: Path, **env: str) -> Iterator[tuple[Server, subprocess.P
     port = free_port()
     watch(log)
     full_env = service_env(settings.DATABASES["default"]["NAME"]) | {"VIRTUAL_ENV": str(BIN.parent), **env}
+    # Another cloud's process (its own id) is not listed among this cloud's: nothing to learn or release.
+    ours = "BRIDGEOS_CLOUD_ID" not in env
+    listed_before = listed_processes() if ours else set()
     with log.open("wb") as out:
         process = subprocess.Popen(
             [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(port)],
@@ -184,11 +194,64 @@ def another_daphne(log: Path, **env: str) -> Iterator[tuple[Server, subprocess.P
             stdout=out,
             stderr=subprocess.STDOUT,
         )
+    names: set[str] = set()
     try:
         wait_for_port(port, process)
+        if ours:
+            names = newly_listed(listed_before)
         yield Server("127.0.0.1", port, log), process
     finally:
         stop_process(process)
+        release_processes(names)
+
+
+def listed_processes() -> set[str]:
+    """Return the server processes this cloud lists in Redis (robots/presence.py's registry)."""
+    import redis
+    from django.conf import settings
+
+    from robots.presence import PROCESSES_KEY, cloud_namespace
+
+    with redis.Redis.from_url(settings.REDIS_URL, socket_timeout=5) as client:
+        return {member.decode() for member in client.smembers(PROCESSES_KEY.format(cloud_namespace()))}
+
+
+def newly_listed(before: set[str], timeout: float = 5.0) -> set[str]:
+    """Return the processes listed since ``before``: a daphne registers itself just after it starts listening."""
+    deadline = time.monotonic() + timeout
+    while not (new := listed_processes() - before) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return new
+
+
+def release_processes(names: set[str]) -> None:
+    """Forget stopped server processes and mark offline the robots they still held, before the tables are flushed.
+
+    A stopped daphne leaves its robots for a live process's sweep (every 2 s, or 10 s after a kill),
+    and a sweep that writes them while pytest-django truncates the tables deadlocks with it: the
+    flush fails. Swept here, before the test ends, they are offline before the flush begins.
+    """
+    if not names:
+        return
+    import redis
+    from django.conf import settings
+    from django.db import connections
+
+    from robots.presence import PROCESS_KEY, sweep_dead_processes
+
+    with redis.Redis.from_url(settings.REDIS_URL, socket_timeout=5) as client:
+        client.delete(*(PROCESS_KEY.format(name) for name in names))
+
+    def sweep() -> None:
+        try:
+            sweep_dead_processes()
+        finally:
+            connections.close_all()
+
+    # On a thread of its own: an async test's server ends inside its event loop. And unblocked: a
+    # module's server ends after its last test, where pytest-django blocks the database.
+    with _config.stash[blocking_manager_key].unblock(), ThreadPoolExecutor(1) as thread:
+        thread.submit(sweep).result()
 
 
 def close_other_sessions() -> None:
