@@ -20,7 +20,7 @@ import psycopg
 from django.conf import settings
 from django.db import connections
 
-from monitoring.ingest import conninfo_from_settings
+from monitoring.sinks import conninfo_from_settings
 
 __all__ = ["LockBusy", "orchestration_lock"]
 

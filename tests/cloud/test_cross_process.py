@@ -19,9 +19,9 @@ from django.conf import settings
 from django.test import override_settings
 
 from bridgeos_agent.protocol import Event
-from monitoring.ingest import conninfo_from_settings
 from monitoring.models import Event as LogEvent
 from monitoring.models import Metric
+from monitoring.sinks import conninfo_from_settings
 from robots.models import Robot
 from robots.presence import DEAD_PROCESS_REASON
 from robots.tasks import sweep_dead_processes

@@ -25,7 +25,7 @@ from django.utils import timezone
 from bridgeos_agent.protocol import MetricPoint
 from bridgeos_cloud.loopowned import close_loop_objects
 from monitoring import live
-from monitoring.ingest import MetricWriter, conninfo_from_settings, format_ts, get_writer
+from monitoring.ingest import MetricWriter, get_writer
 from monitoring.live import (
     LIVE_GROUP,
     LiveFeed,
@@ -35,6 +35,7 @@ from monitoring.live import (
     publish_on_commit,
 )
 from monitoring.models import Metric
+from monitoring.sinks import conninfo_from_settings, format_ts
 from robots.dedup import applied_ids
 from robots.models import Robot
 from robots.services import create_robot
