@@ -27,7 +27,7 @@ from django.db import InterfaceError, OperationalError, connections
 from bridgeos_cloud.loopowned import loop_object
 
 from . import prometheus
-from .sinks import Entry, OrmSink, PostgresSink, Sink
+from .sinks import Entry, OrmSink, PostgresSink, RobotsDeleted, Sink
 
 if TYPE_CHECKING:
     from bridgeos_agent.protocol import MetricPoint
@@ -238,7 +238,7 @@ class MetricWriter:
                 self.rows_already_stored += sink.write(entries)
                 return entries, {}
             except Exception as exc:
-                if sink.is_integrity_error(exc):
+                if isinstance(exc, RobotsDeleted):
                     kept = self._without_deleted_robots(entries, sink)
                     if len(kept) < len(entries):
                         entries = kept

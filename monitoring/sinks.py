@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import psycopg
 from django.conf import settings
-from django.db import IntegrityError, connections, transaction
+from django.db import connections, transaction
 
 from .models import IngestedFrame, Metric
 
@@ -143,8 +143,6 @@ class Sink(Protocol):
 
     def existing_robots(self, robot_ids: set[str]) -> set[str]: ...
 
-    def is_integrity_error(self, exc: BaseException) -> bool: ...
-
     def reset(self) -> None: ...
 
 
@@ -166,8 +164,18 @@ def conninfo_from_settings(alias: str = "default") -> str:
     return psycopg.conninfo.make_conninfo(**{k: v for k, v in params.items() if v is not None})
 
 
+class RobotsDeleted(Exception):
+    """A batch holds points of robots that no longer exist: the writer drops them and writes the rest."""
+
+
 class PostgresSink:
     """Write batches with COPY over one psycopg connection of its own."""
+
+    # A metric row has no foreign key to its robot: PostgreSQL checked it row by row, an index
+    # lookup and a row lock each, 40 % of what storing a point cost (COPY of 100,000 rows: 0.90 s,
+    # and 0.63 s more for the checks). A batch locks its robots' rows once instead, `FOR KEY SHARE`
+    # as the key's check did, and a robot's deletion locks its row before deleting its points
+    # (`monitoring.receivers`): no batch commits points of a robot after they were deleted.
 
     # A blocking connection in the writer's thread: psycopg waits for the server without the GIL,
     # and a COPY's round trips no longer queue behind every frame in the event loop. Under 30,000
@@ -184,6 +192,9 @@ class PostgresSink:
             "ON CONFLICT DO NOTHING RETURNING robot_id, frame_id"
         )
         self.robot_table = Metric._meta.get_field("robot").related_model._meta.db_table
+        # In code point order, as Django's deletions lock robots (by primary key, sorted in Python):
+        # a batch and a deletion of several of its robots never wait for each other's locks in a cycle.
+        self.lock_sql = f'SELECT id FROM {self.robot_table} WHERE id = ANY(%s) ORDER BY id COLLATE "C" FOR KEY SHARE'
         self.conn: psycopg.Connection[Any] | None = None
 
     def _connection(self) -> psycopg.Connection[Any]:
@@ -197,11 +208,19 @@ class PostgresSink:
     def write(self, entries: list[Entry]) -> int:
         conn = self._connection()
         with conn.transaction(), conn.cursor() as cursor:
+            self._lock_robots(cursor, entries)
             fresh = self._claim(cursor, entries)
             if fresh:
                 with cursor.copy(self.copy_sql) as copy:
                     copy.write("".join([entry.payload for entry in fresh]))
         return sum(entry.rows for entry in entries) - sum(entry.rows for entry in fresh)
+
+    def _lock_robots(self, cursor: psycopg.Cursor[Any], entries: list[Entry]) -> None:
+        """Lock the entries' robots until this transaction ends; raise RobotsDeleted if one is gone."""
+        robot_ids = {entry.robot_id for entry in entries}
+        cursor.execute(self.lock_sql, [list(robot_ids)])
+        if cursor.rowcount < len(robot_ids):
+            raise RobotsDeleted
 
     def _claim(self, cursor: psycopg.Cursor[Any], entries: list[Entry]) -> list[Entry]:
         """Record the entries' frame ids in this transaction; return the entries not stored before."""
@@ -225,6 +244,7 @@ class PostgresSink:
         conn = self._connection()
         errors: list[BaseException | None] = []
         with conn.transaction(), conn.cursor() as cursor:
+            self._lock_robots(cursor, entries)
             for entry in entries:
                 try:
                     # A savepoint per entry, so one bad frame does not take the others with it.
@@ -243,9 +263,6 @@ class PostgresSink:
         with conn.transaction():
             cursor = conn.execute(f"SELECT id FROM {self.robot_table} WHERE id = ANY(%s)", [list(robot_ids)])
             return {row[0] for row in cursor.fetchall()}
-
-    def is_integrity_error(self, exc: BaseException) -> bool:
-        return isinstance(exc, psycopg.errors.ForeignKeyViolation)
 
     def reset(self) -> None:
         if self.conn is not None:
@@ -280,6 +297,10 @@ class OrmSink:
 
     def write(self, entries: list[Entry]) -> int:
         with transaction.atomic(using=self.alias):
+            robot_ids = {entry.robot_id for entry in entries}
+            # No foreign key to refuse them (see PostgresSink): SQLite has one writer at a time.
+            if len(self.existing_robots(robot_ids)) < len(robot_ids):
+                raise RobotsDeleted
             fresh = self._claim(entries)
             rows = [metric for entry in fresh for metric in self._metrics(entry)]
             Metric.objects.using(self.alias).bulk_create(rows, batch_size=1000)
@@ -323,9 +344,6 @@ class OrmSink:
     def existing_robots(self, robot_ids: set[str]) -> set[str]:
         robots = Metric._meta.get_field("robot").related_model._default_manager.using(self.alias)
         return set(robots.filter(pk__in=robot_ids).values_list("pk", flat=True))
-
-    def is_integrity_error(self, exc: BaseException) -> bool:
-        return isinstance(exc, IntegrityError)
 
     def reset(self) -> None:
         # Called in the writer's thread: Django keeps one connection per thread.

@@ -6,6 +6,7 @@ import asyncio
 import io
 import json
 import logging
+import threading
 import time
 import uuid
 from collections.abc import AsyncIterator, Callable
@@ -35,7 +36,7 @@ from monitoring.live import (
     publish_on_commit,
 )
 from monitoring.models import Metric
-from monitoring.sinks import conninfo_from_settings, format_ts
+from monitoring.sinks import PostgresSink, conninfo_from_settings, format_ts
 from robots.dedup import applied_ids
 from robots.models import Robot
 from robots.services import create_robot
@@ -219,6 +220,35 @@ async def test_rows_of_a_deleted_robot_are_dropped_without_losing_others(robots,
     assert len(await stored()) == 6
     assert writer.rows_written == 6 and writer.rows_dropped == 5
     assert [r.getMessage() for r in caplog.records] == ["Dropped 5 metric rows of deleted robots: r2"]
+
+
+async def test_a_robot_deleted_while_a_batch_of_its_points_is_written_keeps_none_of_them(
+    robots, make_writer, monkeypatch
+):
+    # Metric rows have no foreign key to their robot: the batch's lock on the robot's row and the
+    # deletion's lock on it keep a committed batch from leaving points behind a deleted robot.
+    locked, go_on = threading.Event(), threading.Event()
+    claim = PostgresSink._claim
+
+    def claim_once_the_test_says(self, cursor, entries):
+        locked.set()  # the batch holds its robots' rows by now
+        go_on.wait(10)
+        return claim(self, cursor, entries)
+
+    monkeypatch.setattr(PostgresSink, "_claim", claim_once_the_test_says)
+    writer = make_writer(flush_interval=60)
+    frame = writer.add("r2", [point("cpu", float(i), T0 + i) for i in range(5)])
+    flushing = asyncio.ensure_future(writer.flush())
+    assert await asyncio.to_thread(locked.wait, 10)
+    delete = sync_to_async(Robot.objects.filter(id="r2").delete, thread_sensitive=False)
+    deleting = asyncio.ensure_future(delete())
+    await asyncio.sleep(0.5)
+    assert not deleting.done(), "the deletion did not wait for the batch holding its robot"
+
+    go_on.set()
+    await asyncio.wait_for(asyncio.gather(flushing, frame, deleting), 15)
+    assert writer.rows_written == 5
+    assert await sync_to_async(Metric.objects.filter(robot_id="r2").count)() == 0
 
 
 async def test_a_frame_the_database_refuses_fails_alone(robots, make_writer):
