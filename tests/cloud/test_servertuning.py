@@ -18,7 +18,7 @@ from websockets.frames import Frame, Opcode
 from websockets.http11 import Response
 from websockets.uri import parse_uri
 
-from bridgeos_cloud.servertuning import ACCESS_LOG_FLUSH_S, CLOSE_HANDSHAKE_TIMEOUT_S, unmask
+from bridgeos_cloud.servertuning import ACCESS_LOG_FLUSH_S, CLOSE_HANDSHAKE_TIMEOUT_S, call_and_log_failures, unmask
 from monitoring.models import Metric
 from robots.services import create_robot
 
@@ -315,3 +315,22 @@ def test_a_client_slow_to_answer_daphnes_close_still_reads_its_refusal_and_sends
             sock.recv(65536)
     (refusal,) = texts_of(frames)
     assert refusal["event"] == "authentication_failure"
+
+
+def test_a_ready_sockets_handler_returns_as_before_and_its_failure_is_logged_with_the_connections_prefix():
+    from twisted.python import log
+
+    class Connection:
+        def logPrefix(self) -> str:
+            return "WebSocketProtocol,7,127.0.0.1"
+
+    events: list[dict] = []
+    log.addObserver(events.append)
+    try:
+        assert call_and_log_failures(Connection(), lambda a, b=0: a + b, 1, b=2) == 3
+        assert call_and_log_failures(Connection(), lambda: 1 / 0) is None
+    finally:
+        log.removeObserver(events.append)
+    (failure,) = [event for event in events if event.get("isError")]
+    assert failure["system"] == "WebSocketProtocol,7,127.0.0.1"
+    assert failure["failure"].check(ZeroDivisionError)
