@@ -317,6 +317,8 @@ def test_a_client_slow_to_answer_daphnes_close_still_reads_its_refusal_and_sends
     assert refusal["event"] == "authentication_failure"
 
 
+# Where a Twisted client (roslibpy) forwards Twisted's log to Python's, the failure is an ERROR line.
+@pytest.mark.log_errors(r"ZeroDivisionError")
 def test_a_ready_sockets_handler_returns_as_before_and_its_failure_is_logged_with_the_connections_prefix():
     from twisted.python import log
 
