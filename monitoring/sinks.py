@@ -175,7 +175,7 @@ class PostgresSink:
     # lookup and a row lock each, 40 % of what storing a point cost (COPY of 100,000 rows: 0.90 s,
     # and 0.63 s more for the checks). A batch locks its robots' rows once instead, `FOR KEY SHARE`
     # as the key's check did, and a robot's deletion locks its row before deleting its points
-    # (`monitoring.receivers`): no batch commits points of a robot after they were deleted.
+    # (`robots.receivers`): no batch commits points of a robot after they were deleted.
 
     # A blocking connection in the writer's thread: psycopg waits for the server without the GIL,
     # and a COPY's round trips no longer queue behind every frame in the event loop. Under 30,000

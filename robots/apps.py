@@ -14,6 +14,7 @@ class RobotsConfig(AppConfig):
     default_auto_field = "django.db.models.BigAutoField"
 
     def ready(self) -> None:
+        from . import receivers  # noqa: F401 - connects the receivers
         from .services import write_robot_families
 
         prometheus.add_database_families(write_robot_families)

@@ -1,7 +1,7 @@
 """Metric rows lose their foreign key to robots: ingest locks a batch's robots, a deletion its robot.
 
 PostgreSQL checked the key row by row, 40 % of what storing a point cost. `monitoring.sinks` and
-`monitoring.receivers` keep the same guarantee: no point outlives its robot.
+`robots.receivers` keep the same guarantee: no point outlives its robot.
 """
 
 import django.db.models.deletion
