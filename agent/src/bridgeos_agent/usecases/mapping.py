@@ -71,7 +71,12 @@ def main(argv: list[str]) -> int:
         header = Header(stamp=rospy.Time.now(), frame_id="map")
         with lock:
             values = built.occupancy()
-        publisher.publish(grid_message(header, values, args.resolution, (grid.origin_x, grid.origin_y)))
+        try:
+            publisher.publish(grid_message(header, values, args.resolution, (grid.origin_x, grid.origin_y)))
+        except rospy.ROSException:
+            # rospy closes its publishers before its timers stop: a tick during shutdown has nowhere to go.
+            if not rospy.is_shutdown():
+                raise
 
     def report(_event: object) -> None:
         metrics.report("message_loss_pct", scans_loss.loss_pct, topic="scan")
