@@ -34,6 +34,20 @@ async def collect(link: Link, seconds: float) -> list:
     return frames
 
 
+async def collect_until(link: Link, wanted: set[tuple[str, str]], timeout: float = 15.0, linger: float = 1.0) -> list:
+    """Gather frames until every wanted (event, robot) has come, and for ``linger`` seconds more."""
+    frames: list = []
+    deadline = time.monotonic() + timeout
+    while not wanted <= {(frame.event, frame.data.get("robot")) for frame in frames}:
+        if (left := deadline - time.monotonic()) <= 0:
+            break
+        try:
+            frames.append(await link.next(timeout=left))
+        except TimeoutError:
+            break
+    return frames + await collect(link, linger)
+
+
 async def test_client_authenticates_with_an_api_token(daphne_server):
     _, token = await make_owner("alice")
     link = Link(daphne_server.ws_url + "/ws/client/")
@@ -84,19 +98,15 @@ async def test_a_client_never_receives_another_users_robot(daphne_server):
         await robot.send(Event.SKILL_STATUS, {"skill": "people-detection", "status": "running"})
     await robot_b.close()
 
-    seen_by_alice = await collect(alice_client, 2.0)
-    seen_by_staff = await collect(staff_client, 0.5)
+    alices = {(Event.METRICS, "alice-bot"), (Event.SKILL_STATUS, "alice-bot")}
+    bobs = {(Event.METRICS, "bob-bot"), (Event.SKILL_STATUS, "bob-bot"), (Event.CONNECTION_LOST, "bob-bot")}
+    # Until the staff client has all of bob's frames, and a second more: alice would have had them by then.
+    seen_by_staff = await collect_until(staff_client, bobs)
+    seen_by_alice = await collect_until(alice_client, alices)
     robots_alice_saw = {frame.data.get("robot") for frame in seen_by_alice}
     assert "bob-bot" not in robots_alice_saw
-    assert {(f.event, f.data.get("robot")) for f in seen_by_alice} >= {
-        (Event.METRICS, "alice-bot"),
-        (Event.SKILL_STATUS, "alice-bot"),
-    }
-    assert {(f.event, f.data.get("robot")) for f in seen_by_staff} >= {
-        (Event.METRICS, "bob-bot"),
-        (Event.SKILL_STATUS, "bob-bot"),
-        (Event.CONNECTION_LOST, "bob-bot"),
-    }
+    assert {(f.event, f.data.get("robot")) for f in seen_by_alice} >= alices
+    assert {(f.event, f.data.get("robot")) for f in seen_by_staff} >= bobs
     # Nor can she ask about it: it is "not found", exactly like a robot that does not exist.
     answer = await alice_client.request(Event.SKILL_STATUS_GET, {"robot": "bob-bot", "skill": "people-detection"})
     assert answer.event == Event.ERROR_MESSAGE
