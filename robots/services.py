@@ -450,6 +450,21 @@ def update_robot(
     return robot
 
 
+def hold_robot(robot_id: str) -> bool:
+    """Keep the robot from being deleted until this transaction ends; False if it is gone already.
+
+    A worker's task writing an event for a robot must take this before its other rows: the deletion
+    locks the robot's row first too (``delete_robot``), so the two never wait on each other in a
+    cycle, and an event never reaches commit naming a robot deleted meanwhile (a foreign key error).
+    """
+    if connection.vendor != "postgresql":  # SQLite (make run) writes one transaction at a time
+        return Robot.objects.filter(pk=robot_id).exists()
+    # FOR KEY SHARE, the lock the key's own check takes: a deletion waits on it, presence updates do not.
+    with connection.cursor() as cursor:
+        cursor.execute(f"SELECT 1 FROM {Robot._meta.db_table} WHERE id = %s FOR KEY SHARE", [robot_id])
+        return cursor.fetchone() is not None
+
+
 def delete_robot(robot: Robot) -> None:
     """Delete a robot with its skills, components, metrics and events."""
     robot_id = robot.id

@@ -13,6 +13,7 @@ from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.protocol import Event
 from bridgeos_agent.runtime.base import ComponentState, RuntimeFailure, Status
 from monitoring.services import record_event
+from robots.services import hold_robot
 
 from ..models import CloudInstance, Component
 from .locks import LockBusy, orchestration_lock
@@ -107,6 +108,8 @@ def stop_copy(instance: CloudInstance) -> str:
     except RuntimeFailure as exc:
         raise TryAgain(str(exc)) from None
     with transaction.atomic():
+        if not hold_robot(robot_id):
+            return "gone"  # its robot was deleted meanwhile, with the copy's rows
         CloudInstance.objects.filter(pk=instance.pk).update(
             status=CS.STOPPED, container={}, restart_at=None, updated_at=timezone.now()
         )

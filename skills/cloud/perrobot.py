@@ -22,6 +22,7 @@ from bridgeos_agent.protocol import ComponentStatusName as CS
 from bridgeos_agent.runtime.base import ComponentState, RuntimeFailure, Status
 from monitoring.choices import Level
 from monitoring.services import record_event
+from robots.services import hold_robot
 
 from .locks import LockBusy, orchestration_lock
 from .orchestration import LaunchFailed, TryAgain, unreachable, with_runtime
@@ -86,6 +87,8 @@ def report(
     if getattr(row, field) == status and getattr(row, "message", "") == message:
         return
     with transaction.atomic():
+        if not hold_robot(robot_id):
+            return  # deleted since its service was found: its rows and events are gone with it
         type(row)._default_manager.filter(pk=row.pk).update(
             **{field: status}, message=message, updated_at=timezone.now()
         )

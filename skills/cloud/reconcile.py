@@ -19,6 +19,7 @@ from monitoring import prometheus
 from monitoring.choices import Level
 from monitoring.services import record_event
 from robots.models import Robot
+from robots.services import hold_robot
 
 from ..models import CloudInstance, Component, RobotCloud
 from .converge import run_copy, stop_copy
@@ -179,6 +180,8 @@ def _on_crash(instance: CloudInstance, seen: Observed | None, now: float) -> str
         return "crashed"
     delay = min(2.0 ** (len(crashes) - 1), settings.BRIDGEOS["CLOUD_RESTART_BACKOFF_MAX_S"])
     with transaction.atomic():
+        if not hold_robot(robot_id):
+            return "crashed"  # its robot was deleted meanwhile, with the copy's rows
         CloudInstance.objects.filter(pk=instance.pk).update(
             status=CS.STARTING,
             crashes=crashes,

@@ -15,7 +15,7 @@ from bridgeos_agent.runtime.base import RuntimeFailure
 from monitoring.choices import Level
 from monitoring.live import publish_on_commit
 from monitoring.services import record_event
-from robots.services import client_frame, push_to_robot
+from robots.services import client_frame, hold_robot, push_to_robot
 
 from ..models import CloudInstance, Component
 from .orchestration import LOG_TAIL, STOPPED, who, with_runtime
@@ -44,6 +44,8 @@ def set_status(instance: CloudInstance, status: str, message: str = "") -> None:
     """Record the copy's status, and the component's when the copy is the active instance."""
     robot_id, skill_id, component_id = who(instance)
     with transaction.atomic():
+        if not hold_robot(robot_id):
+            return  # its robot was deleted meanwhile, with the copy's rows
         CloudInstance.objects.filter(pk=instance.pk).update(status=status, message=message, updated_at=timezone.now())
         instance.status, instance.message = status, message
         component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
@@ -62,6 +64,8 @@ def cloud_is_active(component: Component) -> bool:
 def record_running(instance: CloudInstance, endpoint: dict[str, Any]) -> None:
     robot_id, skill_id, component_id = who(instance)
     with transaction.atomic():
+        if not hold_robot(robot_id):
+            return  # its robot was deleted meanwhile, with the copy's rows
         CloudInstance.objects.filter(pk=instance.pk).update(
             status=CS.RUNNING, container=endpoint, message="", restart_at=None, updated_at=timezone.now()
         )
@@ -109,6 +113,8 @@ def fail(instance: CloudInstance, reason: str, *, logs: list[str] | None = None)
         logger.warning("could not remove the failed cloud copy of %s/%s/%s: %s", robot_id, skill_id, component_id, exc)
     reason = reason[:1800]
     with transaction.atomic():
+        if not hold_robot(robot_id):
+            return  # its robot was deleted meanwhile, with the copy's rows
         CloudInstance.objects.filter(pk=instance.pk).update(
             status=CS.FAILED, desired=STOPPED, message=reason, container={}, restart_at=None, updated_at=timezone.now()
         )
