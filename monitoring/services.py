@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -60,14 +61,68 @@ def record_event(
 def record_events(entries: list[dict[str, Any]]) -> list[Event]:
     """Append many entries (``record_event``'s keywords, no owner) in one INSERT; push them on commit."""
     now = timezone.now()
-    events = Event.objects.bulk_create(
-        [
-            Event(**{"ts": now, "level": Level.INFO, "source": Source.CLOUD, "data": {}, **storable(entry)})
-            for entry in entries
-        ]
-    )
+    events = [
+        Event(**{"ts": now, "level": Level.INFO, "source": Source.CLOUD, "data": {}, **storable(entry)})
+        for entry in entries
+    ]
+    if connection.vendor == "postgresql" and len(events) > 1:
+        _insert_events(events)
+    else:
+        Event.objects.bulk_create(events)
     publish_all_on_commit([log_event_frame(event) for event in events])
     return events
+
+
+# The columns a batch of events is inserted with, and their types.
+EVENT_COLUMNS = {
+    "ts": "timestamptz",
+    "level": "text",
+    "source": "text",
+    "kind": "text",
+    "robot_id": "text",
+    "skill": "text",
+    "component": "text",
+    "message": "text",
+    "data": "jsonb",
+}
+
+
+def _insert_events(events: list[Event]) -> None:
+    """INSERT events in one statement whose one parameter is their rows as JSON; give each its id.
+
+    A connect storm logs a batch's robots together, on the ORM thread that shares daphne's
+    interpreter: bulk_create's per-field preparation and binding cost that thread 3x the CPU
+    (measured, 500 events). The query's text is the same for every batch.
+    """
+    table = connection.ops.quote_name(Event._meta.db_table)
+    columns = ", ".join(EVENT_COLUMNS)
+    types = ", ".join(f"{column} {kind}" for column, kind in EVENT_COLUMNS.items())
+    rows = [
+        {
+            "ts": event.ts.isoformat(),
+            "level": event.level,
+            "source": event.source,
+            "kind": event.kind,
+            "robot_id": event.robot_id,
+            "skill": event.skill,
+            "component": event.component,
+            "message": event.message,
+            "data": event.data,
+        }
+        for event in events
+    ]
+    with connection.cursor() as cursor:
+        # The recordset yields its rows in order and RETURNING gives them back in the order
+        # inserted, as Django's own bulk_create on PostgreSQL relies on.
+        cursor.execute(
+            f"INSERT INTO {table} ({columns}) SELECT {columns} FROM jsonb_to_recordset(%s::jsonb) AS v({types})"
+            f" RETURNING id",
+            [json.dumps(rows)],
+        )
+        ids = [row[0] for row in cursor.fetchall()]
+    for event, event_id in zip(events, ids, strict=True):
+        event.id = event_id
+        event._state.adding, event._state.db = False, connection.alias
 
 
 def prune_metrics(older_than: timedelta | None = None, *, now: datetime | None = None, batch: int = 50_000) -> int:
