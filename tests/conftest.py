@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 from pytest_django.plugin import blocking_manager_key
 
+from tests.flushretry import retry_flush_deadlocks
 from tests.logguard import watch
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,6 +31,7 @@ _config: pytest.Config
 def pytest_configure(config: pytest.Config) -> None:
     global _config
     _config = config
+    retry_flush_deadlocks()
 
 
 def free_port() -> int:
