@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from bridgeos_agent.protocol import MetricPoint
 
     from .models import Event
+    from .services import LoggedEvent
 
 logger = logging.getLogger(__name__)
 
@@ -289,7 +290,7 @@ def publish_log_event_on_commit(event: Event, *, organization_id: int | None = N
     transaction.on_commit(send, using=event._state.db, robust=True)
 
 
-def log_event_frame(event: Event) -> tuple[str | None, dict[str, Any]]:
+def log_event_frame(event: Event | LoggedEvent) -> tuple[str | None, dict[str, Any]]:
     """Return the robot an event-log entry is about and the frame that shows it to dashboards."""
     robot_id = event.robot_id or (event.data or {}).get("robot")
     data = {
@@ -304,7 +305,7 @@ def log_event_frame(event: Event) -> tuple[str | None, dict[str, Any]]:
         "message": event.message[:4000],
         "data": event.data or {},
     }
-    return robot_id, json.loads(protocol.encode(protocol.make(ProtocolEvent.LOG_EVENT, data, now=time.time())))
+    return robot_id, protocol.as_json_data(protocol.make(ProtocolEvent.LOG_EVENT, data, now=time.time()))
 
 
 def publish_all_on_commit(frames: list[tuple[str | None, dict[str, Any]]], *, using: str | None = None) -> None:

@@ -8,6 +8,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from contextlib import nullcontext
+from functools import cached_property
 from typing import Any
 
 from django.conf import settings
@@ -28,7 +29,7 @@ from monitoring.live import get_live_feed
 from monitoring.services import record_event
 from skills import services as skills
 from skills.cloud.reporting import cloud_reports_for
-from skills.cloud.volumes import CloudVolumes
+from skills.cloud.volumes import CloudVolumes, robots_with_cloud_volumes
 
 from . import dedup, rotation, services
 from .bridges import RobotBridges
@@ -59,11 +60,10 @@ Reports = list[tuple[Event, dict[str, Any]]]
 def connect_batch(logins: list[services.Login]) -> list[tuple[services.Connected, Reports, bool]]:
     """Authenticate and connect robots together: each outcome, its cloud copies' reports, whether it has volumes."""
     outcomes = services.connect_robots(logins)
-    reports = cloud_reports_for([outcome.robot for outcome in outcomes if outcome.robot])
-    return [
-        (outcome, reports.get(outcome.robot or "", []), bool(outcome.robot) and CloudVolumes(outcome.robot).exists())
-        for outcome in outcomes
-    ]
+    robots = [outcome.robot for outcome in outcomes if outcome.robot]
+    reports = cloud_reports_for(robots)
+    with_volumes = robots_with_cloud_volumes(robots)
+    return [(outcome, reports.get(outcome.robot or "", []), outcome.robot in with_volumes) for outcome in outcomes]
 
 
 def login_queue() -> Batcher[services.Login, tuple[services.Connected, Reports, bool]]:
@@ -102,7 +102,6 @@ class RobotConsumer(ProtocolConsumer):
         self.requests: OrderedDict[str, tuple[str, float]] = OrderedDict()
         self.rekeys: set[str] = set()  # ids of robot_rekey frames the robot has not acked yet
         self.retransmit_timer: asyncio.TimerHandle | None = None
-        self.volumes: CloudVolumes | None = None
         self.volume_scanner: asyncio.Future | None = None
         self.chunk_requests: dict[str, asyncio.Future[Envelope]] = {}
         self.volume_writes: dict[str, set[asyncio.Future]] = {}  # per Skill: volume changes, and what waits on them
@@ -284,12 +283,18 @@ class RobotConsumer(ProtocolConsumer):
             # What became of its cloud copies while it was away (a start it waits for may have finished).
             for event, data in reports:
                 await self.send_reliably(protocol.make(event, data, now=time.time()))
-        self.volumes = CloudVolumes(connected.robot)
         if has_volumes:
             self.scan_volumes()
         return True
 
     # ---------------------------------------------------------------- Skill volumes
+
+    @cached_property
+    def volumes(self) -> CloudVolumes:
+        """The robot's cloud volume replicas: made when first used, as most robots never have one."""
+        if self.robot_id is None:
+            raise RuntimeError("a robot has cloud volumes only once it has authenticated")
+        return CloudVolumes(self.robot_id)
 
     def scan_volumes(self) -> None:
         """Announce the cloud copies' volume writes to the robot every second, from now on."""

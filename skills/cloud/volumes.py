@@ -82,6 +82,12 @@ def volume_growth(root: Path, changes: Iterable[Any]) -> int:
     return growth
 
 
+def robots_with_cloud_volumes(robot_ids: Iterable[str]) -> set[str]:
+    """Return which of these robots have any volume in the cloud yet: one directory check each, for a login batch."""
+    root = str(volumes_root())
+    return {robot_id for robot_id in robot_ids if os.path.isdir(os.path.join(root, robot_id))}
+
+
 class CloudVolumes:
     """One robot's cloud-side volume replicas."""
 
@@ -100,10 +106,6 @@ class CloudVolumes:
                 self.root / skill_id / volume, self.root / ".index" / skill_id / f"{volume}.json"
             )
         return self.replicas[key]
-
-    def exists(self) -> bool:
-        """Tell whether the robot has any volume in the cloud yet."""
-        return self.root.is_dir()
 
     async def receive(self, payload: VolumeChanges, ask: Callable[[dict[str, Any]], Awaitable[VolumeChunks]]) -> int:
         """Apply the robot's changes to the cloud copy of a volume it declares, asking it for missing chunks."""

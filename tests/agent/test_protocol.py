@@ -229,6 +229,25 @@ def test_every_event_round_trips(event: Event) -> None:
 
 
 @pytest.mark.parametrize("event", list(Event))
+def test_an_envelope_as_json_data_is_what_its_text_reads_as(event: Event) -> None:
+    reply_to = "peer-7" if event is Event.ACK else None
+    sent = make(event, SAMPLES[event], reply_to=reply_to, id="abc-1", now=12.5)
+    assert protocol.as_json_data(sent) == json.loads(encode(sent))
+
+
+def test_a_log_entry_as_json_data_writes_what_json_cannot_hold_as_its_text_does() -> None:
+    data = {"value": float("inf"), "other": float("nan"), "text": "caf\u00e9 \U0001f916", "big": 2**70}
+    entry = make(Event.LOG_EVENT, {**SAMPLES[Event.LOG_EVENT], "data": data}, now=12.5)
+    assert protocol.as_json_data(entry) == json.loads(encode(entry))
+    assert protocol.as_json_data(entry)["data"]["data"] == {
+        "value": None,
+        "other": None,
+        "text": data["text"],
+        "big": 2**70,
+    }
+
+
+@pytest.mark.parametrize("event", list(Event))
 def test_raw_outside_frames_decode(event: Event) -> None:
     extra = {"reply_to": "peer-7"} if event is Event.ACK else {}
     envelope = decode(frame(event.value, SAMPLES[event], **extra).encode())

@@ -13,7 +13,9 @@ from rest_framework.test import APIClient
 from bridgeos_agent.protocol import VolumeChanges, VolumeChunks
 from bridgeos_agent.skillconfig import parse_skill_config
 from bridgeos_agent.volumesync import VolumeReplica
-from robots.services import create_robot, issue_api_token
+from robots.consumers import connect_batch
+from robots.models import Robot
+from robots.services import Login, create_robot, issue_api_token
 from skills.cloud.volumes import CloudVolumes, QuotaExceeded, volume_usage
 from skills.services import add_skill
 
@@ -116,3 +118,24 @@ def test_the_api_shows_a_robots_volume_usage_and_quota_to_its_owner_only(
     stranger = get_user_model().objects.create_user("quota-stranger")
     client.credentials(HTTP_AUTHORIZATION=f"Token {issue_api_token(stranger)[0]}")
     assert client.get(f"/api/robot/{robot}/volumes").status_code == 404
+
+
+def test_a_login_batch_says_which_robots_have_volumes_in_the_cloud(cloud_volumes: Path, robot: str) -> None:
+    mapper = Robot.objects.get(id=robot)
+    mapper_token = mapper.issue_token()
+    mapper.save(update_fields=["token_hash", "previous_token_hash", "previous_token_until"])
+    bare, bare_token = create_robot("quota-bare", mapper.owner)
+    (cloud_volumes / robot / "mapper" / "maps").mkdir(parents=True)
+    (cloud_volumes / "quota-file").write_bytes(b"")  # a file by a robot's name holds no volumes
+
+    logins = [
+        Login(robot_id, token, "127.0.0.1", f"channel-{robot_id}")
+        for robot_id, token in [(robot, mapper_token), (bare.id, bare_token), ("quota-file", "not-a-token")]
+    ]
+    outcomes = connect_batch(logins)
+
+    assert [(connected.robot, has_volumes) for connected, _, has_volumes in outcomes] == [
+        (robot, True),
+        (bare.id, False),
+        (None, False),
+    ]

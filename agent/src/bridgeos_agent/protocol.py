@@ -1409,6 +1409,11 @@ def encode(envelope: Envelope) -> str:
     return envelope.model_dump_json()
 
 
+def as_json_data(envelope: Envelope) -> dict[str, Any]:
+    """Return an envelope as the JSON data ``encode`` writes, without the text in between."""
+    return envelope.model_dump(mode="json")
+
+
 def decode(
     text: str | bytes | bytearray,
     *,
