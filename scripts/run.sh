@@ -90,10 +90,12 @@ else
 fi
 
 scripts/daphne -b "$HOST" -p "$PORT" >>"$LOGS/daphne.log" 2>&1 &
-pids+=($!)
+daphne=$!
+pids+=($daphne)
 
-for _ in $(seq 1 100); do
-  if $PY -c "import urllib.request; urllib.request.urlopen('http://$HOST:$PORT/api/health', timeout=1)" 2>/dev/null; then break; fi
+for _ in $(seq 1 300); do
+  if $PY -c "import urllib.request; urllib.request.urlopen('http://$HOST:$PORT/api/health', timeout=1)" 2>/dev/null \
+     || ! kill -0 "$daphne" 2>/dev/null; then break; fi
   sleep 0.1
 done
 status daphne "http://$HOST:$PORT/ (access log $LOGS/daphne.log)"
@@ -101,7 +103,13 @@ if [ -n "$registry_shared" ]; then
   status registry "127.0.0.1:$REGISTRY_PORT, started by scripts/services.sh, tokens from this cloud (docker login 127.0.0.1:$REGISTRY_PORT)"
 elif [ -z "$registry_note" ]; then
   docker-registry serve "$DATA_DIR/registry/config.yml" >>"$LOGS/registry.log" 2>&1 &
-  pids+=($!)
+  registry=$!
+  pids+=($registry)
+  # "running" below is a promise that `docker login` works at once: keep it on a slow machine.
+  for _ in $(seq 1 150); do
+    if (exec 3<>"/dev/tcp/127.0.0.1/$REGISTRY_PORT") 2>/dev/null || ! kill -0 "$registry" 2>/dev/null; then break; fi
+    sleep 0.1
+  done
   status registry "127.0.0.1:$REGISTRY_PORT, tokens from this cloud (docker login 127.0.0.1:$REGISTRY_PORT; log $LOGS/registry.log)"
 else
   status registry "$registry_note"
