@@ -115,7 +115,9 @@ def _ros2_robot(home: Path, loop: LoopThread) -> Iterator[Robot]:
     nodes.run("server", "server", "--topic", "/trigger", "--tag", "robot")
 
     def run_talker(key: str, topic: str) -> None:
-        nodes.run(key, "talker", "--topic", topic, "--rate", "20", "--count", "60", "--linger", "0", "--tag", key)
+        # 10 s of life: an rclpy node's start and its discovery took over 3 s on a slow machine,
+        # and a talker of 3 s was gone before the graph was polled (never advertised).
+        nodes.run(key, "talker", "--topic", topic, "--rate", "20", "--count", "200", "--linger", "0", "--tag", key)
 
     async def start() -> FoxgloveServer:
         bridge_graph = Ros2BridgeGraph(graph, asyncio.get_running_loop(), name="bridgeos_foxglove")
