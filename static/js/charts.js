@@ -32,6 +32,41 @@ export function timeAxisSpace() {
   return timeLabelSpace;
 }
 
+// uPlot's time increments up to an hour, in seconds (the charts' windows are minutes long).
+const TIME_INCRS = [1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600];
+const LABEL_GAP = 8;
+
+/** Ticks every incr seconds on the local clock within [min, max]. */
+function localTicks(min, max, incr) {
+  const offset = -new Date(min * 1000).getTimezoneOffset() * 60;
+  const ticks = [];
+  for (let t = Math.ceil((min + offset) / incr) * incr - offset; t <= max; t += incr) ticks.push(t);
+  return ticks;
+}
+
+/** The label a time tick gets: with its seconds when ticks are under a minute apart or off the minute. */
+function timeLabel(t, step) {
+  return (step < 60 || t % 60 ? clockSeconds : clock).format(new Date(t * 1000));
+}
+
+/**
+ * The time axis' ticks: uPlot's increment, or the coarsest finer one whose labels still fit when
+ * that leaves fewer than two (a 10-minute window at 5-minute ticks holds one when it starts just
+ * after a multiple of five, and one label does not say what the axis spans).
+ */
+export function timeSplits(u, axisIdx, min, max, incr) {
+  let ticks = localTicks(min, max, incr);
+  const pxPerS = u.bbox.width / window.uPlot.pxRatio / Math.max(max - min, 1e-9);
+  for (const finer of TIME_INCRS.filter((i) => i < incr).reverse()) {
+    if (ticks.length >= 2) break;
+    const candidate = localTicks(min, max, finer);
+    const widest = Math.max(...candidate.map((t) => textWidth(timeLabel(t, finer))));
+    if (finer * pxPerS < widest + LABEL_GAP) break;
+    ticks = candidate;
+  }
+  return ticks;
+}
+
 function cssVar(name, fallback) {
   return getComputedStyle(document.documentElement).getPropertyValue(name).trim() || fallback;
 }
@@ -164,9 +199,10 @@ export class TimeChart {
         {
           ...axis,
           space: timeAxisSpace,
+          splits: timeSplits,
           // Ticks under a minute apart need their seconds, or two ticks read the same.
           values: (u, ticks, axisIdx, space, incr) =>
-            ticks.map((t) => (incr < 60 ? clockSeconds : clock).format(new Date(t * 1000))),
+            ticks.map((t) => timeLabel(t, ticks.length > 1 ? ticks[1] - ticks[0] : incr)),
         },
         { ...axis, size: 50, values: (u, ticks) => ticks.map(axisNumber) },
       ],
