@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 from pytest_django.plugin import blocking_manager_key
 
+from tests.fastflush import delete_instead_of_truncate
 from tests.flushretry import retry_flush_deadlocks
 from tests.logguard import watch
 
@@ -32,6 +33,7 @@ def pytest_configure(config: pytest.Config) -> None:
     global _config
     _config = config
     retry_flush_deadlocks()
+    delete_instead_of_truncate()
 
 
 def free_port() -> int:
