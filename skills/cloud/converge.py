@@ -93,10 +93,13 @@ def run_copy(instance: CloudInstance) -> str:
         fail(instance, str(exc))
         return "failed"
     if state.status is not Status.RUNNING:
+        if not CloudInstance.objects.filter(pk=instance.pk, desired=RUNNING).exists():
+            return stop_copy(instance)  # removed because it was stopped while it started: no failure
         reason = state.message or f"it ended at once (exit code {state.exit_code})"
         fail(instance, f"component {component_id} did not start in the cloud: {reason}", logs=logs)
         return "failed"
-    record_running(instance, endpoint)
+    if not record_running(instance, endpoint):
+        return stop_copy(instance)  # stopped while it started (a stop request, cloud_down)
     return "running"
 
 

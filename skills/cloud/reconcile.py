@@ -147,7 +147,9 @@ def _reconcile_instance(instance: CloudInstance, seen: Observed | None, now: flo
         if instance.status != CS.RUNNING:
             spec = cloud_spec(instance)  # reads the database: before, not inside, the runtime's event loop
             endpoint = with_runtime(robot_id, lambda runtime: runtime.endpoint(spec))
-            record_running(instance, endpoint)
+            if not record_running(instance, endpoint):
+                stop_copy(instance)  # stopped meanwhile
+                return "removed"
             return "restarted"
         return None
     if instance.status == CS.RUNNING:
@@ -239,7 +241,9 @@ def _restart(instance: CloudInstance) -> str:
     state, endpoint = with_runtime(robot_id, again)
     CloudInstance.objects.filter(pk=instance.pk).update(restarts=instance.restarts + 1, restart_at=None)
     if state.status is Status.RUNNING:
-        record_running(instance, endpoint)
+        if not record_running(instance, endpoint):
+            stop_copy(instance)  # stopped while it restarted (a stop request, cloud_down)
+            return "removed"
         return "restarted"
     # It died again at once: the next round sees it gone and counts another crash.
     instance.status = CS.RUNNING

@@ -18,7 +18,7 @@ from monitoring.services import record_event
 from robots.services import client_frame, hold_robot, push_to_robot
 
 from ..models import CloudInstance, Component
-from .orchestration import LOG_TAIL, STOPPED, who, with_runtime
+from .orchestration import LOG_TAIL, RUNNING, STOPPED, who, with_runtime
 
 logger = logging.getLogger(__name__)
 
@@ -61,18 +61,25 @@ def cloud_is_active(component: Component) -> bool:
     return component.active_location == Location.CLOUD and component.status != CS.MIGRATING
 
 
-def record_running(instance: CloudInstance, endpoint: dict[str, Any]) -> None:
+def record_running(instance: CloudInstance, endpoint: dict[str, Any]) -> bool:
+    """Record that the copy runs, unless it is no longer wanted; return whether it was recorded.
+
+    A stop (or `cloud_down`) may land while the copy starts: then the caller removes what it started,
+    or the copy would outlive the cloud that no longer wants it.
+    """
     robot_id, skill_id, component_id = who(instance)
     with transaction.atomic():
         if not hold_robot(robot_id):
-            return  # its robot was deleted meanwhile, with the copy's rows
-        CloudInstance.objects.filter(pk=instance.pk).update(
+            return True  # its robot was deleted meanwhile, with the copy's rows: the reconciler removes orphans
+        wanted = CloudInstance.objects.filter(pk=instance.pk, desired=RUNNING).update(
             status=CS.RUNNING, container=endpoint, message="", restart_at=None, updated_at=timezone.now()
         )
+        if not wanted:
+            return False
         instance.status, instance.container = CS.RUNNING, endpoint
         component = Component.objects.select_for_update().filter(pk=instance.component_id).first()
         if component is None:
-            return
+            return True
         component.container = {**component.container, "cloud": endpoint}
         fields = ["container", "updated_at"]
         active = cloud_is_active(component)
@@ -95,6 +102,7 @@ def record_running(instance: CloudInstance, endpoint: dict[str, Any]) -> None:
         announce(robot_id, Event.COMPONENT_INFORMATION, info_data(skill_id, component_id, endpoint))
         tell_robot(robot_id, Event.COMPONENT_STATUS, status)
         tell_robot(robot_id, Event.COMPONENT_INFORMATION, info_data(skill_id, component_id, endpoint))
+    return True
 
 
 def fail(instance: CloudInstance, reason: str, *, logs: list[str] | None = None) -> None:

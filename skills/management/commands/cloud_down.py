@@ -8,7 +8,7 @@ from typing import Any
 from django.core.management.base import BaseCommand
 from django.db import transaction
 
-from skills.cloud.orchestration import with_runtime
+from skills.cloud.orchestration import STOPPED, with_runtime
 from skills.cloud.relay import stop_all_relays
 from skills.cloud.runtime import CloudRuntime, cloud_id, runtime_name
 from skills.models import CloudInstance, Component, RobotCloud
@@ -30,10 +30,13 @@ class Command(BaseCommand):
                 await runtime.remove_network_named(name)
             return len(found), len(networks)
 
+        # No longer wanted first: otherwise the reconciler takes each copy the sweep removes for a
+        # crash and starts it again, and a start in flight records it running (both outlived make run).
+        CloudInstance.objects.exclude(desired=STOPPED).update(desired=STOPPED)
         removed, networks = with_runtime("cloud-down", sweep)
         removed += stop_all_relays()  # processes whatever the runtime
         with transaction.atomic():
-            CloudInstance.objects.exclude(status="stopped").update(desired="stopped", status="stopped", container={})
+            CloudInstance.objects.exclude(status="stopped").update(desired=STOPPED, status="stopped", container={})
             Component.objects.filter(active_location="cloud").update(status="stopped")
             RobotCloud.objects.exclude(ros_master_status="stopped").update(ros_master_status="stopped")
             RobotCloud.objects.exclude(ros2_discovery_status="stopped").update(ros2_discovery_status="stopped")
