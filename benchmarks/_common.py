@@ -73,43 +73,34 @@ def migrate(env: dict[str, str]) -> None:
     )
 
 
-class Daphne:
-    """A daphne of the benchmark's own, started with scripts/daphne on a free port."""
+class ServerProcess:
+    """A server the benchmark started on a free port: its process, log, readiness and CPU."""
 
-    def __init__(self, env: dict[str, str], log_path: Path) -> None:
-        self.port = free_port()
-        self.log_path = log_path
-        venv = Path(sys.executable).parent.parent
-        with log_path.open("wb") as out:
-            self.process = subprocess.Popen(
-                [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(self.port)],
-                cwd=ROOT,
-                env={**os.environ, **env, "VIRTUAL_ENV": str(venv), "PYTHONUNBUFFERED": "1"},
-                stdout=out,
-                stderr=subprocess.STDOUT,
-            )
-        # scripts/daphne execs, so this pid is the daphne Python process itself.
-        self.pid = self.process.pid
+    name = "server"
+    port: int
+    pid: int
+    process: subprocess.Popen
+    log_path: Path
 
     @property
     def ws_url(self) -> str:
         return f"ws://127.0.0.1:{self.port}"
 
     def wait(self, timeout: float = 60.0) -> None:
-        """Wait until daphne accepts connections, failing early if it died."""
+        """Wait until the server accepts connections, failing early if it died."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
-                raise RuntimeError(f"daphne exited with {self.process.returncode}:\n{self.log_tail()}")
+                raise RuntimeError(f"{self.name} exited with {self.process.returncode}:\n{self.log_tail()}")
             try:
                 socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
                 return
             except OSError:
                 time.sleep(0.05)
-        raise TimeoutError(f"daphne did not listen on {self.port} within {timeout} s:\n{self.log_tail()}")
+        raise TimeoutError(f"{self.name} did not listen on {self.port} within {timeout} s:\n{self.log_tail()}")
 
     def stop(self, timeout: float = 15.0) -> None:
-        """Stop daphne: TERM, then KILL after ``timeout`` seconds (closing its last sockets politely can take 15 s)."""
+        """Stop the server: TERM, then KILL after ``timeout`` seconds (daphne may take 15 s to close its sockets)."""
         if self.process.poll() is None:
             self.process.terminate()
             try:
@@ -125,9 +116,30 @@ class Daphne:
             return ""
 
     def cpu_seconds(self) -> float:
-        """Return the user + system CPU time daphne used so far."""
+        """Return the user + system CPU time the server used so far (all its threads)."""
         fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+class Daphne(ServerProcess):
+    """A daphne of the benchmark's own, started with scripts/daphne on a free port."""
+
+    name = "daphne"
+
+    def __init__(self, env: dict[str, str], log_path: Path) -> None:
+        self.port = free_port()
+        self.log_path = log_path
+        venv = Path(sys.executable).parent.parent
+        with log_path.open("wb") as out:
+            self.process = subprocess.Popen(
+                [str(ROOT / "scripts" / "daphne"), "-b", "127.0.0.1", "-p", str(self.port)],
+                cwd=ROOT,
+                env={**os.environ, **env, "VIRTUAL_ENV": str(venv), "PYTHONUNBUFFERED": "1"},
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
+        # scripts/daphne execs, so this pid is the daphne Python process itself.
+        self.pid = self.process.pid
 
     def memory_mib(self) -> tuple[float, float]:
         """Return daphne's resident memory now and at its peak, in MiB."""

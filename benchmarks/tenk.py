@@ -24,14 +24,17 @@ connect to the same daphne once the fleet is in: the reference for what the simu
 rows must say `connected`, their points be stored (several samples a frame) and a command to each be
 answered, as for the simulated robots (`reference_agents` in the last line).
 
-With `--daphnes 2` or `4` the fleet is spread over that many processes, as a load balancer does.
+With `--daphnes 2` or `4` the fleet is spread over that many processes, each robot given one's
+address in turn; with `--balancer` too, every robot, agent and API call goes through one HAProxy
+configured as the stack's (benchmarks/_balancer.py: least connections, WebSockets as tunnels),
+whose own CPU is printed beside daphne's (`balancer`).
 Goals (issue 37): connect_10k_s <= 10 with 0 rejected, idle_cpu_pct_10k <= 10,
 ingest_points_per_s_one_process >= 30,000 at ack p95 <= 1 s, api_p99_ms_10k <= 50, command p50 <= 30 ms.
 The simulator's own CPU is printed beside the cloud's. The thesis ran one robot at a time.
 
     .venv/bin/python benchmarks/tenk.py --quick          # 3,000 robots
     .venv/bin/python benchmarks/tenk.py                  # 10,000 robots
-    .venv/bin/python benchmarks/tenk.py --daphnes 2
+    .venv/bin/python benchmarks/tenk.py --daphnes 2 --balancer
 """
 
 from __future__ import annotations
@@ -46,7 +49,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ROOT, Daphne, log, percentile
+from _balancer import Balancer, balancer_capacity
+from _common import ROOT, Daphne, ServerProcess, log, percentile
 from _fleetpage import fleet_page_first_render_ms
 from _harness import arguments, cloud, create_fleet, forget_fleet, report
 from _multifleet import FleetProcess
@@ -83,7 +87,7 @@ def prepare(count: int, agents: int) -> tuple[list[tuple[str, str]], list[tuple[
     return tokens, agent_tokens, api_token
 
 
-def start_reference_agents(bench: Any, daphne: Daphne, agent_tokens: list[tuple[str, str]]) -> list[Any]:
+def start_reference_agents(bench: Any, daphne: ServerProcess, agent_tokens: list[tuple[str, str]]) -> list[Any]:
     """Start a real agent for each reference robot, reporting as the simulated fleet does (every 5 s)."""
     agents = []
     for robot_id, token in agent_tokens:
@@ -241,7 +245,7 @@ def slowest_by_window(moments: list[float], latencies: list[float], window_s: fl
     return [round(1000 * slowest.get(window, 0.0)) for window in range(max(slowest, default=-1) + 1)]
 
 
-async def api_phase(daphne: Daphne, api_token: str, robots: list[str], samples: int) -> dict[str, Any]:
+async def api_phase(daphne: ServerProcess, api_token: str, robots: list[str], samples: int) -> dict[str, Any]:
     """Time the Robot API among the fleet: a robot's reads, a fleet page, a command to one robot, a fleet command."""
     import httpx
 
@@ -305,6 +309,26 @@ def vanish_phase(fleet: FleetProcess, how_many: int, within_s: float) -> dict[st
     return {"vanished": len(gone), "still_connected": still, "disconnected_after_s": round(time.monotonic() - began, 1)}
 
 
+class BalancerCpu:
+    """HAProxy's CPU over each phase: ms a robot while connecting, % of a core otherwise."""
+
+    def __init__(self, balancer: Balancer | None) -> None:
+        self.balancer = balancer
+        self.figures: dict[str, float] = {}
+        self._since = (balancer.cpu_seconds(), time.monotonic()) if balancer is not None else (0.0, 0.0)
+
+    def phase(self, name: str | None = None, *, per: int | None = None) -> None:
+        """End a phase begun at the last call, naming its figure (none: a gap not measured)."""
+        if self.balancer is None:
+            return
+        cpu, at = self.balancer.cpu_seconds(), time.monotonic()
+        if name is not None:
+            used, wall = cpu - self._since[0], at - self._since[1]
+            value = 1000 * used / max(1, per) if per is not None else 100 * used / max(wall, 1e-9)
+            self.figures[name] = round(value, 3 if per is not None else 1)
+        self._since = (cpu, at)
+
+
 # --------------------------------------------------------------------------- main
 
 
@@ -318,8 +342,14 @@ def main() -> None:
     parser.add_argument("--idle-s", type=float, default=None)
     parser.add_argument("--skip-vanish", action="store_true")
     parser.add_argument("--agents", type=int, default=2, help="real agents beside the fleet, the reference (2)")
+    parser.add_argument("--balancer", action="store_true", help="HAProxy in front of the daphnes, as in the stack")
     args = parser.parse_args()
     robots = args.robots or (3000 if args.quick else 10_000)
+    if args.balancer and robots + args.agents > balancer_capacity():
+        parser.error(
+            f"--balancer: HAProxy holds at most {balancer_capacity()} connections under this machine's limit on"
+            f" open files (two each); run fewer --robots"
+        )
     ingest_s = args.ingest_s or (10.0 if args.quick else 30.0)
     idle_s = args.idle_s or (5.0 if args.quick else 20.0)
     ping_s, ping_timeout_s = (5, 5) if args.quick else (PING_INTERVAL_S, PING_TIMEOUT_S)
@@ -332,30 +362,40 @@ def main() -> None:
         daphnes = [bench.start_daphne(f"daphne-{i}.log", wait=False) for i in range(args.daphnes)]
         for daphne in daphnes:
             daphne.wait()
+        balancer = Balancer(daphnes, bench.data_dir) if args.balancer else None
+        if balancer is not None:
+            balancer.wait()
+        front: ServerProcess = balancer or daphnes[0]  # where the agents, the API and the browser go
         redis_before = redis_used(args.redis_url)
         rss_before = [d.memory_mib()[0] for d in daphnes]
-        fleet = FleetProcess(tokens, [d.ws_url for d in daphnes])
+        fleet = FleetProcess(tokens, [front.ws_url] if balancer else [d.ws_url for d in daphnes])
+        balancer_cpu = BalancerCpu(balancer)
         try:
             connected = connect_phase(fleet, daphnes, timeout=60)
+            balancer_cpu.phase("connect_cpu_ms_per_robot", per=connected["connected"])
             log(f"connect: {connected}")
             # The real agents join once the fleet is in: the connect figure is the fleet's own.
-            start_reference_agents(bench, daphnes[0], agent_tokens)
+            start_reference_agents(bench, front, agent_tokens)
             time.sleep(2.0)
+            balancer_cpu.phase()
             idle = idle_phase(fleet, daphnes, idle_s)
+            balancer_cpu.phase("idle_cpu_pct")
             rss_after = [d.memory_mib()[0] for d in daphnes]
             kb_per_robot = round(1024 * sum(a - b for a, b in zip(rss_after, rss_before, strict=True)) / robots, 1)
             redis_kb = round((redis_used(args.redis_url) - redis_before) / 1024 / robots, 2)
             postgres_kb = round(postgres_bytes_per_robot(robots) / 1024, 2)
             log(f"idle: {idle}, {kb_per_robot} KiB/robot in daphne, {redis_kb} in Redis, {postgres_kb} in PostgreSQL")
+            balancer_cpu.phase()
             ingest = ingest_phase(fleet, daphnes, robots, args.points_per_frame, args.every, ingest_s)
+            balancer_cpu.phase("ingest_cpu_pct")
             log(f"ingest: {ingest}")
-            api = asyncio.run(api_phase(daphnes[0], api_token, ids, 100 if args.quick else 500))
+            api = asyncio.run(api_phase(front, api_token, ids, 100 if args.quick else 500))
             log(f"api: {api}")
             # The dashboard's fleet page, as an operator who sees the whole fleet opens it, every robot connected.
-            page = fleet_page_first_render_ms(f"http://127.0.0.1:{daphnes[0].port}", OWNER, PASSWORD, samples=3)
+            page = fleet_page_first_render_ms(f"http://127.0.0.1:{front.port}", OWNER, PASSWORD, samples=3)
             log(f"fleet page: {page}")
             agents = reference_agents_report(
-                [robot_id for robot_id, _ in agent_tokens], f"http://127.0.0.1:{daphnes[0].port}", api_token
+                [robot_id for robot_id, _ in agent_tokens], f"http://127.0.0.1:{front.port}", api_token
             )
             log(f"reference agents: {agents}")
             vanish = None
@@ -365,6 +405,8 @@ def main() -> None:
             state = fleet.ask("state")
         finally:
             fleet.stop()
+            if balancer is not None:
+                balancer.stop()
     ingest_ok = ingest["ack_p95_ms"] <= 1000 and ingest["points_stored"] >= ingest["points_sent"]
     report(
         {
@@ -386,6 +428,7 @@ def main() -> None:
             "vanish": vanish,
             "reference_agents": agents,
             "closed_after_auth": state["closed_after_auth"],
+            "balancer": balancer_cpu.figures if balancer is not None else None,
             "simulator_cpu_pct": max(
                 connected["simulator_cpu_pct"], idle["simulator_cpu_pct"], ingest["simulator_cpu_pct"]
             ),

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure the real services bridgeOS runs and tests against are up.
 #
-#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus node registry
+#   scripts/services.sh                  # all parts: postgres redis docker swarm ros images chromium vpn prometheus node registry haproxy
 #   scripts/services.sh docker ros       # only these parts (swarm and images imply docker)
 #
 # Idempotent: a part already up is left alone. Missing software is installed with apt
@@ -11,7 +11,7 @@
 set -euo pipefail
 
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus node registry)
+ALL_PARTS=(postgres redis docker swarm ros images chromium vpn prometheus node registry haproxy)
 # Debian's prometheus scrapes `make run`'s cloud and demo agents (docker/prometheus/prometheus.yml);
 # the tests start their own with a temporary config and use promtool from the same package.
 # Not Prometheus's own default, 9090: that is rosbridge's, which ROS tools (roslibpy, roslibjs) assume.
@@ -90,6 +90,7 @@ wants chromium && [[ ! -x $CHROMIUM ]] && APT_NEEDED+=(chromium)
 wants prometheus && { have prometheus && have promtool || APT_NEEDED+=(prometheus); }
 wants node && { have node && have npm || APT_NEEDED+=(nodejs npm); }
 wants registry && { have docker-registry && have skopeo || APT_NEEDED+=(docker-registry skopeo); }
+wants haproxy && { have haproxy || APT_NEEDED+=(haproxy); }
 if wants vpn; then
     for tool in "${VPN_TOOLS[@]}"; do have "${tool%%:*}" || APT_NEEDED+=("${tool#*:}"); done
 fi
@@ -348,6 +349,18 @@ part_registry() {
         missing registry "$t" "docker-registry did not start, see $REGISTRY_LOG"; return
     fi
     report registry "$t" "$did: $version; started on 127.0.0.1:$REGISTRY_PORT for make run's cloud (log $REGISTRY_LOG)"
+}
+
+# The load balancer the stack runs in its image, on the host for `benchmarks/tenk.py --balancer`,
+# which starts its own in front of its daphnes: installed here, never started.
+part_haproxy() {
+    local t; t=$(now)
+    if ! have haproxy; then
+        missing haproxy "$t" "not installed (tenk.py --balancer needs it): sudo apt-get install haproxy"; return
+    fi
+    local did="present"
+    [[ $INSTALLED == *" haproxy "* ]] && did="installed"
+    report haproxy "$t" "$did: $(haproxy -v 2>/dev/null | head -1 | awk '{print $1, $2, $3}'); the benchmarks start their own"
 }
 
 for part in "${ALL_PARTS[@]}"; do
