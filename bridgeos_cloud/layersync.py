@@ -18,6 +18,7 @@ from typing import Any, ParamSpec, TypeVar
 
 from asgiref.sync import SyncToAsync, async_to_sync
 from channels.layers import get_channel_layer
+from channels_redis.core import RedisChannelLayer
 
 __all__ = ["layer_sync"]
 
@@ -48,7 +49,7 @@ def _handed_to_daphne() -> bool:
 
 def _redis_layer() -> bool:
     layer = get_channel_layer()
-    return layer is not None and type(layer).__module__.startswith("channels_redis")
+    return isinstance(layer, RedisChannelLayer)
 
 
 def _loop() -> asyncio.AbstractEventLoop:

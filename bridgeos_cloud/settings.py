@@ -189,7 +189,7 @@ REDIS_URL = env_str("REDIS_URL") or None
 if REDIS_URL:
     CHANNEL_LAYERS = {
         "default": {
-            "BACKEND": "channels_redis.core.RedisChannelLayer",
+            "BACKEND": "bridgeos_cloud.channellayer.ChannelLayer",
             "CONFIG": {
                 # redis-py's default pool (100 sockets) fails under a large fleet.
                 "hosts": [
