@@ -5,8 +5,9 @@ lock pops it (BZPOPMIN) for all of them. When that consumer's connection closes,
 its receive mid-pop: a message Redis had already popped for another consumer was dropped
 (django/channels_redis#366). Seen as a client that never heard of a skill_status its robot had
 reported while another robot disconnected; 1 message in 17,600 under steady connect and disconnect
-churn. Here a cancelled reader finishes its pop first, still the reader, and hands what it popped to the
-consumers it was for, as it would have; then it ends.
+churn. Here a cancelled reader finishes its one pop in flight (at most the pop's 5 s timeout), so what it
+popped reaches channels_redis's backup queue, which the next reader puts back before popping:
+delivered, in order.
 """
 
 from __future__ import annotations
@@ -20,29 +21,22 @@ __all__ = ["ChannelLayer"]
 
 
 class ChannelLayer(RedisChannelLayer):
-    """channels_redis's layer, whose process-wide pop is finished even when the consumer running it is cancelled."""
+    """channels_redis's layer, whose pop of a process's queue is finished even when its consumer is cancelled."""
 
-    async def receive_single(self, channel: str) -> Any:
-        """Pop one message off a channel; for a process's channels, finish the pop even if cancelled."""
-        if not channel.endswith("!"):
-            return await super().receive_single(channel)  # a named channel: a cancelled pop is its own loss
-        pop = asyncio.ensure_future(super().receive_single(channel))
+    async def _brpop_with_clean(self, index: int, channel: str, timeout: int) -> Any:
+        """Pop one message (or time out) into channels_redis's backup queue; if cancelled, finish first."""
+        pop = asyncio.ensure_future(super()._brpop_with_clean(index, channel, timeout))
         cancelled = False
         while not pop.done():
             try:
                 await asyncio.shield(pop)
             except asyncio.CancelledError:
                 if pop.cancelled():
-                    raise  # the pop itself was cancelled (its loop closing): nothing was popped
-                # Finished first, still holding the receive lock (at most the pop's 5 s timeout), so the
-                # other consumers go on waiting on their buffers and find what it brings in order.
-                cancelled = True
+                    raise  # the pop itself was cancelled (its loop closing)
+                cancelled = True  # again while waiting too (daphne re-cancels a closing consumer every second)
             except Exception:
                 break
-        if not cancelled:
-            return pop.result()
-        if pop.exception() is None:
-            message_channel, message = pop.result()
-            for each in message_channel if isinstance(message_channel, list) else [message_channel]:
-                self.receive_buffer[each].put_nowait(message)
-        raise asyncio.CancelledError
+        if cancelled:
+            # What it popped waits in the backup queue, which the next reader's pop puts back first.
+            raise asyncio.CancelledError
+        return pop.result()

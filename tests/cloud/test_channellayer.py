@@ -91,3 +91,16 @@ async def test_the_other_consumers_go_on_receiving_in_order_after_the_reader_lea
     assert received == list(range(20))
     with pytest.raises(asyncio.CancelledError):
         await reader
+
+
+async def test_a_cancelled_reader_with_nothing_to_pop_ends_within_its_pops_timeout(sender: RedisChannelLayer) -> None:
+    layer = ChannelLayer(hosts=[TEST_REDIS_URL])
+    reader = asyncio.ensure_future(layer.receive(await layer.new_channel()))
+    await asyncio.sleep(0.05)
+    started = time.monotonic()
+    for _ in range(3):  # daphne cancels a closing consumer again every second
+        reader.cancel()
+        await asyncio.sleep(0.2)
+    (ended,) = await asyncio.gather(asyncio.wait_for(reader, layer.brpop_timeout + 2), return_exceptions=True)
+    assert isinstance(ended, asyncio.CancelledError)
+    assert time.monotonic() - started <= layer.brpop_timeout + 0.5
