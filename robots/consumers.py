@@ -103,6 +103,10 @@ class RobotConsumer(ProtocolConsumer):
         self.rekeys: set[str] = set()  # ids of robot_rekey frames the robot has not acked yet
         self.retransmit_timer: asyncio.TimerHandle | None = None
         self.volume_scanner: asyncio.Future | None = None
+        # Set once the login is answered (or refused, or the socket closed): a command delivered from this
+        # process meanwhile runs in its sender's task, and went out ahead of authentication_success,
+        # which the agent then took for a refusal and stopped.
+        self.login_answered = asyncio.Event()
         self.chunk_requests: dict[str, asyncio.Future[Envelope]] = {}
         self.volume_writes: dict[str, set[asyncio.Future]] = {}  # per Skill: volume changes, and what waits on them
         self.bridges = RobotBridges("")
@@ -227,6 +231,13 @@ class RobotConsumer(ProtocolConsumer):
 
     async def authenticate(self, envelope: Envelope) -> bool:
         """Check the robot's id and token, mark it connected and send it its config."""
+        try:
+            return await self.log_in(envelope)
+        finally:
+            self.login_answered.set()
+
+    async def log_in(self, envelope: Envelope) -> bool:
+        """Answer the robot's login: refused, or authentication_success with its first frames."""
         credentials = protocol.parse_payload(envelope)
         problems = label_problems(credentials.labels or {})
         if problems:
@@ -329,9 +340,17 @@ class RobotConsumer(ProtocolConsumer):
 
     # ---------------------------------------------------------------- commands from the cloud
 
+    async def logged_in(self) -> bool:
+        """Wait until the robot's login is answered; tell whether it is in and the socket still open."""
+        await self.login_answered.wait()
+        return self.robot_id is not None and not self.closing
+
     async def robot_command(self, message: dict[str, Any]) -> None:
         """Send a command relayed by relay_command, remembering who waits for the reply."""
         envelope = protocol.decode(message["frame"])
+        if not await self.logged_in():
+            await deliver(message["reply_channel"], {"type": "robot.reply", "offline": True, "id": envelope.id})
+            return
         now = time.monotonic()
         self.requests[envelope.id] = (message["reply_channel"], now)
         while self.requests and (
@@ -342,11 +361,14 @@ class RobotConsumer(ProtocolConsumer):
 
     async def robot_push(self, message: dict[str, Any]) -> None:
         """Send a frame the cloud pushes to the robot (e.g. its cloud copies' status), until acked."""
-        await self.send_reliably(protocol.decode(message["frame"]))
+        if await self.logged_in():
+            await self.send_reliably(protocol.decode(message["frame"]))
 
     async def robot_rekey(self, message: dict[str, Any]) -> None:
         """Give the robot its new token (rotate_token with a grace), resent until it acks, which is logged."""
         envelope = protocol.decode(message["frame"])
+        if not await self.logged_in():
+            return  # it logs in with its new token, or its old one within the grace
         self.rekeys.add(envelope.id)
         await self.send_reliably(envelope)
 
@@ -357,7 +379,7 @@ class RobotConsumer(ProtocolConsumer):
 
     async def robot_bridge(self, message: dict[str, Any]) -> None:
         """Pass a bridge client's frame (or its session's opening or end) to the robot."""
-        if self.robot_id is None or self.closing:
+        if not await self.logged_in():
             if message.get("open"):
                 await deliver(message["open"], {"type": "bridge.closed", "offline": True})
             return
@@ -403,6 +425,7 @@ class RobotConsumer(ProtocolConsumer):
     # ---------------------------------------------------------------- closing
 
     async def closed(self, code: int) -> None:
+        self.login_answered.set()  # what waits for a login that never came is told the robot is offline
         if self.retransmit_timer is not None:
             self.retransmit_timer.cancel()
         for request_id, (reply_channel, _) in self.requests.items():
