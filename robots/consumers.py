@@ -340,6 +340,10 @@ class RobotConsumer(ProtocolConsumer):
 
     # ---------------------------------------------------------------- commands from the cloud
 
+    async def close_with(self, code: int, reason: str) -> None:
+        self.login_answered.set()  # a login timed out or cut short: nothing waits on it (nor on a dispatch behind it)
+        await super().close_with(code, reason)
+
     async def logged_in(self) -> bool:
         """Wait until the robot's login is answered; tell whether it is in and the socket still open."""
         await self.login_answered.wait()
