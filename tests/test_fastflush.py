@@ -13,13 +13,14 @@ import pytest
 from django.apps import apps
 from django.contrib.auth import get_user_model
 from django.core.management.color import no_style
-from django.db import connection, transaction
+from django.db import connection
 
 from audit.models import AuditEntry
 from audit.services import record as audit
 from monitoring.models import Event, Metric
 from monitoring.services import record_event
 from robots.services import create_robot
+from tests.inflight import write_in_flight
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(60)]
 
@@ -49,25 +50,13 @@ def test_the_flush_deletes_instead_of_truncating_and_empties_every_table():
 
 
 def test_a_write_in_flight_is_waited_for_and_emptied_too():
-    writing = threading.Event()
-    writer_errors: list[BaseException] = []
+    def write(started: threading.Event) -> None:
+        record_event("written while the tables are flushed", kind="test")
+        started.set()
+        time.sleep(0.5)  # the flush is waiting for the event log's lock by now
 
-    def writer() -> None:
-        try:
-            with transaction.atomic():
-                record_event("written while the tables are flushed", kind="test")
-                writing.set()
-                time.sleep(0.5)  # the flush is waiting for the event log's lock by now
-        except BaseException as exc:  # handed to the test
-            writer_errors.append(exc)
-        finally:
-            connection.close()
-
-    thread = threading.Thread(target=writer)
-    thread.start()
-    assert writing.wait(10)
-    flush()
-    thread.join(20)
+    with write_in_flight(write) as writer_errors:
+        flush()
 
     assert writer_errors == []  # the write committed, and then the flush emptied it
     assert not Event.objects.exists()  # a plain DELETE would not have seen the row not yet committed

@@ -11,13 +11,14 @@ import time
 
 import pytest
 from django.contrib.auth import get_user_model
-from django.db import OperationalError, connection, transaction
+from django.db import OperationalError, connection
 
 from monitoring.models import Event
 from monitoring.services import record_event
 from robots.models import Robot
 from robots.services import create_robot, hold_robot
 from tests import flushretry
+from tests.inflight import write_in_flight
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(60)]
 
@@ -28,30 +29,19 @@ FLUSH = [f'TRUNCATE "{Event._meta.db_table}", "{Robot._meta.db_table}" CASCADE']
 def flush_while_a_writer_holds_a_robot() -> tuple[BaseException | None, list[BaseException]]:
     """Flush while a writer holds a robot's row and then writes an event; return the flush's error and the writer's."""
     create_robot("flushed-1", get_user_model().objects.create_user("flush-owner"))
-    held = threading.Event()
-    writer_errors: list[BaseException] = []
 
-    def writer() -> None:
-        try:
-            with transaction.atomic():
-                assert hold_robot("flushed-1")
-                held.set()
-                time.sleep(0.3)  # the flush has taken the event log by now, and waits for the robots
-                record_event("written while the tables are flushed", robot_id="flushed-1", kind="test")
-        except BaseException as exc:  # handed to the test
-            writer_errors.append(exc)
-        finally:
-            connection.close()
+    def write(started: threading.Event) -> None:
+        assert hold_robot("flushed-1")
+        started.set()
+        time.sleep(0.3)  # the flush has taken the event log by now, and waits for the robots
+        record_event("written while the tables are flushed", robot_id="flushed-1", kind="test")
 
-    thread = threading.Thread(target=writer)
-    thread.start()
-    assert held.wait(10)
     error = None
-    try:
-        connection.ops.execute_sql_flush(FLUSH)
-    except OperationalError as exc:
-        error = exc
-    thread.join(20)
+    with write_in_flight(write) as writer_errors:
+        try:
+            connection.ops.execute_sql_flush(FLUSH)
+        except OperationalError as exc:
+            error = exc
     return error, writer_errors
 
 
